@@ -1,0 +1,54 @@
+"""The ``uevavd`` command line. Subcommands live beside the code they run and are
+imported only when invoked, so ``uevavd --help`` stays fast."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: name -> ("module:function" that adds its arguments and returns the handler, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
+    "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="uevavd",
+        description="UAV active object detection on UEVAVD: data, perception, RL viewing policies, ablations.",
+    )
+    parser.add_argument("--version", action="version", version=f"uevavd {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (target, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.set_defaults(_target=target)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    # Only the chosen subcommand's module is imported: parse once to find it, then let it
+    # add its own arguments and parse again.
+    if argv and argv[0] in COMMANDS:
+        name = argv[0]
+        module, func = COMMANDS[name][0].split(":")
+        sub = argparse.ArgumentParser(prog=f"uevavd {name}", description=COMMANDS[name][1])
+        handler = getattr(importlib.import_module(module), func)(sub)
+        args = sub.parse_args(argv[1:])
+        try:
+            return int(handler(args) or 0)
+        except KeyboardInterrupt:
+            print("interrupted; finished work is kept and a rerun resumes", file=sys.stderr)
+            return 130
+    args = parser.parse_args(argv)
+    parser.print_help()
+    return 0 if args.command is None and not argv else 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
