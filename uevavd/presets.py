@@ -1,0 +1,38 @@
+"""Presets (``model_zoo/presets/*.toml``): named bundles of world, perception and
+training settings. ``quick`` runs in minutes on a laptop; ``paper`` is the paper's
+full protocol."""
+
+from __future__ import annotations
+
+import difflib
+import tomllib
+from pathlib import Path
+from typing import Any
+
+ZOO = Path(__file__).resolve().parent / "model_zoo"
+
+
+def preset_dir() -> Path:
+    return ZOO / "presets"
+
+
+def known_presets() -> list[str]:
+    return sorted(p.stem for p in preset_dir().glob("*.toml"))
+
+
+def load_preset(name_or_path: str | Path) -> dict[str, Any]:
+    """The preset as a plain dict. ``name_or_path`` is a preset name or a TOML path.
+
+    An unknown name is a ``ValueError`` that lists the known presets.
+    """
+    p = Path(name_or_path)
+    if p.suffix != ".toml":
+        p = preset_dir() / f"{name_or_path}.toml"
+        if not p.is_file():
+            near = difflib.get_close_matches(str(name_or_path), known_presets(), n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise ValueError(f"unknown preset {name_or_path!r}: known presets are {known_presets()}{hint}")
+    elif not p.is_file():
+        raise FileNotFoundError(f"preset file {p} does not exist")
+    with p.open("rb") as f:
+        return tomllib.load(f)
