@@ -1,0 +1,282 @@
+"""The observation table: the hand-off between perception and reinforcement learning.
+
+For one dataset and one perception config, arrays over (scene, view):
+
+* ``features`` (S, 605, D) float16: encoder features of the (possibly decomposed) view
+* ``probs`` (S, 605, K) float32: classifier probabilities on the *raw* view, K = 5 classes
+* ``boxes`` (S, 605, 4) float32: target box XYXY normalised by (W, H, W, H) to [0, 1];
+  all zero when the target is fully occluded
+* ``visible`` (S, 605) float32: visible fraction of the target, NaN where unknown
+
+plus per-scene ``scenes`` (names), ``contexts`` (ids), ``targets`` (class indices),
+``splits``, and ``meta`` (config, key, versions). On disk a table is a folder
+``<key>/`` of ``.npy`` files and ``meta.json``, written into a temporary folder and
+renamed into place, so a reader never sees a half-written table. Arrays load
+memory-mapped, so an environment step is an array lookup.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..data.grid import N_VIEWS
+from ..data.splits import SPLITS, TARGETS, resolve_split
+
+SCHEMA_VERSION = 1
+ARRAYS = ("features", "probs", "boxes", "visible")
+META_FILE = "meta.json"
+
+
+class TableError(ValueError):
+    """An observation table is invalid, stale or of another schema; the message says why."""
+
+
+def _digest_arrays(*arrays: np.ndarray) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(memoryview(a).cast("B"))
+    return h.hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class ObservationTable:
+    """Perception outputs over (scene, view). Build with :meth:`from_arrays` or :meth:`load`."""
+
+    features: np.ndarray
+    probs: np.ndarray
+    boxes: np.ndarray
+    visible: np.ndarray
+    scenes: tuple[str, ...]
+    contexts: np.ndarray  #: (S,) int64 context ids (0 for scenes that are not contexts)
+    targets: np.ndarray  #: (S,) int64 class index into ``class_names``
+    splits: tuple[str, ...]  #: (S,) "train" / "simple" / "hard"
+    meta: Mapping[str, Any] = field(default_factory=dict)
+    path: Path | None = None
+
+    # -- construction -----------------------------------------------------------------------
+    @classmethod
+    def from_arrays(
+        cls,
+        features: np.ndarray,
+        probs: np.ndarray,
+        boxes: np.ndarray,
+        *,
+        scenes: Sequence[str],
+        targets: Sequence[int] | Sequence[str],
+        splits: Sequence[str],
+        contexts: Sequence[int] | None = None,
+        visible: np.ndarray | None = None,
+        class_names: Sequence[str] = TARGETS,
+        config: Mapping[str, Any] | None = None,
+        key: str | None = None,
+    ) -> ObservationTable:
+        """Build a table from your own perception outputs (shapes as in the module doc).
+
+        ``targets`` are class indices or names; ``key`` defaults to a hash of the arrays
+        and config. Everything is validated (shapes, dtypes, NaN/inf, probabilities).
+        """
+        features = np.asarray(features, dtype=np.float16)
+        probs = np.asarray(probs, dtype=np.float32)
+        boxes = np.asarray(boxes, dtype=np.float32)
+        n = features.shape[0] if features.ndim else 0
+        visible = (
+            np.full((n, N_VIEWS), np.nan, np.float32) if visible is None else np.asarray(visible, np.float32)
+        )
+        class_names = tuple(class_names)
+        tgt = np.array(
+            [class_names.index(t) if isinstance(t, str) else int(t) for t in targets], dtype=np.int64
+        )
+        ctx = np.zeros(n, np.int64) if contexts is None else np.asarray(contexts, dtype=np.int64)
+        config = dict(config or {})
+        meta = {
+            "schema_version": SCHEMA_VERSION,
+            "class_names": list(class_names),
+            "config": config,
+            "key": key or _digest_arrays(features, probs, boxes, visible)
+            + hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:8],
+            "versions": _versions(),
+        }
+        table = cls(features, probs, boxes, visible, tuple(scenes), ctx, tgt, tuple(splits), meta)
+        table.check()
+        return table
+
+    # -- validation -------------------------------------------------------------------------
+    def check(self, where: str = "table") -> None:
+        """Raise :class:`TableError` naming the problem unless the table is consistent."""
+        s = len(self.scenes)
+        f, p, b, v = self.features, self.probs, self.boxes, self.visible
+        if f.ndim != 3 or f.shape[:2] != (s, N_VIEWS):
+            raise TableError(f"{where}: features have shape {f.shape}; expected ({s}, {N_VIEWS}, D)")
+        k = len(self.class_names)
+        if p.shape != (s, N_VIEWS, k):
+            raise TableError(f"{where}: probs have shape {p.shape}; expected ({s}, {N_VIEWS}, {k})")
+        if b.shape != (s, N_VIEWS, 4):
+            raise TableError(f"{where}: boxes have shape {b.shape}; expected ({s}, {N_VIEWS}, 4)")
+        if v.shape != (s, N_VIEWS):
+            raise TableError(f"{where}: visible has shape {v.shape}; expected ({s}, {N_VIEWS})")
+        for name, arr in (("targets", self.targets), ("contexts", self.contexts)):
+            if arr.shape != (s,):
+                raise TableError(f"{where}: {name} has shape {arr.shape}; expected ({s},)")
+        if len(self.splits) != s:
+            raise TableError(f"{where}: {len(self.splits)} splits for {s} scenes")
+        bad = sorted(set(self.splits) - set(SPLITS))
+        if bad:
+            raise TableError(f"{where}: unknown split(s) {bad}; expected among {list(SPLITS)}")
+        if s and (self.targets.min() < 0 or self.targets.max() >= k):
+            raise TableError(f"{where}: target class index out of 0..{k - 1}")
+        for name, arr in (("features", f), ("probs", p), ("boxes", b)):
+            finite = np.isfinite(arr).all(axis=tuple(range(1, arr.ndim)))
+            if not finite.all():
+                i = int(np.flatnonzero(~finite)[0])
+                raise TableError(
+                    f"{where}: {name} contain NaN or inf (first in scene {self.scenes[i]!r}); "
+                    "rebuild the table (`uevavd prepare`) or fix the arrays passed to from_arrays"
+                )
+        if s and not np.allclose(p.sum(-1), 1.0, atol=1e-3):
+            raise TableError(f"{where}: class probabilities do not sum to 1 over the last axis")
+        if s and (b.min() < 0 or b.max() > 1):
+            raise TableError(f"{where}: boxes must be normalised to [0, 1] (XYXY / (W, H, W, H))")
+
+    # -- accessors --------------------------------------------------------------------------
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        return tuple(self.meta.get("class_names", TARGETS))
+
+    @property
+    def key(self) -> str:
+        return str(self.meta.get("key", ""))
+
+    @property
+    def feature_dim(self) -> int:
+        return int(self.features.shape[2])
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def scene_indices(self, split: str) -> np.ndarray:
+        """(n,) int64 indices of the scenes in a split or alias ("train", "test", ...)."""
+        wanted = set(resolve_split(split))
+        return np.array([i for i, s in enumerate(self.splits) if s in wanted], dtype=np.int64)
+
+    def correct(self, thre: float) -> np.ndarray:
+        """(S, 605) bool: the classifier's probability for the true class is above ``thre``."""
+        true_p = np.take_along_axis(self.probs, self.targets[:, None, None], axis=2)[..., 0]
+        return true_p > thre
+
+    def argmax_correct(self) -> np.ndarray:
+        """(S, 605) bool: argmax of the probabilities is the true class (accuracy)."""
+        return self.probs.argmax(-1) == self.targets[:, None]
+
+    def describe(self) -> str:
+        counts = {s: sum(1 for x in self.splits if x == s) for s in SPLITS}
+        return (
+            f"ObservationTable {self.key}: {len(self)} scenes {counts}, features "
+            f"{self.features.shape[2]}-d {self.features.dtype}, classes {list(self.class_names)}"
+        )
+
+    # -- disk -------------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write to folder ``path`` atomically (temp folder + rename). Returns the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+        try:
+            for name in ARRAYS:
+                np.save(tmp / f"{name}.npy", np.ascontiguousarray(getattr(self, name)))
+            meta = dict(self.meta)
+            meta.update(
+                scenes=list(self.scenes),
+                contexts=self.contexts.tolist(),
+                targets=self.targets.tolist(),
+                splits=list(self.splits),
+                shapes={n: list(getattr(self, n).shape) for n in ARRAYS},
+            )
+            with open(tmp / META_FILE, "w", encoding="utf-8") as fh:
+                json.dump(meta, fh, indent=1, sort_keys=True)
+                fh.flush()
+                os.fsync(fh.fileno())
+            if path.exists():
+                old = path.with_name(f".{path.name}.old-{os.getpid()}")
+                os.replace(path, old)
+                os.replace(tmp, path)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, path)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return path
+
+    @classmethod
+    def load(
+        cls, path: str | os.PathLike[str], *, expect_key: str | None = None, mmap: bool = True
+    ) -> ObservationTable:
+        """Load a table folder (memory-mapped). Refuses another schema, another key, or NaN."""
+        path = Path(path)
+        meta_path = path / META_FILE
+        if not meta_path.is_file():
+            raise TableError(
+                f"{path} is not an observation table (no {META_FILE}); build one with `uevavd prepare`"
+            )
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise TableError(f"{meta_path}: unreadable metadata ({exc}); rebuild the table") from None
+        version = meta.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise TableError(
+                f"{path}: table schema version {version} but this uevavd reads version {SCHEMA_VERSION}; "
+                "rebuild it with `uevavd prepare`"
+            )
+        if expect_key is not None and meta.get("key") != expect_key:
+            raise TableError(
+                f"{path}: table key {meta.get('key')} does not match the expected {expect_key} "
+                "(it was built from other inputs or another config); rebuild it"
+            )
+        arrays = {}
+        for name in ARRAYS:
+            f = path / f"{name}.npy"
+            if not f.is_file():
+                raise TableError(f"{path}: missing {f.name}; the table is incomplete, rebuild it")
+            try:
+                arrays[name] = np.load(f, mmap_mode="r" if mmap else None, allow_pickle=False)
+            except ValueError as exc:
+                raise TableError(f"{f}: unreadable array ({exc}); rebuild the table") from None
+            if list(arrays[name].shape) != meta.get("shapes", {}).get(name, list(arrays[name].shape)):
+                raise TableError(f"{f}: shape {arrays[name].shape} disagrees with {META_FILE}; rebuild it")
+        table = cls(
+            scenes=tuple(meta.pop("scenes")),
+            contexts=np.asarray(meta.pop("contexts"), np.int64),
+            targets=np.asarray(meta.pop("targets"), np.int64),
+            splits=tuple(meta.pop("splits")),
+            meta=meta,
+            path=path,
+            **arrays,
+        )
+        table.check(where=str(path))
+        return table
+
+
+def _versions() -> dict[str, str]:
+    from .. import __version__
+
+    out = {"uevavd": __version__, "numpy": np.__version__}
+    try:  # torch is optional for tables built from arrays
+        import torch
+
+        out["torch"] = torch.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    return out

@@ -1,0 +1,84 @@
+"""Hook specifications: the contract between uevavd and its plugins.
+
+Every hook receives one argument, ``registry``, a :class:`~uevavd.plugins.registry.KindRegistry`
+bound to one component kind and to the calling plugin. Call ``registry.add(name, target,
+summary=...)`` once per component, where ``target`` is a ``"module:attr"`` string naming a
+keyword-only builder; the module is imported only when the component is built. Names are
+global per kind: registering a name twice (by any two plugins) is an error naming both.
+
+Hooks are called once, lazily, the first time a registry is needed.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from . import hookspec
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .registry import KindRegistry
+
+
+@hookspec
+def register_segmenters(registry: KindRegistry) -> None:
+    """Register segmenters (kind ``"segmenter"``).
+
+    A builder returns an object satisfying :class:`uevavd.perception.base.Segmenter`: given
+    RGB images (N, H, W, 3) uint8 and target boxes (N, 4) XYXY pixels, it returns the
+    target mask and the masks of the surrounding objects. Example::
+
+        registry.add("sam", "uevavd.perception.sam:build_sam_segmenter",
+                     summary="Segment Anything, box + ring prompts")
+    """
+
+
+@hookspec
+def register_encoders(registry: KindRegistry) -> None:
+    """Register image encoders (kind ``"encoder"``).
+
+    A builder returns a :class:`uevavd.perception.base.Encoder`: images (N, H, W, 3) uint8
+    RGB -> features (N, D) float32. Example::
+
+        registry.add("resnet50", "uevavd.perception.encoders:build_resnet50",
+                     summary="torchvision ResNet50, pooled 2048-d")
+    """
+
+
+@hookspec
+def register_classifiers(registry: KindRegistry) -> None:
+    """Register recognition classifiers (kind ``"classifier"``).
+
+    A builder returns a :class:`uevavd.perception.base.Classifier`: images (N, H, W, 3)
+    uint8 RGB -> class probabilities (N, 5) float32 over ``uevavd.data.splits.TARGETS``.
+    """
+
+
+@hookspec
+def register_state_estimators(registry: KindRegistry) -> None:
+    """Register state estimators (kind ``"state"``).
+
+    A builder returns a ``torch.nn.Module`` mapping per-step inputs g_t (B, T, G) and a
+    validity mask (B, T) to states s_t (B, T, S), see :mod:`uevavd.state.base`. Example::
+
+        registry.add("gru", "uevavd.state.gru:build_gru", summary="GRU over the episode")
+    """
+
+
+@hookspec
+def register_heads(registry: KindRegistry) -> None:
+    """Register Q-value heads (kind ``"head"``).
+
+    A builder returns a ``torch.nn.Module`` mapping states (..., S) to Q-values over the
+    action space, see :mod:`uevavd.policy.heads`.
+    """
+
+
+@hookspec
+def register_methods(registry: KindRegistry) -> None:
+    """Register AOD methods (kind ``"method"``): TOML method configs.
+
+    ``target`` is ``"package:relative/path.toml"`` (a file inside an importable package)
+    or an absolute path. Example::
+
+        registry.add("my_map", "my_pkg:methods/my_map.toml", summary="MAP with a ViT")
+    """
