@@ -193,14 +193,11 @@ def _rows_from_csv(text: str, where: str) -> list[tuple[str, str, object]]:
     if not any(_NUMBER.match(c) for c in header) and any(k in header for k in _NAME_KEYS):
         name_col = next(header.index(k) for k in _NAME_KEYS if k in header)
         for i, row in enumerate(rows[1:], start=2):
-            rec = {h: c for h, c in zip(header, row, strict=False)}
-            obj: object = rec
+            rec = {h: c for j, (h, c) in enumerate(zip(header, row, strict=False)) if j != name_col}
             for key in _BOX_KEYS:
                 if key in rec:
-                    obj = {"bbox": re.findall(r"[+-]?[\d.]+(?:[eE][+-]?\d+)?", rec[key])}
-                    label = next((rec[k] for k in _LABEL_KEYS if k in rec and k != "name"), None)
-                    if label:
-                        obj["label"] = label
+                    rec[key] = re.findall(r"[+-]?[\d.]+(?:[eE][+-]?\d+)?", rec[key])
+            obj: object = rec
             name = row[name_col] if name_col < len(row) else ""
             out.append((name, f"{where} row {i}", obj))
         return out

@@ -59,6 +59,10 @@ class NameParseError(ValueError):
     """A scene-folder or view file name that cannot be parsed; the message says why."""
 
 
+class UnknownTargetError(NameParseError):
+    """A name whose target word is none of the five classes."""
+
+
 @dataclass(frozen=True)
 class SceneId:
     """A parsed scene folder: ``kind`` is "context", "unoccluded" or "classifier"."""
@@ -92,7 +96,7 @@ def normalize_target(name: str) -> str:
     key = re.sub(r"[^a-z]", "", str(name).lower())
     if key in TARGET_ALIASES:
         return TARGET_ALIASES[key]
-    raise NameParseError(f"unknown target {name!r}: expected one of {list(TARGETS)} (any case/separators)")
+    raise UnknownTargetError(f"unknown target {name!r}: expected one of {list(TARGETS)} (any case/separators)")
 
 
 def parse_scene_dir(name: str) -> SceneId:

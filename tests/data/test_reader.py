@@ -1,0 +1,247 @@
+"""The reader: variant names and annotation formats in, one ordered manifest out;
+broken datasets rejected with messages naming the file."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uevavd.data.annotations import AnnotationError, parse_box_obj, parse_box_text, parse_voc_xml, read_table
+from uevavd.data.grid import N_VIEWS, coords_to_view
+from uevavd.data.naming import NameParseError, normalize_target, parse_scene_dir, parse_view_stem
+from uevavd.data.reader import DatasetError, Manifest, ViewRecord, image_size, read_dataset, scan
+from uevavd.data.splits import TARGETS
+
+# -- names ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "stem, xyz, target, scene",
+    [
+        ("x-50_y+40_z080_sedan_001", (-50, 40, 80), "sedan", "1"),
+        ("-50_40_80_SportsCar_12", (-50, 40, 80), "sportscar", "12"),
+        ("x-50-y40-z80-Sports-Car-12", (-50, 40, 80), "sportscar", "12"),
+        ("-50-40-80-SUV-3", (-50, 40, 80), "suv", "3"),
+        ("-50--40-80-suv", (-50, -40, 80), "suv", None),
+        ("x50 y-40 z100 sports car 7", (50, -40, 100), "sportscar", "7"),
+        ("X=-50_Y=40_Z=80_pickup_scene_3", (-50, 40, 80), "pickup", "3"),
+        ("y+40_x-50_z080_Pick-up", (-50, 40, 80), "pickup", None),
+        ("x-50y+40z080_sedan_00", (-50, 40, 80), "sedan", "0"),
+        ("12_Hatch_Back_-50_40_80", (-50, 40, 80), "hatchback", "12"),
+        ("x+00_y-00_z060_Sports_Car_train_605", (0, 0, 60), "sportscar", "train_605"),
+    ],
+)
+def test_view_name_variants(stem, xyz, target, scene):
+    p = parse_view_stem(stem)
+    assert (p.xyz, p.target, p.scene) == (xyz, target, scene)
+
+
+@pytest.mark.parametrize("stem, says", [
+    ("x-50_y+40_z080_truck_001", "unknown target 'truck'"),
+    ("1_2_sedan_3", "expected three coordinates"),
+    ("x-50_y+40_x-40_sedan_001", "axis letters"),
+    ("x-50_y+40_z080_001", "no target"),
+    ("x-50_y+40_z080_sedan_001_002", "more than one scene id"),
+])
+def test_view_name_rejects(stem, says):
+    with pytest.raises(NameParseError, match=says):
+        parse_view_stem(stem)
+
+
+@pytest.mark.parametrize("spelling", ["SportsCar", "Sports_Car", "sportscar", "sports car", "Sports-Car", "SPORTS CAR"])
+def test_target_spellings(spelling):
+    assert normalize_target(spelling) == "sportscar"
+    assert normalize_target("SUV") == "suv" and normalize_target("Pick-up truck") == "pickup"
+
+
+@pytest.mark.parametrize("name, kind, context", [
+    ("001", "context", 1), ("1", "context", 1), ("scene_001", "context", 1), ("context_1", "context", 1),
+    ("150", "context", 150), ("00", "unoccluded", None), ("train_605", "classifier", None),
+])
+def test_scene_folder_names(name, kind, context):
+    sid = parse_scene_dir(name)
+    assert (sid.kind, sid.context) == (kind, context)
+    with pytest.raises(NameParseError, match="out of range"):
+        parse_scene_dir("151")
+
+
+# -- annotations -------------------------------------------------------------------------
+
+
+def test_annotation_formats():
+    assert parse_box_text("1 2 5 6").box == (1, 2, 5, 6)
+    assert parse_box_text("1,2,5,6\n").box == (1, 2, 5, 6)
+    a = parse_box_text("sedan 1.0 2 5 6")
+    assert (a.box, a.label) == ((1, 2, 5, 6), "sedan")
+    assert parse_box_text("[1, 2, 5, 6]").box == (1, 2, 5, 6)
+    assert parse_box_obj({"bbox": [1, 2, 5, 6]}).box == (1, 2, 5, 6)
+    assert parse_box_obj({"box": [1, 2, 5, 6], "label": "suv"}).label == "suv"
+    assert parse_box_obj([1, 2, 5, 6]).box == (1, 2, 5, 6)
+    assert parse_box_obj({"x1": 1, "y1": 2, "x2": 5, "y2": 6}).box == (1, 2, 5, 6)
+    voc = "<annotation><object><name>suv</name><bndbox><xmin>1</xmin><ymin>2</ymin><xmax>5</xmax><ymax>6</ymax></bndbox></object></annotation>"
+    assert parse_voc_xml(voc).box == (1, 2, 5, 6)
+    assert parse_voc_xml("<annotation></annotation>").box == (0, 0, 0, 0)
+    for bad in ("", "1 2 3", "a b c d", "1 2 3 4\n5 6 7 8"):
+        with pytest.raises(AnnotationError, match="x1 y1 x2 y2|expected one box"):
+            parse_box_text(bad, "f.txt")
+    with pytest.raises(AnnotationError, match="not well-formed"):
+        parse_voc_xml("<annotation><object>", "f.xml")
+
+
+def test_table_rows_are_reported(tmp_path):
+    t = tmp_path / "annotations.csv"
+    t.write_text("image,x1,y1,x2,y2\na.png,1,2,3,4\nb.png,1,2,x,4\n")
+    boxes, errors = read_table(t)
+    assert boxes == {"a": boxes["a"]} and boxes["a"].box == (1, 2, 3, 4)
+    assert len(errors) == 1 and "annotations.csv row 3" in errors[0]
+
+
+# -- whole datasets ----------------------------------------------------------------------
+
+
+def test_reads_every_variant(variant_root):
+    root, expected = variant_root
+    m = read_dataset(root)
+    assert isinstance(m, Manifest) and len(m) == len(expected)
+    assert m.image_size == (8, 8)
+    got = {(r.scene, r.target, r.view): (r.image.name, r.box) for r in m}
+    assert got == expected
+    assert m.scenes() == ["001", "2", "scene_003", "context_4", "005", "006", "007", "8", "009", "00", "train_605"]
+    assert m.contexts() == {1: "sedan", 2: "sportscar", 3: "sportscar", 4: "sportscar", 5: "suv",
+                            6: "pickup", 7: "hatchback", 8: "hatchback", 9: "hatchback"}
+    for r in m:
+        assert isinstance(r, ViewRecord)
+        assert coords_to_view(*r.xyz) == r.view and r.target in TARGETS
+        assert r.split == ("train" if r.context else None)
+
+
+def test_order_is_scene_target_view(variant_root):
+    m = read_dataset(variant_root[0])
+    scene_rank = {s: i for i, s in enumerate(m.scenes())}
+    keys = [(scene_rank[r.scene], TARGETS.index(r.target), r.view) for r in m]
+    assert keys == sorted(keys) and len(set(keys)) == len(keys)
+    assert [r.target for r in m.select(scenes="00")][:: N_VIEWS] == ["pickup", "sedan"]
+
+
+def test_manifest_arrays_and_select(variant_root):
+    m = read_dataset(variant_root[0])
+    boxes, views = m.boxes(), m.views()
+    assert boxes.shape == (len(m), 4) and boxes.dtype == np.int32
+    assert views.dtype == np.int64 and views.max() == N_VIEWS - 1
+    assert not boxes.flags.writeable
+    assert m.occluded().sum() == sum(1 for r in m if r.box == (0, 0, 0, 0)) > 0
+    sub = m.select(targets=["Sports Car"])
+    assert {r.target for r in sub} == {"sportscar"} and len(sub) == 3 * N_VIEWS
+    assert len(m.select(split="train")) == 9 * N_VIEWS
+    assert len(m.select(split="test")) == 0
+    assert len(m.select(contexts=[1, 7])) == 2 * N_VIEWS
+    i = m.index("001", "sedan", 42)
+    assert m[i].view == 42 and m[i].scene == "001"
+    with pytest.raises(ValueError, match="unknown scene"):
+        m.select(scenes=["077"])
+
+
+def test_segmentation_categories_and_visible(variant_root):
+    m = read_dataset(variant_root[0])
+    s1 = m.select(scenes=["001"])
+    assert all(r.seg is not None and r.seg.parent.name == "seg" for r in s1)
+    assert all(r.seg is None for r in m.select(scenes=["005"]))
+    assert m.categories("001") == {0: "none", 1: "target", 2: "building"}
+    assert m.categories("005") is None
+    vis = s1.visible()
+    assert vis.dtype == np.float32 and np.allclose(vis, np.round(s1.views() / N_VIEWS, 4))
+    assert np.isnan(m.select(scenes=["005"]).visible()).all()
+
+
+def test_order_ignores_creation_order(tmp_path, write_scene_fn):
+    manifests = []
+    for seed in (1, 2):
+        root = tmp_path / f"r{seed}"
+        order = ["012", "3", "00"] if seed == 1 else ["00", "3", "012"]
+        for tok in order:
+            targets = ["suv", "pickup"] if tok == "00" else ["suv"]
+            for t in (targets if seed == 1 else targets[::-1]):
+                write_scene_fn(root / tok, target=t, token=tok, seed=seed)
+        manifests.append(read_dataset(root))
+    a, b = ([(r.scene, r.target, r.view, r.image.name, r.box) for r in m] for m in manifests)
+    assert a == b
+    assert [s for s in manifests[0].scenes()] == ["3", "012", "00"]
+
+
+def test_broken_dataset_names_every_file(broken_root):
+    root, defects = broken_root
+    with pytest.raises(DatasetError) as info:
+        read_dataset(root)
+    err = info.value
+    by_kind = {}
+    for p in err.problems:
+        by_kind.setdefault(p.kind, []).append(p)
+    for kind, where in defects.items():
+        if kind == "truncated_image":
+            continue  # the header is intact: only decoding (validate) finds it
+        assert kind in by_kind, f"{kind} not reported; got {sorted(by_kind)}"
+        text = " | ".join(str(p) for p in by_kind[kind])
+        assert str(where) in text, f"{kind}: {where} not named in {text}"
+        assert str(where) in str(err)
+    missing = by_kind["missing_views"][0]
+    assert missing.path == root / "001" and "604 of 605" in missing.message
+    assert "leaves the 8x8 image" in str(by_kind["box_outside"][0])
+    assert "x2 > x1" in str(by_kind["box_inverted"][0])
+    assert "expected exactly one target" in str(by_kind["two_targets"][0])
+    # Without checks the reader returns what parsed and keeps the problems.
+    m = read_dataset(root, check=False)
+    assert len(m) > 9 * N_VIEWS and m.problems
+
+
+def test_missing_and_damaged_pieces(tmp_path, write_scene_fn):
+    files = write_scene_fn(tmp_path / "001", target="sedan", token="001")
+    read_dataset(tmp_path)  # clean
+    name = files[300][0]
+    ann = tmp_path / "001" / (Path(name).stem + ".txt")
+    ann.write_text("3 3 3 5\n")
+    with pytest.raises(DatasetError, match=str(tmp_path / "001" / name).replace("+", r"\+")):
+        read_dataset(tmp_path)
+    ann.unlink()
+    with pytest.raises(DatasetError, match="no box annotation"):
+        read_dataset(tmp_path)
+    (tmp_path / "001" / "annotations.json").write_text(json.dumps({name: [1, 1, 4, 4]}))
+    assert read_dataset(tmp_path).select(scenes="001")[300].box == (1, 1, 4, 4)
+
+
+def test_scene_mismatch_and_unknown_folder(tmp_path, write_scene_fn):
+    write_scene_fn(tmp_path / "001", target="sedan", token="002")
+    write_scene_fn(tmp_path / "misc", target="sedan", token="003", views=[0])
+    problems = scan(tmp_path)[1]
+    kinds = {p.kind for p in problems}
+    assert {"scene_mismatch", "unknown_scene"} <= kinds
+    assert any(p.path == tmp_path / "misc" for p in problems)
+    with pytest.raises(FileNotFoundError, match="not a folder"):
+        read_dataset(tmp_path / "nowhere")
+
+
+def test_image_size_from_header(tmp_path):
+    from conftest import encoded
+
+    for ext in (".png", ".jpg"):
+        f = tmp_path / f"a{ext}"
+        f.write_bytes(encoded(ext, 16))
+        assert image_size(f) == (16, 16)
+    bad = tmp_path / "b.png"
+    bad.write_bytes(b"not an image")
+    with pytest.raises(ValueError, match="b.png"):
+        image_size(bad)
+
+
+def test_copy_reads_the_same(variant_root, tmp_path):
+    """Moving a dataset keeps its manifest (paths are relative to the root)."""
+    src, _ = variant_root
+    dst = tmp_path / "copy"
+    shutil.copytree(src / "urban", dst / "urban")
+    a = read_dataset(src).select(scenes=["001", "2"])
+    b = read_dataset(dst)
+    assert [(r.scene, r.view, r.image.relative_to(src), r.box) for r in a] == [
+        (r.scene, r.view, r.image.relative_to(dst), r.box) for r in b]

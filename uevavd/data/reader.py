@@ -1,0 +1,396 @@
+"""Read a UEVAVD-layout root (the real release or the synthetic world) into a manifest.
+
+:func:`read_dataset` walks ``ROOT`` (scene folders directly below it, or nested one
+level such as ``ROOT/urban/001``), parses every image name (:mod:`.naming`) and its box
+annotation (:mod:`.annotations`) and returns an immutable :class:`Manifest` of
+:class:`ViewRecord` in a deterministic order: context scenes by id, then ``"00"``, then
+``"train_605"``; within a scene by target (class-index order), then view index.
+Nothing is decoded here, so 10^5 views take seconds; :func:`uevavd.data.validate.validate`
+decodes every image.
+
+With ``check=True`` every problem (each naming its file and what was expected) is
+collected and raised together as one :class:`DatasetError`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import struct
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+from .annotations import (
+    ANNOTATION_EXTS,
+    AnnotationError,
+    BoxAnnotation,
+    is_table_name,
+    read_box_file,
+    read_table,
+)
+from .grid import N_VIEWS, coords_to_view, view_coords
+from .layout import CATEGORIES, SCENE_META, SEG_DIR, view_stem
+from .naming import (
+    NameParseError,
+    SceneId,
+    UnknownTargetError,
+    is_image_name,
+    normalize_target,
+    parse_scene_dir,
+    parse_view_stem,
+    scene_matches,
+)
+from .records import Manifest, ViewRecord
+from .splits import TARGETS, split_of
+
+__all__ = [
+    "DatasetError",
+    "Manifest",
+    "Problem",
+    "ViewRecord",
+    "image_size",
+    "read_dataset",
+    "scan",
+]
+
+#: Sub-folders of a scene that may hold the per-image annotation files.
+ANNOTATION_DIRS: tuple[str, ...] = ("annotations", "annotation", "labels", "boxes", "bboxes", "gt")
+_MAX_LISTED = 12
+
+# Canonical names (layout.view_stem) take a fast path; everything else goes to naming.
+_CANONICAL = re.compile(r"^x([+-]\d{2,3})_y([+-]\d{2,3})_z(\d{3})_([a-z]+)_(\d{2,3}|train_605)$")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One problem found in a dataset: a ``kind`` (e.g. "missing_annotation"), the file
+    or folder it concerns, and a message saying what was expected."""
+
+    kind: str
+    path: Path
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.message}"
+
+
+class DatasetError(ValueError):
+    """A dataset with problems; ``problems`` lists them all, each naming its file."""
+
+    def __init__(self, root: Path, problems: list[Problem]):
+        self.root = Path(root)
+        self.problems = list(problems)
+        counts = Counter(p.kind for p in self.problems)
+        head = f"{len(self.problems)} problem(s) in dataset {self.root} (" + ", ".join(
+            f"{k}: {n}" for k, n in sorted(counts.items())
+        ) + "); run `uevavd validate ROOT --verbose` for a full report:"
+        super().__init__("\n  ".join([head, *(str(p) for p in self.problems)]))
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(H, W) of a PNG or JPEG read from its header only. Raises ``ValueError`` naming
+    the file when the header is missing or not a PNG/JPEG."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(32)
+        if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24 and head[12:16] == b"IHDR":
+            w, h = struct.unpack(">II", head[16:24])
+            return int(h), int(w)
+        if head[:2] == b"\xff\xd8":
+            f.seek(2)
+            while True:
+                marker = f.read(2)
+                if len(marker) < 2 or marker[0] != 0xFF:
+                    break
+                if marker[1] in (0xD8, 0x01) or 0xD0 <= marker[1] <= 0xD7:
+                    continue
+                length_bytes = f.read(2)
+                if len(length_bytes) < 2:
+                    break
+                (length,) = struct.unpack(">H", length_bytes)
+                if marker[1] in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
+                    data = f.read(5)
+                    if len(data) < 5:
+                        break
+                    h, w = struct.unpack(">HH", data[1:5])
+                    return int(h), int(w)
+                f.seek(length - 2, os.SEEK_CUR)
+    raise ValueError(f"{path}: not a readable PNG or JPEG header; expected a .png or .jpg image")
+
+
+def _has_images(path: Path) -> bool:
+    try:
+        with os.scandir(path) as it:
+            return any(e.is_file() and is_image_name(e.name) for e in it)
+    except OSError:
+        return False
+
+
+def _subdirs(path: Path) -> list[os.DirEntry]:
+    with os.scandir(path) as it:
+        return sorted((e for e in it if e.is_dir() and not e.name.startswith(".")), key=lambda e: e.name)
+
+
+def find_scenes(root: Path, problems: list[Problem]) -> list[tuple[SceneId, Path]]:
+    """Scene folders below ``root`` (directly or nested one level), sorted by scene
+    order; unrecognised folders holding images and duplicate scenes become problems."""
+    found: list[tuple[SceneId, Path]] = []
+
+    def consider(entry: os.DirEntry, depth: int) -> None:
+        try:
+            found.append((parse_scene_dir(entry.name), Path(entry.path)))
+            return
+        except NameParseError as e:
+            if _has_images(Path(entry.path)):
+                problems.append(Problem("unknown_scene", Path(entry.path), str(e)))
+                return
+        if depth == 0:
+            for sub in _subdirs(Path(entry.path)):
+                consider(sub, 1)
+
+    for entry in _subdirs(root):
+        consider(entry, 0)
+    if _has_images(root):
+        problems.append(Problem("unknown_scene", root, "images directly in ROOT; expected them in scene folders "
+                                "('001'..'150', '00', 'train_605')"))
+    by_key: dict[tuple, list[Path]] = defaultdict(list)
+    for sid, path in found:
+        by_key[(sid.kind, sid.context)].append(path)
+    out = []
+    for sid, path in sorted(found, key=lambda sp: (sp[0].sort_key, str(sp[1]))):
+        paths = by_key[(sid.kind, sid.context)]
+        if len(paths) > 1:
+            if path != paths[0]:
+                continue
+            problems.append(Problem("duplicate_scene", path, f"the same scene is also in {[str(p) for p in paths[1:]]}; "
+                                    "expected one folder per scene (the others are skipped)"))
+        out.append((sid, path))
+    if not out:
+        problems.append(Problem("no_scenes", root, "no scene folders found; expected ROOT/001 .. ROOT/150, "
+                                "ROOT/00, ROOT/train_605 (or nested one level)"))
+    return out
+
+
+def _parse_name(stem: str):
+    m = _CANONICAL.match(stem)
+    if m and m.group(4) in TARGETS:
+        scene = m.group(5)
+        return (int(m.group(1)), int(m.group(2)), int(m.group(3))), m.group(4), (
+            scene if scene == "train_605" else str(int(scene)))
+    p = parse_view_stem(stem)
+    return p.xyz, p.target, p.scene
+
+
+def _read_visible(scene_dir: Path, problems: list[Problem]) -> dict[str, float]:
+    path = scene_dir / SCENE_META
+    if not path.is_file():
+        return {}
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        problems.append(Problem("unparseable_metadata", path, f"cannot read ({e}); expected a JSON object"))
+        return {}
+    vis = meta.get("visible") if isinstance(meta, dict) else None
+    if isinstance(vis, dict):
+        return {str(k): float(v) for k, v in vis.items() if isinstance(v, int | float)}
+    return {}
+
+
+def _load_tables(scene_dir: Path, files: list[str], problems: list[Problem]) -> dict[str, BoxAnnotation]:
+    merged: dict[str, BoxAnnotation] = {}
+    for name in files:
+        if not is_table_name(name):
+            continue
+        path = scene_dir / name
+        try:
+            boxes, errors = read_table(path)
+        except AnnotationError as e:
+            problems.append(Problem("unparseable_annotation", path, str(e)))
+            continue
+        problems.extend(Problem("unparseable_annotation", path, msg) for msg in errors)
+        for k, v in boxes.items():
+            merged.setdefault(k, v)
+    return merged
+
+
+def _list_files(path: Path) -> list[str]:
+    try:
+        with os.scandir(path) as it:
+            return sorted(e.name for e in it if e.is_file())
+    except OSError:
+        return []
+
+
+def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Problem]):
+    """Records of one scene (sorted), its image size (H, W) or None."""
+    files = _list_files(scene_dir)
+    ann_files: dict[str, Path] = {}
+    for d in [scene_dir, *(scene_dir / a for a in ANNOTATION_DIRS)]:
+        names = files if d == scene_dir else _list_files(d)
+        for name in names:
+            stem, ext = os.path.splitext(name)
+            ext = ext.lower()
+            if ext in ANNOTATION_EXTS and not is_table_name(name) and name not in (SCENE_META, CATEGORIES):
+                prev = ann_files.get(stem)
+                if prev is None or ANNOTATION_EXTS.index(ext) < ANNOTATION_EXTS.index(prev.suffix.lower()):
+                    ann_files[stem] = d / name
+    table = _load_tables(scene_dir, files, problems)
+    seg_names = {os.path.splitext(n)[0]: n for n in _list_files(scene_dir / SEG_DIR) if n.lower().endswith(".png")}
+    visible = _read_visible(scene_dir, problems)
+    images = [n for n in files if is_image_name(n)]
+    size = None
+    if images:
+        try:
+            size = image_size(scene_dir / images[0])
+        except (OSError, ValueError) as e:
+            problems.append(Problem("unreadable_image", scene_dir / images[0], str(e)))
+    records: list[ViewRecord] = []
+    seen: dict[tuple[str, int], list[Path]] = defaultdict(list)
+    for name in images:
+        path = scene_dir / name
+        stem = os.path.splitext(name)[0]
+        try:
+            xyz, target, token = _parse_name(stem)
+        except UnknownTargetError as e:
+            problems.append(Problem("unknown_target", path, str(e)))
+            continue
+        except NameParseError as e:
+            problems.append(Problem("unparseable_name", path, str(e)))
+            continue
+        if token is not None and not scene_matches(token, sid):
+            problems.append(Problem("scene_mismatch", path, f"the name says scene {token!r} but the file is in "
+                                    f"folder {sid.name!r}; expected the folder's scene id"))
+            continue
+        try:
+            view = coords_to_view(*xyz)
+        except ValueError as e:
+            problems.append(Problem("off_grid", path, f"{e} (coordinates {xyz} from the file name)"))
+            continue
+        seen[(target, view)].append(path)
+        ann_path = ann_files.get(stem)
+        try:
+            if ann_path is not None:
+                ann = read_box_file(ann_path)
+            elif stem in table:
+                ann = table[stem]
+            else:
+                problems.append(Problem("missing_annotation", path, f"no box annotation: expected {stem}.txt, "
+                                        f".json or .xml beside it, or a row for {name!r} in annotations.csv"))
+                continue
+        except AnnotationError as e:
+            problems.append(Problem("unparseable_annotation", ann_path or path, str(e)))
+            continue
+        if check and ann.label is not None:
+            try:
+                label_target = normalize_target(ann.label)
+            except NameParseError:
+                label_target = None
+            if label_target is not None and label_target != target:
+                problems.append(Problem("label_mismatch", ann_path or path, f"annotation class {ann.label!r} "
+                                        f"disagrees with the target {target!r} in the image name {name!r}"))
+                continue
+        seg = scene_dir / SEG_DIR / seg_names[stem] if stem in seg_names else None
+        records.append(ViewRecord(
+            scene=sid.name,
+            context=sid.context,
+            split=split_of(sid.context) if sid.context is not None else None,
+            target=target,
+            view=view,
+            xyz=(int(xyz[0]), int(xyz[1]), int(xyz[2])),
+            image=path,
+            box=ann.box,
+            seg=seg,
+            visible=visible.get(stem),
+        ))
+    if check:
+        _check_scene(sid, scene_dir, records, seen, size, problems)
+    records.sort(key=lambda r: (TARGETS.index(r.target), r.view, str(r.image)))
+    return records, size
+
+
+def _check_box(rec: ViewRecord, size: tuple[int, int] | None, problems: list[Problem]) -> bool:
+    x1, y1, x2, y2 = rec.box
+    if rec.box == (0, 0, 0, 0):
+        return True
+    if x2 <= x1 or y2 <= y1:
+        problems.append(Problem("box_inverted", rec.image, f"box {list(rec.box)} is inverted or empty: expected "
+                                "x2 > x1 and y2 > y1 (XYXY pixels), or 0 0 0 0 for a fully occluded target"))
+        return False
+    if size is not None:
+        h, w = size
+        if x1 < 0 or y1 < 0 or x2 > w or y2 > h:
+            problems.append(Problem("box_outside", rec.image, f"box {list(rec.box)} leaves the {w}x{h} image: "
+                                    f"expected 0 <= x1 < x2 <= {w} and 0 <= y1 < y2 <= {h}"))
+            return False
+    return True
+
+
+def _fmt_view(v: int) -> str:
+    x, y, z = (int(c) for c in view_coords(v))
+    return f"({x:+d}, {y:+d}, {z})"
+
+
+def _check_scene(sid, scene_dir, records, seen, size, problems) -> None:
+    records[:] = [r for r in records if _check_box(r, size, problems)]
+    targets = sorted({t for t, _ in seen}, key=TARGETS.index)
+    if sid.kind == "context" and len(targets) > 1:
+        counts = Counter(t for t, _ in seen)
+        problems.append(Problem("two_targets", scene_dir, f"context scene holds {len(targets)} targets "
+                                f"{dict(sorted(counts.items()))}; expected exactly one target per context"))
+    for (target, view), paths in sorted(seen.items()):
+        if len(paths) > 1:
+            problems.append(Problem("duplicate_view", paths[0], f"view {view} {_fmt_view(view)} of {target} also "
+                                    f"in {[p.name for p in paths[1:]]}; expected one image per view"))
+    for target in targets:
+        have = {v for t, v in seen if t == target}
+        missing = [v for v in range(N_VIEWS) if v not in have]
+        if missing:
+            listed = ", ".join(view_stem(*view_coords(v), target, sid.name) for v in missing[:_MAX_LISTED])
+            more = f" and {len(missing) - _MAX_LISTED} more" if len(missing) > _MAX_LISTED else ""
+            problems.append(Problem("missing_views", scene_dir, f"{target}: {len(have)} of {N_VIEWS} views; "
+                                    f"missing {len(missing)}: {listed}{more}"))
+
+
+def scan(root: str | Path, *, check: bool = True) -> tuple[Manifest, list[Problem]]:
+    """Read ``root`` without raising: the manifest of every record that parsed, and the
+    list of problems (checks as in :func:`read_dataset`)."""
+    root = Path(root).expanduser()
+    problems: list[Problem] = []
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset root {root} is not a folder; expected a UEVAVD-layout root "
+                                "(ROOT/001 .. ROOT/150, ROOT/00, ROOT/train_605)")
+    records: list[ViewRecord] = []
+    sizes: dict[tuple[int, int], list[Path]] = defaultdict(list)
+    scene_dirs: dict[str, Path] = {}
+    for sid, scene_dir in find_scenes(root, problems):
+        recs, size = _scan_scene(sid, scene_dir, check, problems)
+        records.extend(recs)
+        scene_dirs[sid.name] = scene_dir
+        if size is not None:
+            sizes[size].append(scene_dir)
+    ranked = sorted(sizes.items(), key=lambda kv: (-len(kv[1]), kv[0]))
+    if check and len(ranked) > 1:
+        (common, _), rest = ranked[0], ranked[1:]
+        for size, dirs in rest:
+            for d in dirs:
+                problems.append(Problem("mixed_sizes", d, f"images are {size[0]}x{size[1]} (HxW) but most scenes "
+                                        f"are {common[0]}x{common[1]}; expected one image size"))
+    image_hw = ranked[0][0] if ranked else (0, 0)
+    return Manifest(root, records, image_hw, scene_dirs=scene_dirs, problems=problems), problems
+
+
+def read_dataset(root: str | Path, *, check: bool = True) -> Manifest:
+    """Read a UEVAVD-layout root into a :class:`Manifest` (no image decoding).
+
+    ``check=True`` also checks 605 views per (scene, target), one target per context,
+    box validity against the image size (read from one header per scene), that every
+    image has an annotation, and one image size overall; it raises :class:`DatasetError`
+    listing every problem. ``check=False`` returns whatever parsed (``manifest.problems``
+    holds what did not).
+    """
+    manifest, problems = scan(root, check=check)
+    if check and problems:
+        raise DatasetError(manifest.root, problems)
+    return manifest
