@@ -54,8 +54,10 @@ def _truthy(name: str) -> bool:
 class PluginManager:
     """Owns the pluggy manager and the component registry; loads on first use."""
 
-    def __init__(self, default_plugins: tuple[str, ...] = DEFAULT_PLUGINS):
+    def __init__(self, default_plugins: tuple[str, ...] = DEFAULT_PLUGINS, *, autoload: bool | None = None):
+        """``autoload``: load entry points (None: unless UEVAVD_DISABLE_PLUGIN_AUTOLOAD is set)."""
         self._default_plugins = default_plugins
+        self._autoload = autoload
         self._lock = threading.RLock()
         self._loaded = False
         self._pm: pluggy.PluginManager | None = None
@@ -82,7 +84,7 @@ class PluginManager:
         self.ensure_loaded()
         pname = name or getattr(plugin, "__name__", None) or type(plugin).__name__
         with self._lock:
-            info = self._load_one(pname, plugin, version="local", builtin=False, source=pname, strict=True)
+            info = self._load_one(pname, plugin, version="local", builtin=False, source="code", strict=True)
             self._extra.append((pname, plugin))
             return info
 
@@ -132,7 +134,8 @@ class PluginManager:
             module = importlib.import_module(modname)
             self._load_one(modname, module, version=__version__, builtin=True, source=modname, strict=True)
 
-        if _truthy("UEVAVD_DISABLE_PLUGIN_AUTOLOAD"):
+        autoload = self._autoload if self._autoload is not None else not _truthy("UEVAVD_DISABLE_PLUGIN_AUTOLOAD")
+        if not autoload:
             return
         for ep in sorted(metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
             version = ep.dist.version if ep.dist is not None else "?"
@@ -187,7 +190,9 @@ class PluginManager:
     ) -> PluginInfo:
         message = f"uevavd plugin {name!r} (version {version}, from {source}) failed and was skipped: {error}"
         if strict or builtin:
-            hint = "" if builtin else " (UEVAVD_STRICT_PLUGINS is set; unset it to skip broken plugins)"
+            hint = ""
+            if not builtin and source != "code":
+                hint = " (UEVAVD_STRICT_PLUGINS is set; unset it to skip broken plugins)"
             raise PluginError(message.replace(" and was skipped", "") + hint)
         warnings.warn(
             message + ". Block it with UEVAVD_DISABLED_PLUGINS or make this fatal with UEVAVD_STRICT_PLUGINS=1",

@@ -1,0 +1,72 @@
+"""The example plugin package in examples/ installs with pip and appears through its entry point."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uevavd.plugins.manager import manager
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "uevavd-example-plugin"
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    target = tmp_path_factory.mktemp("site")
+    cmd = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+           "--no-index", "--target", str(target), str(EXAMPLE)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert list(target.glob("uevavd_example_plugin-0.2.0.dist-info"))
+    return target
+
+
+@pytest.fixture
+def example_loaded(installed, monkeypatch):
+    monkeypatch.syspath_prepend(str(installed))
+    monkeypatch.setenv("UEVAVD_DISABLE_PLUGIN_AUTOLOAD", "0")
+    manager.reset()
+    yield manager
+    manager.reset()
+
+
+def test_example_plugin_appears_through_its_entry_point(example_loaded):
+    reg = example_loaded.registry
+    assert reg.get("encoder", "color_hist").plugin == "example"
+    assert reg.get("encoder", "color_hist").plugin_version == "0.2.0"
+    assert "box" in reg.names("segmenter")
+    assert "memo_map_hist" in reg.names("method")
+    info = next(p for p in example_loaded.plugins if p.name == "example")
+    assert info.status == "loaded" and not info.builtin
+
+
+def test_example_components_work_and_pass_the_contract(example_loaded):
+    import uevavd_example_plugin
+
+    from uevavd.testing import check_plugin_module
+
+    entries = check_plugin_module(uevavd_example_plugin, name="example-under-test")
+    assert {e.name for e in entries} == {"color_hist", "box", "memo_map_hist"}
+    enc = example_loaded.registry.build("encoder", "color_hist", bins=4)
+    images = np.random.default_rng(0).integers(0, 256, (3, 16, 16, 3), dtype=np.uint8)
+    feats = enc.encode(images)
+    assert feats.shape == (3, 12) and feats.dtype == np.float32
+    np.testing.assert_allclose(feats.reshape(3, 3, 4).sum(-1), 1.0, rtol=1e-6)
+    seg = example_loaded.registry.build("segmenter", "box")
+    out = seg.segment(images, np.array([[4, 4, 12, 12]] * 3))
+    assert out[0].target.sum() == 64 and not any((m & out[0].target).any() for m in out[0].segments)
+
+
+def test_plugins_disabled_by_name(installed, monkeypatch):
+    monkeypatch.syspath_prepend(str(installed))
+    monkeypatch.setenv("UEVAVD_DISABLE_PLUGIN_AUTOLOAD", "0")
+    monkeypatch.setenv("UEVAVD_DISABLED_PLUGINS", "example")
+    manager.reset()
+    try:
+        assert "color_hist" not in manager.registry.names("encoder")
+    finally:
+        manager.reset()

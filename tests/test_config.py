@@ -1,0 +1,141 @@
+"""Method configs: inheritance, overrides, validation errors, hash, save and load back.
+
+Components come from a test plugin registered in a fixture (and always unregistered).
+"""
+
+from __future__ import annotations
+
+import textwrap
+import types
+from typing import Literal
+
+import pytest
+
+from uevavd.config import ConfigError, load_method, parse_override
+from uevavd.plugins import hookimpl
+from uevavd.plugins.manager import manager
+
+
+def build_tstate(*, hidden: int = 8, layers: int = 1, kind: Literal["a", "b"] = "a", dropout: float = 0.0):
+    return ("tstate", hidden, layers, kind, dropout)
+
+
+def build_thead(*, hidden: int = 4, dueling: bool = True):
+    return ("thead", hidden, dueling)
+
+
+@pytest.fixture
+def components():
+    @hookimpl
+    def register_state_estimators(registry):
+        registry.add("tstate", f"{__name__}:build_tstate")
+        registry.add("tstate2", f"{__name__}:build_thead")
+
+    @hookimpl
+    def register_heads(registry):
+        registry.add("thead", f"{__name__}:build_thead")
+
+    plug = types.SimpleNamespace(register_state_estimators=register_state_estimators, register_heads=register_heads)
+    manager.register_plugin(plug, name="config-test-plugin")
+    yield
+    manager.unregister_plugin("config-test-plugin")
+
+
+def write(tmp_path, name, text):
+    p = tmp_path / f"{name}.toml"
+    p.write_text(textwrap.dedent(text))
+    return p
+
+
+@pytest.fixture
+def base(tmp_path, components):
+    write(tmp_path, "base", """
+        name = "base"
+        description = "a base method"
+        [state]
+        name = "tstate"
+        hidden = 16
+        [head]
+        name = "thead"
+    """)
+    return write(tmp_path, "child", """
+        _base_ = "base.toml"
+        name = "child"
+        [state]
+        layers = 2
+    """)
+
+
+def test_inheritance_changes_only_what_differs(base):
+    spec = load_method(base)
+    assert spec.name == "child"
+    assert spec.component("state") == ("tstate", {"hidden": 16, "layers": 2})
+    assert spec.component("head") == ("thead", {})
+    assert spec.build("state", kind="b") == ("tstate", 16, 2, "b", 0.0)
+    assert "description" not in spec.to_dict()  # a child does not inherit its base's description
+
+
+def test_spec_is_frozen_and_hash_is_stable(base, tmp_path):
+    spec = load_method(base)
+    with pytest.raises(TypeError):
+        spec.data["state"]["hidden"] = 3
+    with pytest.raises(AttributeError):
+        spec.name = "x"
+    assert load_method(base).hash == spec.hash
+    saved = spec.save(tmp_path / "run" / "method.toml")
+    again = load_method(saved)
+    assert again.hash == spec.hash and again.to_dict() == spec.to_dict()
+    assert load_method(base, overrides={"state.hidden": 17}).hash != spec.hash
+
+
+def test_overrides(base):
+    spec = load_method(base, overrides={"state.hidden": 32, "head.dueling": False})
+    assert spec["state.hidden"] == 32 and spec["head.dueling"] is False
+    # switching the component drops the old builder's arguments
+    spec = load_method(base, overrides={"state.name": "tstate2"})
+    assert spec.component("state") == ("tstate2", {})
+    assert parse_override("state.hidden=256") == ("state.hidden", 256)
+    assert parse_override("head.dueling=false") == ("head.dueling", False)
+    assert parse_override("state.kind=b") == ("state.kind", "b")
+
+
+def test_unknown_key_lists_accepted_and_suggests(base):
+    with pytest.raises(ConfigError) as exc:
+        load_method(base, overrides={"state.hiden": 3})
+    msg = str(exc.value)
+    assert "'hiden'" in msg and "'hidden'" in msg and "layers" in msg and "did you mean 'hidden'" in msg
+    with pytest.raises(ConfigError, match="unknown key 'stat'.*did you mean 'state'"):
+        load_method(base, overrides={"stat.hidden": 3})
+
+
+@pytest.mark.parametrize(
+    "key, value, expected",
+    [("state.hidden", "big", "expected int"), ("state.hidden", 2.5, "expected int"),
+     ("state.kind", "c", "Literal"), ("head.dueling", 1, "expected bool"), ("state.dropout", "x", "expected float")],
+)
+def test_wrong_types(base, key, value, expected):
+    with pytest.raises(ConfigError, match=expected):
+        load_method(base, overrides={key: value})
+
+
+def test_ints_are_accepted_for_floats(base):
+    assert load_method(base, overrides={"state.dropout": 0})["state.dropout"] == 0
+
+
+def test_unknown_component_and_missing_file(base, tmp_path):
+    with pytest.raises(ConfigError, match="unknown state 'tstat'.*did you mean 'tstate'"):
+        load_method(base, overrides={"state.name": "tstat"})
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_method(tmp_path / "nope.toml")
+    with pytest.raises(ConfigError, match="unknown method"):
+        load_method("no_such_method")
+
+
+def test_inheritance_loop_and_bad_toml(tmp_path, components):
+    write(tmp_path, "a", '_base_ = "b.toml"\nname = "a"\n')
+    write(tmp_path, "b", '_base_ = "a.toml"\nname = "b"\n')
+    with pytest.raises(ConfigError, match="loops"):
+        load_method(tmp_path / "a.toml")
+    write(tmp_path, "bad", "name = \n")
+    with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
+        load_method(tmp_path / "bad.toml")
