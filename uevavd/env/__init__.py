@@ -1,0 +1,57 @@
+"""The AOD environment layer: the CMDP of DESIGN.md section 2 over an observation table.
+
+Public API (kept stable for ``uevavd.state`` / ``uevavd.policy``):
+
+* :class:`EnvConfig` - episode and reward constants (``[env]`` section of a method TOML)
+* :class:`AODEnv` - ``gymnasium.Env``, registered as ``"uevavd/AOD-v0"`` on import of
+  this package (``gymnasium.make("uevavd/AOD-v0", table=..., split="train")``);
+  :class:`DiscreteActions` turns its ``MultiDiscrete([7, A])`` into ``Discrete(7 * A)``
+* :class:`BatchedAODEnv` - N episodes in lockstep as torch tensors, auto-reset
+* :func:`evaluate_policy` / :class:`EvalResult` - exhaustive evaluation (every context
+  of a split x every start view), with :class:`RandomPolicy`, :class:`PassivePolicy`
+  and :class:`OraclePolicy` (dynamic programming upper bound) as baselines
+
+Heavy modules (torch) load only when their names are first used.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+import gymnasium as gym
+
+from .config import EnvConfig, EnvConfigError
+
+ENV_ID = "uevavd/AOD-v0"
+
+_LAZY = {
+    "AODEnv": "aod_env",
+    "load_table": "aod_env",
+    "select_scenes": "aod_env",
+    "DiscreteActions": "wrappers",
+    "BatchedAODEnv": "batched",
+    "evaluate_policy": "evaluate",
+    "EvalResult": "evaluate",
+    "RandomPolicy": "baselines",
+    "PassivePolicy": "baselines",
+    "OraclePolicy": "oracle",
+    "oracle_values": "oracle",
+}
+
+__all__ = ["ENV_ID", "EnvConfig", "EnvConfigError", "register", *_LAZY]
+
+
+def register() -> None:
+    """Register ``uevavd/AOD-v0`` with gymnasium (idempotent)."""
+    if ENV_ID not in gym.registry:
+        gym.register(id=ENV_ID, entry_point="uevavd.env.aod_env:AODEnv")
+
+
+register()
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

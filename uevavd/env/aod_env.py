@@ -1,0 +1,232 @@
+"""``AODEnv``: the AOD CMDP over an observation table as a ``gymnasium.Env`` (DESIGN.md 2).
+
+One episode: start at a view of a context (scene) of the chosen split and observe it. At
+decision ``t = 0..T_max-1`` choose ``(type, range)``. ``stop`` ends the episode at the
+current view (reward ``+-xi1``); a move flies (clamped to the grid) and observes the new
+view; the move at ``t = T_max-1`` ends the episode at the new view (reward
+``+-xi1 - C*r``); any other move earns ``-xi2 - C*r``. ``r`` = requested grid steps.
+
+Both ends set ``terminated=True`` and ``truncated`` is always False: the reaching of
+T_max is part of the task's definition (its reward is the terminal one, Eq. 2), not a
+time limit imposed from outside, so learners must not bootstrap past it.
+
+Observation (``Dict``):
+
+* ``"features"`` (D,) float32: the table's encoder features of the current view
+* ``"box"`` (4,) float32: target box XYXY normalised to [0, 1] (zeros = fully occluded)
+* ``"action_mask"`` (7, A) int8: 1 where the action is allowed without clamping
+  (stop always 1); use it or ignore it - clamped moves are legal
+* ``"t"`` Discrete(T_max + 1): decisions taken so far
+
+``info``: ``view`` (index), ``xyz`` (metres), ``probs`` (K,) float32, ``visible``
+(fraction, NaN if unknown), ``distance_m`` and ``steps`` flown so far, ``context``,
+``scene`` (table index), ``target`` (class index), ``t``; at the end also
+``recognized``, ``correct`` (argmax == target) and ``return`` (discounted).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from ..data.grid import N_VIEWS, STOP, transitions, view_coords
+from ..perception.table import ObservationTable, TableError
+from .config import EnvConfig, make_config
+
+ENV_ID = "uevavd/AOD-v0"
+
+
+def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationTable:
+    """An :class:`ObservationTable`, or one loaded (and checked, NaN refused) from a folder."""
+    if isinstance(table, ObservationTable):
+        return table
+    if isinstance(table, str | os.PathLike):
+        return ObservationTable.load(Path(table))
+    raise TypeError(f"table={table!r}: expected an ObservationTable or the path of a table folder")
+
+
+def select_scenes(table: ObservationTable, split: str, contexts: Any = None) -> np.ndarray:
+    """(n,) int64 table scene indices of ``split``, optionally only the given context ids.
+
+    Raises :class:`TableError` when the selection is empty (a table without contexts of
+    that split) and ``ValueError`` naming context ids that are not in the split.
+    """
+    idx = table.scene_indices(split)
+    if contexts is not None:
+        wanted = [int(c) for c in np.atleast_1d(np.asarray(contexts))]
+        have = {int(table.contexts[i]): int(i) for i in idx}
+        missing = [c for c in wanted if c not in have]
+        if missing:
+            raise ValueError(
+                f"context(s) {missing} are not in split {split!r} of table {table.key!r}; "
+                f"its contexts there are {sorted(have)}"
+            )
+        idx = np.array([have[c] for c in wanted], dtype=np.int64)
+    if idx.size == 0:
+        raise TableError(
+            f"table {table.key!r} has no scenes in split {split!r} (splits present: "
+            f"{sorted(set(table.splits))}); build the table over contexts of that split"
+        )
+    return idx
+
+
+class AODEnv(gym.Env):
+    """The AOD environment over an observation table, one episode at a time.
+
+    ``AODEnv(table, split="train", config=None, *, contexts=None, **overrides)`` where
+    ``overrides`` are :class:`EnvConfig` fields (``t_max=3``). Action: ``MultiDiscrete([7,
+    A])`` = (type, range index); use :class:`uevavd.env.wrappers.DiscreteActions` for
+    ``Discrete(7*A)``. ``reset(seed=..., options={"context": id or "scene": index,
+    "view": index})``.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        table: ObservationTable | str | os.PathLike[str],
+        split: str = "train",
+        config: EnvConfig | dict[str, Any] | None = None,
+        *,
+        contexts: Any = None,
+        render_mode: str | None = None,
+        **overrides: Any,
+    ) -> None:
+        self.table = load_table(table)
+        self.config = cfg = make_config(config, **overrides)
+        self.split = split
+        self.scenes = select_scenes(self.table, split, contexts)
+        self._tr = transitions(cfg.max_range)
+        self._mask_i8 = self._tr.mask.astype(np.int8)
+        self._reco = self.table.correct(cfg.thre)  # (S, 605) bool
+        self._acc = self.table.argmax_correct()
+        d = self.table.feature_dim
+        self.observation_space = spaces.Dict(
+            {
+                "features": spaces.Box(-np.inf, np.inf, (d,), np.float32),
+                "box": spaces.Box(0.0, 1.0, (4,), np.float32),
+                "action_mask": spaces.Box(0, 1, (7, cfg.max_range), np.int8),
+                "t": spaces.Discrete(cfg.t_max + 1),
+            }
+        )
+        self.action_space = spaces.MultiDiscrete([7, cfg.max_range])
+        self.render_mode = render_mode
+        self._scene = -1
+        self._view = -1
+        self._t = 0
+        self._done = True
+
+    # -- helpers ----------------------------------------------------------------------------
+    def _obs(self) -> dict[str, Any]:
+        s, v = self._scene, self._view
+        return {
+            "features": np.asarray(self.table.features[s, v], dtype=np.float32),
+            "box": np.asarray(self.table.boxes[s, v], dtype=np.float32),
+            "action_mask": self._mask_i8[v].copy(),
+            "t": int(self._t),
+        }
+
+    def _info(self) -> dict[str, Any]:
+        s, v = self._scene, self._view
+        return {
+            "view": int(v),
+            "xyz": view_coords(v),
+            "probs": np.asarray(self.table.probs[s, v], dtype=np.float32),
+            "visible": float(self.table.visible[s, v]),
+            "distance_m": float(self._dist),
+            "steps": int(self._steps),
+            "context": int(self.table.contexts[s]),
+            "scene": int(s),
+            "target": int(self.table.targets[s]),
+            "t": int(self._t),
+        }
+
+    def _start_scene(self, options: dict[str, Any]) -> int:
+        if "scene" in options and "context" in options:
+            raise ValueError("reset options: give 'context' (id) or 'scene' (table index), not both")
+        if "context" in options:
+            c = int(options["context"])
+            hits = self.scenes[self.table.contexts[self.scenes] == c]
+            if hits.size == 0:
+                raise ValueError(
+                    f"reset option context={c} is not among this env's contexts "
+                    f"{sorted(int(x) for x in self.table.contexts[self.scenes])}"
+                )
+            return int(hits[0])
+        if "scene" in options:
+            s = int(options["scene"])
+            if s not in set(self.scenes.tolist()):
+                raise ValueError(
+                    f"reset option scene={s} is not a scene of split {self.split!r}: "
+                    f"expected one of {self.scenes.tolist()}"
+                )
+            return s
+        return int(self.scenes[self.np_random.integers(len(self.scenes))])
+
+    # -- gymnasium API ----------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = sorted(set(options) - {"context", "scene", "view"})
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {unknown}: expected 'context', 'scene', 'view'")
+        self._scene = self._start_scene(options)
+        if options.get("view") is not None:
+            v = int(options["view"])
+            if not 0 <= v < N_VIEWS:
+                raise ValueError(f"reset option view={v}: expected a view index 0..{N_VIEWS - 1}")
+        else:
+            fixed = self.config.start_view
+            v = fixed if fixed is not None else int(self.np_random.integers(N_VIEWS))
+        self._view = v
+        self._t = 0
+        self._dist = 0.0
+        self._steps = 0
+        self._return = 0.0
+        self._done = False
+        return self._obs(), self._info()
+
+    def step(self, action: Any):
+        if self._done:
+            raise RuntimeError("step() called on a finished episode: call reset() first")
+        a = np.asarray(action)
+        if a.shape != (2,) or not (np.issubdtype(a.dtype, np.integer) or np.all(a == np.round(a))):
+            raise ValueError(f"action {action!r}: expected (type, range index) in MultiDiscrete{self.action_space.nvec.tolist()}")
+        a_type, a_range = int(a[0]), int(a[1])
+        if not self.action_space.contains(np.array([a_type, a_range], dtype=np.int64)):
+            raise ValueError(
+                f"action ({a_type}, {a_range}) is outside MultiDiscrete({self.action_space.nvec.tolist()}): "
+                f"type 0..6 (stop = {STOP}), range index 0..{self.config.max_range - 1}"
+            )
+        cfg = self.config
+        t = self._t
+        if a_type == STOP:
+            final, cost = True, 0.0
+        else:
+            prev = self._view
+            self._view = int(self._tr.next_view[prev, a_type, a_range])
+            self._steps += int(self._tr.steps[prev, a_type, a_range])
+            self._dist += float(self._tr.metres[prev, a_type, a_range])
+            final, cost = t == cfg.t_max - 1, cfg.C * (a_range + 1)
+        self._t = t + 1
+        if final:
+            reco = bool(self._reco[self._scene, self._view])
+            reward = (cfg.xi1 if reco else -cfg.xi1) - cost
+        else:
+            reward = -cfg.xi2 - cost
+        self._return += cfg.gamma**t * reward
+        info = self._info()
+        if final:
+            self._done = True
+            info.update(
+                recognized=bool(self._reco[self._scene, self._view]),
+                correct=bool(self._acc[self._scene, self._view]),
+                stopped=a_type == STOP,
+                **{"return": float(self._return)},
+            )
+        return self._obs(), float(reward), bool(final), False, info

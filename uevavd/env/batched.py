@@ -1,0 +1,280 @@
+"""``BatchedAODEnv``: N AOD episodes in lockstep as torch tensors, on CPU or GPU.
+
+Same semantics as :class:`~uevavd.env.aod_env.AODEnv` (DESIGN.md 2), with automatic
+reset. Every step is a handful of tensor gathers over precomputed tables; there is no
+Python loop over environments. API (stable; the DQN trainer builds on it)::
+
+    env = BatchedAODEnv(table, "train", n_envs=1024, config=EnvConfig(), device="cpu", seed=0)
+    obs = env.reset()                        # or reset(scenes=..., views=...) explicit starts
+    obs, reward, done, info = env.step(a_type, a_range)   # (N,) int64 each
+
+``obs``: ``"features"`` (N, D) float32, ``"box"`` (N, 4) float32 XYXY in [0, 1],
+``"mask"`` (N, 7, A) bool (True = allowed without clamping; stop always True), ``"t"``
+(N,) int64 decisions taken in the current episode, ``"scene"`` (N,) int64 *table* scene
+index, ``"view"`` (N,) int64. ``reward`` (N,) float32, ``done`` (N,) bool (stop or T_max;
+always a termination, never a truncation: do not bootstrap past it).
+
+For done envs ``obs`` already shows the first view of the next episode; ``info`` holds
+``final_view``, ``final_scene``, ``final_recognized``, ``final_correct``, ``final_return``
+(discounted), ``final_distance_m``, ``final_steps`` (grid steps), ``final_decisions``,
+``final_stopped``, each (N,) and meaningful where ``done``. ``state_dict()`` /
+``load_state_dict()`` capture the RNG and the running episodes so training resumes exactly.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..data.grid import N_VIEWS, STOP, transitions
+from ..perception.table import ObservationTable
+from .aod_env import load_table, select_scenes
+from .config import EnvConfig, make_config
+
+
+class EnvTensors:
+    """The lookup tables of one (table, split, config) on a device.
+
+    ``features`` (S', 605, D) float32 or float16, ``boxes`` (S', 605, 4) float32,
+    ``reco`` / ``acc`` (S', 605) bool, ``next_view`` / ``steps`` (605, 7, A) int64,
+    ``mask`` (605, 7, A) bool; ``scenes`` (S',) int64 table indices of the local scenes
+    and ``local`` (S,) int64 mapping a table index to its local one (-1 if absent);
+    ``contexts`` (S',) numpy context ids. ``with_features=False`` keeps a (S', 605, 0)
+    placeholder (for policies that never read features).
+    """
+
+    def __init__(
+        self,
+        table: ObservationTable,
+        split: str,
+        config: EnvConfig,
+        *,
+        device: str | torch.device = "cpu",
+        contexts: Any = None,
+        features_dtype: torch.dtype = torch.float32,
+        with_features: bool = True,
+    ) -> None:
+        dev = torch.device(device)
+        self.device = dev
+        self.config = config
+        sel = select_scenes(table, split, contexts)
+        self.scenes = torch.as_tensor(sel, dtype=torch.int64, device=dev)
+        local = np.full(len(table), -1, np.int64)
+        local[sel] = np.arange(len(sel))
+        self.local = torch.as_tensor(local, device=dev)
+        if with_features:
+            feats = np.asarray(table.features[sel])
+            self.features = torch.as_tensor(feats, device=dev).to(features_dtype)
+        else:
+            self.features = torch.zeros((len(sel), N_VIEWS, 0), dtype=features_dtype, device=dev)
+        self.feature_dim = table.feature_dim
+        self.boxes = torch.as_tensor(np.asarray(table.boxes[sel]), dtype=torch.float32, device=dev)
+        self.reco = torch.as_tensor(table.correct(config.thre)[sel], device=dev)
+        self.acc = torch.as_tensor(table.argmax_correct()[sel], device=dev)
+        self.targets = torch.as_tensor(table.targets[sel], device=dev)
+        self.contexts = np.asarray(table.contexts[sel], np.int64)  # (S',) context ids
+        self.class_names = table.class_names
+        self.split = split
+        tr = transitions(config.max_range)
+        self.next_view = torch.as_tensor(np.array(tr.next_view), device=dev)
+        self.steps = torch.as_tensor(np.array(tr.steps), device=dev)
+        self.mask = torch.as_tensor(np.array(tr.mask), device=dev)
+
+    def observe(self, local_scene: torch.Tensor, view: torch.Tensor, t: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Observation dict (see module doc) of envs at (local scene, view) after t decisions."""
+        return {
+            "features": self.features[local_scene, view].float(),
+            "box": self.boxes[local_scene, view],
+            "mask": self.mask[view],
+            "t": t,
+            "scene": self.scenes[local_scene],
+            "view": view,
+        }
+
+    def check_actions(self, a_type: torch.Tensor, a_range: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        a_type = torch.as_tensor(a_type, device=self.device)
+        a_range = torch.as_tensor(a_range, device=self.device)
+        if a_type.shape != (n,) or a_range.shape != (n,):
+            raise ValueError(
+                f"actions have shapes {tuple(a_type.shape)} and {tuple(a_range.shape)}; expected ({n},) each"
+            )
+        if a_type.is_floating_point() or a_range.is_floating_point():
+            raise ValueError("actions must be integer tensors (type index, range index)")
+        a = self.config.max_range
+        bad = (a_type < 0) | (a_type > STOP) | (a_range < 0) | (a_range >= a)
+        if bool(bad.any()):
+            i = int(torch.nonzero(bad)[0, 0])
+            raise ValueError(
+                f"action ({int(a_type[i])}, {int(a_range[i])}) of env {i} is outside MultiDiscrete([7, {a}]): "
+                f"type 0..6 (stop = {STOP}), range index 0..{a - 1}"
+            )
+        return a_type.long(), a_range.long()
+
+    def transition(
+        self, local_scene: torch.Tensor, view: torch.Tensor, t: torch.Tensor, a_type: torch.Tensor, a_range: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """One decision for every env: ``next_view``, ``reward`` (float64), ``final`` (bool),
+        ``steps`` flown (int64), ``stopped``, ``recognized`` and ``correct`` at the next view."""
+        cfg = self.config
+        nv = self.next_view[view, a_type, a_range]  # stop stays (grid table)
+        stopped = a_type == STOP
+        final = stopped | (t >= cfg.t_max - 1)
+        reco = self.reco[local_scene, nv]
+        # float64 arithmetic in the same order as AODEnv, so the float32 rewards agree exactly
+        cost = torch.where(stopped, 0.0, cfg.C * (a_range + 1).double())
+        term = torch.where(reco, cfg.xi1, -cfg.xi1).double()
+        reward = torch.where(final, term, -cfg.xi2) - cost
+        return {
+            "next_view": nv,
+            "reward": reward,
+            "final": final,
+            "steps": self.steps[view, a_type, a_range],
+            "stopped": stopped,
+            "recognized": reco,
+            "correct": self.acc[local_scene, nv],
+        }
+
+
+class BatchedAODEnv:
+    """N AOD episodes in parallel with auto-reset (see the module doc for the API)."""
+
+    def __init__(
+        self,
+        table: ObservationTable | str | os.PathLike[str],
+        split: str,
+        n_envs: int,
+        config: EnvConfig | dict[str, Any] | None = None,
+        *,
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+        contexts: Any = None,
+        features_dtype: torch.dtype = torch.float32,
+    ) -> None:
+        if isinstance(n_envs, bool) or not isinstance(n_envs, int) or n_envs < 1:
+            raise ValueError(f"n_envs={n_envs!r}: expected an integer >= 1")
+        self.table = load_table(table)
+        self.config = make_config(config)
+        self.split = split
+        self.n_envs = n_envs
+        self.tables = EnvTensors(
+            self.table, split, self.config, device=device, contexts=contexts, features_dtype=features_dtype
+        )
+        self.device = self.tables.device
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(int(seed))
+        self._discounts = torch.tensor(
+            [self.config.gamma**k for k in range(self.config.t_max)], dtype=torch.float64, device=self.device
+        )
+        z = torch.zeros(n_envs, dtype=torch.int64, device=self.device)
+        self._scene, self._view, self._t, self._steps = z.clone(), z.clone(), z.clone(), z.clone()
+        self._return = torch.zeros(n_envs, dtype=torch.float64, device=self.device)
+        self._started = False
+
+    # -- starts -----------------------------------------------------------------------------
+    def _sample_starts(self) -> tuple[torch.Tensor, torch.Tensor]:
+        n, g, dev = self.n_envs, self.generator, self.device
+        scene = torch.randint(len(self.tables.scenes), (n,), generator=g, device=dev)
+        fixed = self.config.start_view
+        if fixed is None:
+            view = torch.randint(N_VIEWS, (n,), generator=g, device=dev)
+        else:
+            view = torch.full((n,), fixed, dtype=torch.int64, device=dev)
+        return scene, view
+
+    def _obs(self) -> dict[str, torch.Tensor]:
+        return self.tables.observe(self._scene, self._view, self._t.clone())
+
+    def reset(self, *, scenes: Any = None, views: Any = None) -> dict[str, torch.Tensor]:
+        """Start new episodes in all envs; ``scenes`` (table indices in the split) and
+        ``views`` (N,) override the random starts (either or both)."""
+        scene, view = self._sample_starts()
+        if scenes is not None:
+            s = torch.as_tensor(scenes, dtype=torch.int64, device=self.device).expand(self.n_envs)
+            if bool(((s < 0) | (s >= len(self.tables.local))).any()) or bool((self.tables.local[s.clamp(0, len(self.tables.local) - 1)] < 0).any()):
+                raise ValueError(
+                    f"reset scenes {s.unique().tolist()}: expected table scene indices of split "
+                    f"{self.split!r}, i.e. among {self.tables.scenes.tolist()}"
+                )
+            scene = self.tables.local[s]
+        if views is not None:
+            v = torch.as_tensor(views, dtype=torch.int64, device=self.device).expand(self.n_envs)
+            if bool(((v < 0) | (v >= N_VIEWS)).any()):
+                raise ValueError(f"reset views must be view indices 0..{N_VIEWS - 1}")
+            view = v.clone()
+        self._scene, self._view = scene, view
+        self._t.zero_()
+        self._steps.zero_()
+        self._return.zero_()
+        self._started = True
+        return self._obs()
+
+    # -- stepping ---------------------------------------------------------------------------
+    def step(self, a_type: torch.Tensor, a_range: torch.Tensor):
+        """Advance all envs by one decision; returns ``(obs, reward, done, info)``."""
+        if not self._started:
+            raise RuntimeError("BatchedAODEnv.step() before reset()")
+        tb = self.tables
+        a_type, a_range = tb.check_actions(a_type, a_range, self.n_envs)
+        out = tb.transition(self._scene, self._view, self._t, a_type, a_range)
+        reward, done = out["reward"], out["final"]
+        self._return += self._discounts[self._t] * reward
+        reward = reward.float()
+        self._steps += out["steps"]
+        self._view = out["next_view"]
+        self._t = self._t + 1
+        info = {
+            "final_view": self._view,
+            "final_scene": tb.scenes[self._scene],
+            "final_recognized": out["recognized"],
+            "final_correct": out["correct"],
+            "final_return": self._return.clone(),
+            "final_distance_m": self._steps.double() * 10.0,
+            "final_steps": self._steps.clone(),
+            "final_decisions": self._t.clone(),
+            "final_stopped": out["stopped"],
+        }
+        # auto-reset: sample for all (keeps RNG use independent of `done`), keep where not done
+        scene, view = self._sample_starts()
+        self._scene = torch.where(done, scene, self._scene)
+        self._view = torch.where(done, view, self._view)
+        self._t = torch.where(done, 0, self._t)
+        self._steps = torch.where(done, 0, self._steps)
+        self._return = torch.where(done, 0.0, self._return)
+        return self._obs(), reward, done, info
+
+    # -- resume -----------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """RNG state and running episodes (CPU tensors) for exact resumption."""
+        return {
+            "rng": self.generator.get_state(),
+            "scene": self._scene.cpu(),
+            "view": self._view.cpu(),
+            "t": self._t.cpu(),
+            "steps": self._steps.cpu(),
+            "return": self._return.cpu(),
+            "started": self._started,
+            "n_envs": self.n_envs,
+            "config": self.config.to_dict(),
+            "split": self.split,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict`; refuses a state of another n_envs, split or config."""
+        for key, mine in (("n_envs", self.n_envs), ("split", self.split), ("config", self.config.to_dict())):
+            if state.get(key) != mine:
+                raise ValueError(f"env state has {key}={state.get(key)!r} but this env has {mine!r}")
+        self.generator.set_state(state["rng"])
+        dev = self.device
+        self._scene = state["scene"].to(dev)
+        self._view = state["view"].to(dev)
+        self._t = state["t"].to(dev)
+        self._steps = state["steps"].to(dev)
+        self._return = state["return"].to(dev)
+        self._started = bool(state["started"])
+
+    def observe(self) -> dict[str, torch.Tensor]:
+        """The current observation without stepping."""
+        return self._obs()

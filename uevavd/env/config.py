@@ -1,0 +1,109 @@
+"""Constants of the AOD episode and reward (DESIGN.md section 2), one frozen dataclass.
+
+A method's ``[env]`` TOML section is checked against the fields of :class:`EnvConfig`;
+unknown keys are an error listing these names.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from ..data.grid import N_VIEWS
+
+
+class EnvConfigError(ValueError):
+    """An environment constant is out of its range; the message names it and the range."""
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Episode and reward constants of the AOD CMDP (defaults are the paper's).
+
+    Reward (Eq. 2, 3): at the episode's end ``+xi1 - sigma*r`` if recognised, else
+    ``-xi1 - sigma*r``; at every other step ``-xi2 - sigma*r``; ``sigma = 0`` for stop and
+    ``C`` for a move, ``r`` the *requested* range in grid steps (range index + 1).
+    """
+
+    t_max: int = 5
+    """T_max: most decisions per episode. A move at decision T_max-1 ends the episode."""
+    max_range: int = 4
+    """A: range indices 0..A-1 request 1..A grid steps of 10 m (action space (7, A))."""
+    gamma: float = 0.9
+    """Discount of the reported return sum_t gamma^t R_t (and the oracle's DP)."""
+    xi1: float = 0.5
+    """Terminal reward magnitude: +xi1 if the final view is recognised, -xi1 if not."""
+    xi2: float = 0.1
+    """Per-step penalty of a non-terminal move."""
+    C: float = 0.02
+    """Movement cost per requested grid step (sigma for a move; 0 for stop)."""
+    thre: float = 0.2
+    """Recognised means the classifier's probability for the true class is > thre."""
+    start: str = "uniform"
+    """Start view: "uniform" over the 605 views, or a view index as a string ("302")."""
+
+    def __post_init__(self) -> None:
+        def bad(name: str, expected: str) -> EnvConfigError:
+            return EnvConfigError(f"EnvConfig.{name}={getattr(self, name)!r}: expected {expected}")
+
+        for name in ("t_max", "max_range"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise bad(name, "an integer >= 1")
+        for name in ("gamma", "xi1", "xi2", "C", "thre"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise bad(name, "a finite number")
+        if not 0.0 <= self.gamma <= 1.0:
+            raise bad("gamma", "a discount in [0, 1]")
+        for name in ("xi1", "xi2", "C"):
+            if getattr(self, name) < 0:
+                raise bad(name, "a number >= 0 (the sign is part of the reward's definition)")
+        if not 0.0 <= self.thre < 1.0:
+            raise bad("thre", "a probability threshold in [0, 1)")
+        self.start_view  # validates start
+
+    @property
+    def start_view(self) -> int | None:
+        """The fixed start view index, or None when starts are uniform over the 605 views."""
+        s = str(self.start).strip().lower()
+        if s == "uniform":
+            return None
+        try:
+            v = int(s)
+        except ValueError:
+            v = -1
+        if not 0 <= v < N_VIEWS:
+            raise EnvConfigError(
+                f"EnvConfig.start={self.start!r}: expected 'uniform' or a view index 0..{N_VIEWS - 1}"
+            )
+        return v
+
+    @property
+    def n_actions(self) -> int:
+        """Size of the joint action space, 7 * A (type-major: index = type * A + range)."""
+        return 7 * self.max_range
+
+    def replace(self, **changes: Any) -> EnvConfig:
+        """A copy with some fields changed (validated); unknown names are an error."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(changes) - names)
+        if unknown:
+            raise EnvConfigError(f"unknown EnvConfig field(s) {unknown}: expected among {sorted(names)}")
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def make_config(config: EnvConfig | dict[str, Any] | None = None, **overrides: Any) -> EnvConfig:
+    """An :class:`EnvConfig` from a config, a dict of fields (e.g. a TOML section) or None."""
+    if config is None:
+        config = EnvConfig()
+    elif isinstance(config, dict):
+        config = EnvConfig().replace(**config)
+    elif not isinstance(config, EnvConfig):
+        raise EnvConfigError(f"config={config!r}: expected an EnvConfig, a dict of its fields or None")
+    return config.replace(**overrides) if overrides else config

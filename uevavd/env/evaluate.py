@@ -1,0 +1,222 @@
+"""Exhaustive evaluation: every context of a split x every one of the 605 start views.
+
+All ``n = contexts * 605`` episodes run in lockstep (no auto-reset, at most T_max
+steps) through the same transition code as :class:`~uevavd.env.batched.BatchedAODEnv`.
+
+Policy protocol (any object with these two methods)::
+
+    policy.reset(n: int) -> None          # before the first step of n new episodes
+    policy.act(obs: dict[str, Tensor]) -> (a_type LongTensor (n,), a_range LongTensor (n,))
+
+``act`` is called once per step with the observations of *all* n episodes (keys as in
+the batched env: features, box, mask, t, scene, view, plus ``"done"`` (n,) bool marking
+episodes that already ended; their actions are ignored). A policy whose attribute
+``needs_features`` is False gets ``features`` of width 0 (faster). Recurrent policies keep
+their hidden state per episode index between calls.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from ..data.grid import N_VIEWS
+from ..perception.table import ObservationTable
+from .aod_env import load_table
+from .batched import EnvTensors
+from .config import EnvConfig, make_config
+
+
+class Policy(Protocol):
+    def reset(self, n: int) -> None: ...
+
+    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+@dataclass
+class EvalResult:
+    """Per-episode results of an exhaustive evaluation; each array has shape (n,).
+
+    ``ret`` float64 discounted return, ``recognized`` / ``correct`` / ``stopped`` bool,
+    ``metres`` float64 and ``steps`` int64 actually flown, ``decisions`` int64 (1..T_max),
+    ``scene`` int64 table scene index, ``context`` int64 id, ``target`` int64 class,
+    ``start_view`` / ``final_view`` int64; ``trajectories`` (n, T_max + 1) int64 views
+    visited, padded with -1 after the end.
+    """
+
+    ret: np.ndarray
+    recognized: np.ndarray
+    correct: np.ndarray
+    metres: np.ndarray
+    steps: np.ndarray
+    decisions: np.ndarray
+    stopped: np.ndarray
+    scene: np.ndarray
+    context: np.ndarray
+    target: np.ndarray
+    start_view: np.ndarray
+    final_view: np.ndarray
+    trajectories: np.ndarray
+    split: str = ""
+    config: dict[str, Any] = field(default_factory=dict)
+    class_names: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.ret)
+
+    @staticmethod
+    def _stats(r: EvalResult | Any, idx: np.ndarray | slice = slice(None)) -> dict[str, float]:
+        return {
+            "episodes": int(np.size(r.ret[idx])),
+            "mean_return": float(np.mean(r.ret[idx])),
+            "accuracy": float(np.mean(r.correct[idx])),
+            "recognition_rate": float(np.mean(r.recognized[idx])),
+            "path_m": float(np.mean(r.metres[idx])),
+            "path_steps": float(np.mean(r.steps[idx])),
+            "stop_rate": float(np.mean(r.stopped[idx])),
+            "steps_per_episode": float(np.mean(r.decisions[idx])),
+        }
+
+    def summary(self) -> dict[str, float]:
+        """Means over all episodes: mean_return, accuracy (argmax), recognition_rate (thre),
+        path_m, path_steps, stop_rate (ended by stop, not T_max), steps_per_episode."""
+        return self._stats(self)
+
+    def _grouped(self, key: np.ndarray, name: str, label: Any) -> Any:
+        import pandas as pd
+
+        rows = []
+        for k in np.unique(key):
+            rows.append({name: label(k), **self._stats(self, np.flatnonzero(key == k))})
+        return pd.DataFrame(rows)
+
+    def per_context(self) -> Any:
+        """pandas DataFrame, one row per context (context, target, scene + the summary's columns)."""
+        df = self._grouped(self.scene, "scene", int)
+        first = {int(s): i for i, s in reversed(list(enumerate(self.scene)))}
+        df.insert(0, "context", [int(self.context[first[s]]) for s in df["scene"]])
+        df.insert(1, "target", [self._target_name(int(self.target[first[s]])) for s in df["scene"]])
+        return df
+
+    def per_target(self) -> Any:
+        """pandas DataFrame, one row per target class (the summary's columns)."""
+        return self._grouped(self.target, "target", lambda k: self._target_name(int(k)))
+
+    def _target_name(self, k: int) -> str:
+        return self.class_names[k] if k < len(self.class_names) else str(k)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "split": self.split,
+            "config": self.config,
+            "summary": self.summary(),
+            "per_context": self.per_context().to_dict(orient="records"),
+            "per_target": self.per_target().to_dict(orient="records"),
+        }
+
+    def to_json(self, path: str | os.PathLike[str] | None = None) -> str:
+        """Summary and breakdowns as JSON; written atomically to ``path`` when given."""
+        text = json.dumps(self.to_dict(), indent=1)
+        if path is not None:
+            path = Path(path)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+            try:
+                with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                    fh.write(text)
+                os.replace(tmp, path)
+            except BaseException:
+                Path(tmp).unlink(missing_ok=True)
+                raise
+        return text
+
+
+@torch.no_grad()
+def evaluate_policy(
+    table: ObservationTable | str | os.PathLike[str] | EnvTensors,
+    split: str,
+    policy: Policy,
+    config: EnvConfig | dict[str, Any] | None = None,
+    *,
+    device: str | torch.device = "cpu",
+    contexts: Any = None,
+) -> EvalResult:
+    """Run ``policy`` greedily from every (context, start view) pair of ``split``.
+
+    ``table`` may also be a prepared :class:`~uevavd.env.batched.EnvTensors` (reuse it
+    across epochs to skip the copy to the device; ``split``/``config``/``contexts`` then
+    come from it). Returns an :class:`EvalResult`.
+    """
+    if isinstance(table, EnvTensors):
+        tb = table
+        cfg = tb.config
+    else:
+        obs_table = load_table(table)
+        cfg = make_config(config)
+        tb = EnvTensors(
+            obs_table, split, cfg, device=device, contexts=contexts,
+            with_features=getattr(policy, "needs_features", True),
+        )
+    dev = tb.device
+    n_sc = len(tb.scenes)
+    n = n_sc * N_VIEWS
+    scene = torch.arange(n_sc, device=dev).repeat_interleave(N_VIEWS)
+    view = torch.arange(N_VIEWS, device=dev).repeat(n_sc)
+    start = view.clone()
+    t = torch.zeros(n, dtype=torch.int64, device=dev)
+    done = torch.zeros(n, dtype=torch.bool, device=dev)
+    ret = torch.zeros(n, dtype=torch.float64, device=dev)
+    steps = torch.zeros(n, dtype=torch.int64, device=dev)
+    stopped = torch.zeros(n, dtype=torch.bool, device=dev)
+    traj = torch.full((n, cfg.t_max + 1), -1, dtype=torch.int64, device=dev)
+    traj[:, 0] = view
+    policy.reset(n)
+    for k in range(cfg.t_max):
+        obs = tb.observe(scene, view, t)
+        obs["done"] = done.clone()
+        a_type, a_range = policy.act(obs)
+        a_type, a_range = tb.check_actions(a_type, a_range, n)
+        out = tb.transition(scene, view, t, a_type, a_range)
+        live = ~done
+        ret += torch.where(live, cfg.gamma**k * out["reward"], 0.0)
+        steps += torch.where(live, out["steps"], 0)
+        moved_view = torch.where(live, out["next_view"], view)
+        traj[:, k + 1] = torch.where(live & ~out["stopped"], moved_view, -1)
+        stopped |= live & out["stopped"]
+        view = moved_view
+        t = torch.where(live, t + 1, t)
+        done = done | out["final"]
+        if bool(done.all()):
+            break
+    reco = tb.reco[scene, view]
+    acc = tb.acc[scene, view]
+    table_scene = tb.scenes[scene]
+
+    def np_(x: torch.Tensor) -> np.ndarray:
+        return x.cpu().numpy()
+
+    return EvalResult(
+        ret=np_(ret),
+        recognized=np_(reco),
+        correct=np_(acc),
+        metres=np_(steps).astype(np.float64) * 10.0,
+        steps=np_(steps),
+        decisions=np_(t),
+        stopped=np_(stopped),
+        scene=np_(table_scene),
+        context=tb.contexts[np_(scene)],
+        target=np_(tb.targets[scene]),
+        start_view=np_(start),
+        final_view=np_(view),
+        trajectories=np_(traj),
+        split=tb.split,
+        config=cfg.to_dict(),
+        class_names=tuple(tb.class_names),
+    )

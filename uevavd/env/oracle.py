@@ -1,0 +1,100 @@
+"""The oracle: the best achievable return given the classifier table (an upper bound).
+
+Dynamic programming over (scene, view, steps left k), for every scene of the table::
+
+    stop(v)       = +xi1 if reco[v] else -xi1
+    move(v, a, r) = term(next) - C*r                         if k == 1
+                  = -xi2 - C*r + gamma * V(next, k - 1)       otherwise
+    V(v, k)       = max(stop(v), max_{a, r} move(v, a, r))
+
+with ``term = stop`` and ``next = next_view[v, a, r]`` (clamped). An episode starting at
+``v`` has ``k = T_max`` steps left, so ``V(v, T_max)`` is the best return from ``v``; no
+policy can beat it, because it sees the true class's probability at every view. Ties go
+to stop, then to the lowest (type, range) index.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..data.grid import STOP, transitions
+from ..perception.table import ObservationTable
+from .config import EnvConfig, make_config
+
+
+@dataclass(frozen=True)
+class OracleTables:
+    """``value`` (S, T_max + 1, 605) float64: V(view, k) (k = 0 unused, zeros);
+    ``q`` (S, T_max + 1, 605, 7, A) float64 action values; ``best_type`` / ``best_range``
+    (S, T_max + 1, 605) int64: the optimal action with k steps left."""
+
+    value: np.ndarray
+    q: np.ndarray
+    best_type: np.ndarray
+    best_range: np.ndarray
+
+
+def oracle_values(table: ObservationTable, config: EnvConfig | dict | None = None) -> OracleTables:
+    """Solve the DP for every scene of ``table`` (vectorised over scenes and views)."""
+    cfg = make_config(config)
+    tr = transitions(cfg.max_range)
+    reco = table.correct(cfg.thre)  # (S, V)
+    s, v = reco.shape
+    a = cfg.max_range
+    term = np.where(reco, cfg.xi1, -cfg.xi1).astype(np.float64)  # (S, V)
+    cost = cfg.C * np.arange(1, a + 1, dtype=np.float64)  # (A,)
+    value = np.zeros((s, cfg.t_max + 1, v))
+    q = np.zeros((s, cfg.t_max + 1, v, 7, a))
+    best_type = np.zeros((s, cfg.t_max + 1, v), np.int64)
+    best_range = np.zeros((s, cfg.t_max + 1, v), np.int64)
+    nxt = tr.next_view[:, :STOP, :]  # (V, 6, A)
+    for k in range(1, cfg.t_max + 1):
+        if k == 1:
+            moves = term[:, nxt] - cost  # (S, V, 6, A)
+        else:
+            moves = -cfg.xi2 - cost + cfg.gamma * value[:, k - 1][:, nxt]
+        q[:, k, :, :STOP, :] = moves
+        q[:, k, :, STOP, :] = term[:, :, None]
+        flat = moves.reshape(s, v, -1)
+        i = flat.argmax(-1)
+        best_move = np.take_along_axis(flat, i[..., None], -1)[..., 0]
+        stop_better = term >= best_move
+        value[:, k] = np.where(stop_better, term, best_move)
+        best_type[:, k] = np.where(stop_better, STOP, i // a)
+        best_range[:, k] = np.where(stop_better, 0, i % a)
+    return OracleTables(value, q, best_type, best_range)
+
+
+class OraclePolicy:
+    """Acts optimally given the scene, view and step index of each episode (reads
+    ``obs["scene"]``, ``obs["view"]``, ``obs["t"]``; never features). Build it on the same
+    table and config the evaluation uses."""
+
+    needs_features = False
+
+    def __init__(self, table: ObservationTable, config: EnvConfig | dict | None = None) -> None:
+        self.config = make_config(config)
+        self.tables = oracle_values(table, self.config)
+        self._dev: torch.device | None = None
+
+    def _on(self, dev: torch.device) -> None:
+        if self._dev != dev:
+            self._type = torch.as_tensor(self.tables.best_type, device=dev)
+            self._range = torch.as_tensor(self.tables.best_range, device=dev)
+            self._dev = dev
+
+    def reset(self, n: int) -> None:
+        pass
+
+    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        view = obs["view"]
+        self._on(view.device)
+        k = (self.config.t_max - obs["t"]).clamp(1, self.config.t_max)
+        return self._type[obs["scene"], k, view], self._range[obs["scene"], k, view]
+
+    def value(self, scene: int, view: int) -> float:
+        """The optimal return from ``view`` of table scene ``scene`` at t = 0."""
+        return float(self.tables.value[scene, self.config.t_max, view])

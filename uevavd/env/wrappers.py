@@ -1,0 +1,49 @@
+"""Wrappers of :class:`~uevavd.env.aod_env.AODEnv` for libraries with other conventions."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from ..data.grid import unflat_action
+
+
+class DiscreteActions(gym.Wrapper):
+    """``MultiDiscrete([7, A])`` -> ``Discrete(7 * A)`` for libraries that need one action
+    index (Stable-Baselines3's DQN). Index ``a = type * A + range`` (type-major, as
+    :func:`uevavd.data.grid.flat_action`); stop is ``6 * A + r`` for any ``r``.
+
+    The observation's ``"action_mask"`` is flattened to (7 * A,) int8 in the same order,
+    so ``mask[a]`` answers for joint action ``a``. Everything else passes through.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        nvec = np.asarray(env.action_space.nvec)
+        if nvec.shape != (2,) or int(nvec[0]) != 7:
+            raise ValueError(f"DiscreteActions wraps a MultiDiscrete([7, A]) env, got {env.action_space}")
+        self._a = int(nvec[1])
+        self.action_space = spaces.Discrete(7 * self._a)
+        inner = env.observation_space
+        self.observation_space = spaces.Dict(
+            {**inner.spaces, "action_mask": spaces.Box(0, 1, (7 * self._a,), np.int8)}
+        )
+
+    def _flat_obs(self, obs: dict[str, Any]) -> dict[str, Any]:
+        return {**obs, "action_mask": obs["action_mask"].reshape(-1)}
+
+    def reset(self, **kwargs: Any):
+        obs, info = self.env.reset(**kwargs)
+        return self._flat_obs(obs), info
+
+    def step(self, action: Any):
+        if not self.action_space.contains(action) and not (
+            np.ndim(action) == 0 and float(action) == int(action) and 0 <= int(action) < 7 * self._a
+        ):
+            raise ValueError(f"action {action!r} is outside Discrete({7 * self._a})")
+        a_type, a_range = unflat_action(int(action), self._a)
+        obs, reward, terminated, truncated, info = self.env.step(np.array([a_type, a_range], np.int64))
+        return self._flat_obs(obs), reward, terminated, truncated, info
