@@ -1,0 +1,166 @@
+"""The recognition classifier: a ResNet18 over the five targets, frozen after training.
+
+File format: a ``.safetensors`` state dict of a torchvision ResNet18 with a 5-way ``fc``,
+and JSON metadata in the safetensors header under ``"uevavd"``: ``arch``, ``classes``,
+``input_size`` (H, W), ``mean``/``std``, ``data_hash`` (the ``train_605`` crops it was
+trained on), ``train`` (settings and results). Written by ``uevavd train-classifier``
+(:mod:`uevavd.perception.train`); the pipeline's default location is
+``<cache>/classifiers/<data_hash>.safetensors`` (:func:`default_classifier_path`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..paths import cache_dir
+from .nets import BatchRunner, check_images
+from .weights import WeightsError, load_state_dict_file, load_strict, make_resnet, state_dict_hash
+
+META_KEY = "uevavd"
+FORMAT = "uevavd-classifier/1"
+
+
+def classifiers_dir() -> Path:
+    return cache_dir() / "classifiers"
+
+
+def train_records(manifest) -> list:
+    """The unoccluded ``train_605`` records the classifier trains on (in manifest order)."""
+    from ..data.splits import CLASSIFIER_SCENE
+
+    recs = [r for r in manifest.records if r.scene == CLASSIFIER_SCENE]
+    if not recs:
+        raise ValueError(
+            f"{manifest.root}: no {CLASSIFIER_SCENE!r} scene; the classifier trains on its unoccluded crops"
+        )
+    return recs
+
+
+def data_hash(records) -> str:
+    """16-hex sha256 over the names, targets, views and bytes of the training images."""
+    h = hashlib.sha256()
+    for r in sorted(records, key=lambda r: (r.target, r.view, r.image.name)):
+        h.update(f"{r.target}:{r.view}:{r.image.name}:".encode())
+        h.update(hashlib.sha256(Path(r.image).read_bytes()).digest())
+    return h.hexdigest()[:16]
+
+
+def default_classifier_path(data: str | os.PathLike[str]) -> Path:
+    """Where ``uevavd train-classifier`` puts, and the pipeline looks for, the classifier of
+    dataset ``data`` (a root folder): ``<cache>/classifiers/<data_hash>.safetensors``."""
+    from ..data.reader import read_dataset
+
+    return classifiers_dir() / f"{data_hash(train_records(read_dataset(data)))}.safetensors"
+
+
+def write_classifier_file(path: str | os.PathLike[str], state_dict: Mapping[str, torch.Tensor],
+                          meta: Mapping[str, Any]) -> Path:
+    """Save state dict + metadata as safetensors, atomically."""
+    from safetensors.torch import save_file
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": FORMAT, **meta}
+    tensors = {k: v.detach().cpu().contiguous() for k, v in state_dict.items()}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        save_file(tensors, tmp, metadata={META_KEY: json.dumps(meta, sort_keys=True)})
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_classifier_file(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """``(state dict, metadata)`` of a classifier file; a clear error when it is not one."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise WeightsError(
+            f"classifier file {path} does not exist; train one with `uevavd train-classifier DATA --out {path}`"
+        )
+    sd = load_state_dict_file(path) if path.suffix == ".safetensors" else None
+    if sd is None:
+        raise WeightsError(f"{path}: a classifier file must be .safetensors (written by `uevavd train-classifier`)")
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as fh:
+        raw = (fh.metadata() or {}).get(META_KEY)
+    try:
+        meta = json.loads(raw) if raw else None
+    except json.JSONDecodeError:
+        meta = None
+    if not isinstance(meta, dict) or not {"arch", "classes", "mean", "std"} <= set(meta):
+        raise WeightsError(
+            f"{path}: no uevavd classifier metadata (arch, classes, mean, std) in its header; "
+            "it was not written by `uevavd train-classifier`"
+        )
+    return sd, meta
+
+
+class ResNetClassifier:
+    """(N, H, W, 3) uint8 RGB -> (N, len(classes)) float32 softmax probabilities."""
+
+    def __init__(self, model: torch.nn.Module, *, arch: str, classes: tuple[str, ...], mean, std,
+                 weights_hash: str, device: str = "auto", batch_size: int = 256, meta=None):
+        self.arch = arch
+        self.classes = tuple(classes)
+        self.weights_hash = weights_hash
+        self.meta = dict(meta or {})
+        self.runner = BatchRunner(model, device=device, batch_size=batch_size, mean=tuple(mean), std=tuple(std),
+                                  post=lambda y: torch.softmax(y, dim=1))
+
+    def predict_proba(self, images: np.ndarray) -> np.ndarray:
+        images = check_images(images, f"{self.arch} classifier")
+        if len(images) == 0:
+            return np.zeros((0, len(self.classes)), np.float32)
+        p = self.runner(images)
+        return p / p.sum(axis=1, keepdims=True)
+
+    def identity(self) -> str:
+        return f"classifier:{self.arch}:{','.join(self.classes)}:{self.weights_hash}:{self.runner.describe()}"
+
+    def __repr__(self) -> str:
+        return f"ResNetClassifier({self.arch}, classes={self.classes}, device={self.runner.device})"
+
+
+def load_classifier(path: str | os.PathLike[str], *, device: str = "auto", batch_size: int = 256) -> ResNetClassifier:
+    sd, meta = read_classifier_file(path)
+    arch = meta["arch"]
+    model = make_resnet(arch, num_classes=len(meta["classes"]))
+    load_strict(model, sd, arch=arch, source=str(path))
+    return ResNetClassifier(model, arch=arch, classes=tuple(meta["classes"]), mean=meta["mean"], std=meta["std"],
+                            weights_hash=state_dict_hash(sd), device=device, batch_size=batch_size, meta=meta)
+
+
+def build_resnet18_classifier(*, path: str | None = None, device: str = "auto", batch_size: int = 256,
+                              data: str | None = None) -> ResNetClassifier:
+    """The trained ResNet18 recognizer from ``path``; ``path=None`` means the default
+    location for dataset ``data`` (``uevavd prepare`` passes it)."""
+    if path is None:
+        if data is None:
+            raise WeightsError(
+                "classifier resnet18: no path given and no dataset to find the default one; pass "
+                "path=FILE (from `uevavd train-classifier DATA --out FILE`)"
+            )
+        default = default_classifier_path(data)
+        if not default.is_file():
+            raise WeightsError(
+                f"no trained classifier for dataset {data}: expected {default}. Run "
+                f"`uevavd train-classifier {data} --out {default}` first (or pass --classifier FILE)"
+            )
+        path = str(default)
+    clf = load_classifier(path, device=device, batch_size=batch_size)
+    if clf.arch != "resnet18":
+        raise WeightsError(f"{path}: a {clf.arch} classifier, but the 'resnet18' classifier was asked for")
+    return clf

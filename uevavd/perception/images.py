@@ -1,0 +1,89 @@
+"""Image decoding in parallel worker threads (cv2 releases the GIL while decoding)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+cv2.setNumThreads(1)  # our own pool parallelises; cv2's inner threads would oversubscribe
+
+
+class ImageReadError(OSError):
+    """An image file is missing or cannot be decoded."""
+
+
+def read_rgb(path: str | os.PathLike[str]) -> np.ndarray:
+    """(H, W, 3) uint8 RGB."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ImageReadError(f"cannot decode image {path}: missing, truncated or not an image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_instance_map(path: str | os.PathLike[str]) -> np.ndarray:
+    """(H, W) uint16 instance ids from a 16-bit (or 8-bit) single-channel PNG."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ImageReadError(f"cannot decode segmentation {path}: missing, truncated or not a PNG")
+    if img.ndim != 2:
+        raise ImageReadError(f"segmentation {path} has shape {img.shape}; expected one channel of instance ids")
+    return img.astype(np.uint16, copy=False)
+
+
+def _stack(arrays: list[np.ndarray], paths: Sequence[Path], what: str) -> np.ndarray:
+    shapes = {a.shape for a in arrays}
+    if len(shapes) > 1:
+        first = arrays[0].shape
+        odd = next(p for p, a in zip(paths, arrays, strict=True) if a.shape != first)
+        raise ImageReadError(f"{what} {odd} has shape {[a for a in shapes if a != first][0]}; expected {first}")
+    return np.stack(arrays)
+
+
+class Decoder:
+    """A pool of decoding threads. ``images(paths)`` -> (N, H, W, 3) uint8 RGB;
+    ``instance_maps(paths)`` -> (N, H, W) uint16. ``submit_*`` return futures so that
+    decoding overlaps with the model forward."""
+
+    def __init__(self, workers: int = 2):
+        self.workers = max(1, int(workers))
+        self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="uevavd-decode")
+
+    def _map(self, fn, paths: Sequence[Path]) -> list[np.ndarray]:
+        if len(paths) < 2 * self.workers:
+            return [fn(p) for p in paths]
+        chunk = -(-len(paths) // self.workers)
+        parts = [paths[i : i + chunk] for i in range(0, len(paths), chunk)]
+        futures = [self.pool.submit(lambda ps: [fn(p) for p in ps], part) for part in parts]
+        return [a for f in futures for a in f.result()]
+
+    def images(self, paths: Sequence[Path]) -> np.ndarray:
+        return _stack(self._map(read_rgb, paths), paths, "image")
+
+    def instance_maps(self, paths: Sequence[Path]) -> np.ndarray:
+        return _stack(self._map(read_instance_map, paths), paths, "segmentation")
+
+    def submit(self, fn, *args):
+        """Run ``fn(*args)`` in a background thread (which may itself use this pool)."""
+        return self._bg.submit(fn, *args)
+
+    @property
+    def _bg(self) -> ThreadPoolExecutor:
+        if not hasattr(self, "_bg_pool"):
+            self._bg_pool = ThreadPoolExecutor(1, thread_name_prefix="uevavd-prefetch")
+        return self._bg_pool
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        if hasattr(self, "_bg_pool"):
+            self._bg_pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> Decoder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,89 @@
+"""Batched inference shared by the encoders and the classifier.
+
+Images are fed at their own size (the crops are 64-256 px; no resize), normalised with
+the ImageNet mean/std the torchvision weights use, channels-last, under
+``torch.inference_mode``; on a GPU with bf16 autocast. ``torch.set_num_threads`` is left
+to the caller.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+def resolve_device(device: str) -> torch.device:
+    """``"auto"`` -> cuda when available else cpu; anything else as torch reads it."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise ValueError(f"device {device!r}: expected 'auto', 'cpu', 'cuda' or 'cuda:N'") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} requested but no CUDA device is available; use device='auto'")
+    return dev
+
+
+def check_images(images: np.ndarray, where: str) -> np.ndarray:
+    """Validate (N, H, W, 3) uint8 RGB."""
+    images = np.asarray(images)
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"{where}: expected (N, H, W, 3) uint8 RGB images, got {images.shape} {images.dtype}")
+    return images
+
+
+class BatchRunner:
+    """Runs ``model`` over uint8 image batches; returns float32 numpy outputs.
+
+    ``post`` maps the model's float output tensor (N, C) to what the caller wants
+    (e.g. a softmax), applied in float32.
+    """
+
+    def __init__(self, model: torch.nn.Module, *, device: str = "auto", batch_size: int = 256,
+                 mean: tuple[float, ...] = IMAGENET_MEAN, std: tuple[float, ...] = IMAGENET_STD,
+                 post=None):
+        if int(batch_size) < 1:
+            raise ValueError(f"batch_size={batch_size}: expected a positive integer")
+        self.device = resolve_device(device)
+        self.batch_size = int(batch_size)
+        self.model = model.eval().to(self.device, memory_format=torch.channels_last)
+        for p in self.model.parameters():
+            p.requires_grad_(False)
+        shape = (1, 3, 1, 1)
+        self._scale = (1.0 / (255.0 * torch.tensor(std))).view(shape).to(self.device)
+        self._shift = (-torch.tensor(mean) / torch.tensor(std)).view(shape).to(self.device)
+        self.post = post
+        self.mean, self.std = tuple(mean), tuple(std)
+
+    def to_input(self, batch: np.ndarray) -> torch.Tensor:
+        """(N, H, W, 3) uint8 -> normalised (N, 3, H, W) float32, channels-last, on device."""
+        x = torch.from_numpy(np.ascontiguousarray(batch)).to(self.device, non_blocking=True)
+        x = x.permute(0, 3, 1, 2).float()
+        x = x * self._scale + self._shift
+        return x.contiguous(memory_format=torch.channels_last)
+
+    def __call__(self, images: np.ndarray) -> np.ndarray:
+        outs = []
+        with torch.inference_mode():
+            for i in range(0, len(images), self.batch_size):
+                x = self.to_input(images[i : i + self.batch_size])
+                if self.device.type == "cuda":
+                    with torch.autocast("cuda", dtype=torch.bfloat16):
+                        y = self.model(x)
+                else:
+                    y = self.model(x)
+                y = y.float()
+                if self.post is not None:
+                    y = self.post(y)
+                outs.append(y.cpu().numpy())
+        if not outs:
+            return np.zeros((0, 0), np.float32)
+        return np.concatenate(outs).astype(np.float32, copy=False)
+
+    def describe(self) -> str:
+        precision = "bf16" if self.device.type == "cuda" else "fp32"
+        return f"mean={list(self.mean)},std={list(self.std)},no-resize,{precision}"

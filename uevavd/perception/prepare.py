@@ -1,0 +1,281 @@
+"""``uevavd prepare``: build the observation table of a dataset for a method's perception.
+
+For every context scene (``00`` and ``train_605`` are not RL scenes) and each of its 605
+views: encoder features of the (optionally pre-decomposed) view, classifier
+probabilities on the raw view, the normalised box, and the visible fraction where known.
+
+The table lives in ``<tables_dir>/<key>/`` where ``key`` hashes everything that produced it
+(dataset files, segmenter, decomposition and gray seed, encoder and classifier identities
+with their weights hashes, schema version), so a changed input is never served from an
+old table. Work is kept scene by scene in ``<key>.partial/`` (each shard written
+atomically), so a killed run resumes where it stopped; the final table is assembled and
+renamed into place at the end. Images decode in worker threads, overlapping the forward.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import json
+import logging
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
+from ..data.grid import N_VIEWS
+from ..data.splits import TARGETS
+from ..paths import tables_dir
+from .decompose import decompose, view_seed
+from .images import Decoder
+from .table import SCHEMA_VERSION, ObservationTable, TableError
+
+log = logging.getLogger(__name__)
+SHARD_ARRAYS = ("features", "probs", "boxes", "visible")
+
+
+def resolve_spec(spec_or_method: MethodSpec | str | os.PathLike[str],
+                 overrides: Mapping[str, Any] | None = None) -> MethodSpec:
+    """A :class:`MethodSpec` from a spec, a registered method name or a TOML path, with
+    dotted ``overrides`` applied and validated."""
+    if not isinstance(spec_or_method, MethodSpec):
+        return load_method(spec_or_method, overrides)
+    if not overrides:
+        return spec_or_method
+    data = spec_or_method.to_dict()
+    for k, v in overrides.items():
+        _apply_override(data, k, v)
+    validate(data, f"{spec_or_method.source} with overrides {dict(overrides)}")
+    return MethodSpec(name=data["name"], data=_freeze(data), source=spec_or_method.source)
+
+
+def context_scenes(manifest) -> list[tuple[str, list]]:
+    """``[(scene, records sorted by view)]`` for the context scenes, by context id; each
+    must hold 605 views of one target."""
+    by_scene: dict[str, list] = {}
+    for r in manifest.records:
+        if r.context is not None:
+            by_scene.setdefault(r.scene, []).append(r)
+    out = []
+    for scene, recs in sorted(by_scene.items(), key=lambda kv: kv[1][0].context):
+        recs = sorted(recs, key=lambda r: r.view)
+        targets = {r.target for r in recs}
+        if len(targets) != 1 or [r.view for r in recs] != list(range(N_VIEWS)):
+            raise ValueError(
+                f"scene {scene}: expected the {N_VIEWS} views of one target, found {len(recs)} views of "
+                f"{sorted(targets)}; check the dataset with `uevavd validate`"
+            )
+        out.append((scene, recs))
+    if not out:
+        raise ValueError(f"{manifest.root}: no context scenes (001..150); nothing to put in a table")
+    return out
+
+
+def dataset_fingerprint(manifest, scenes: list[tuple[str, list]]) -> str:
+    """16-hex hash of the files and annotations the table reads: names, sizes and
+    modification times of images and segmentations, boxes, visibility, categories."""
+    h = hashlib.sha256()
+    for scene, recs in scenes:
+        h.update(f"{scene}:{json.dumps(manifest.categories(scene), sort_keys=True)}".encode())
+        for r in recs:
+            parts = [r.target, r.view, r.box, r.visible]
+            for p in (r.image, r.seg):
+                if p is not None:
+                    st = os.stat(p)
+                    parts += [Path(p).name, st.st_size, st.st_mtime_ns]
+            h.update(repr(parts).encode())
+    return h.hexdigest()[:16]
+
+
+def _accepts(builder, name: str) -> bool:
+    return name in inspect.signature(builder).parameters
+
+
+def build_components(spec: MethodSpec, data_root: Path, classifier_path: str | None):
+    """``(segmenter or None, encoder, classifier)`` for the spec's perception section."""
+    from ..plugins.manager import manager
+
+    def runtime(section: str, extra: dict[str, Any]) -> dict[str, Any]:
+        name, kwargs = spec.component(section)
+        builder = manager.registry.builder(section.split(".")[1], name)
+        return {k: v for k, v in extra.items() if k not in kwargs and _accepts(builder, k)}
+
+    decomposing = bool(spec.get("perception.decompose", False))
+    segmenter = spec.build("perception.segmenter") if decomposing and spec.get("perception.segmenter") else None
+    if decomposing and segmenter is None:
+        raise ValueError(f"method {spec.name!r}: perception.decompose = true needs a perception.segmenter")
+    encoder = spec.build("perception.encoder", **runtime("perception.encoder", {"data": str(data_root)}))
+    extra = {"data": str(data_root)}
+    if classifier_path is not None:
+        extra["path"] = str(classifier_path)
+    clf_runtime = runtime("perception.classifier", extra)
+    if classifier_path is not None:
+        clf_runtime["path"] = str(classifier_path)  # --classifier wins over the method file
+    classifier = spec.build("perception.classifier", **clf_runtime)
+    return segmenter, encoder, classifier
+
+
+def table_key(parts: Mapping[str, Any]) -> str:
+    blob = json.dumps(parts, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def _write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.ndarray] | None:
+    """A complete shard's arrays, or None when it is absent or unusable (then redone)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in SHARD_ARRAYS}
+    except Exception:  # noqa: BLE001 - anything unreadable is redone
+        log.warning("prepare: shard %s unreadable; recomputing it", path)
+        return None
+    expected = {"features": (N_VIEWS, feature_dim), "probs": (N_VIEWS, n_classes),
+                "boxes": (N_VIEWS, 4), "visible": (N_VIEWS,)}
+    if any(arrays[k].shape != s for k, s in expected.items()):
+        return None
+    return arrays
+
+
+def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, need_seg: bool):
+    images = decoder.images([r.image for r in recs])
+    maps = cats = None
+    if need_seg:
+        if any(r.seg is None for r in recs):
+            raise ValueError(f"scene {scene}: the segmenter needs ground-truth segmentation, which it lacks")
+        maps = decoder.instance_maps([r.seg for r in recs])
+        cats = [manifest.categories(scene) or {}] * len(recs)
+    return images, maps, cats
+
+
+def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw):
+    images, maps, cats = loaded
+    boxes_px = np.array([r.box for r in recs], np.float32).reshape(-1, 4)
+    enc_in = images
+    if segmenter is not None:
+        segs = segmenter.segment(images, boxes_px.astype(np.int64), instance_maps=maps, categories=cats)
+        enc_in = np.stack([
+            decompose(img, s.target, s.segments, seed=view_seed(gray_seed, scene, r.view, r.target))
+            for img, s, r in zip(images, segs, recs, strict=True)
+        ])
+    h, w = image_hw
+    return {
+        "features": encoder.encode(enc_in).astype(np.float16),
+        "probs": classifier.predict_proba(images).astype(np.float32),
+        "boxes": boxes_px / np.array([w, h, w, h], np.float32),
+        "visible": np.array([np.nan if r.visible is None else r.visible for r in recs], np.float32),
+    }
+
+
+def prepare_table(
+    data_root: str | os.PathLike[str],
+    spec_or_method: MethodSpec | str | os.PathLike[str],
+    *,
+    classifier_path: str | os.PathLike[str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    out_dir: str | os.PathLike[str] | None = None,
+    workers: int = 2,
+    progress: bool = True,
+) -> Path:
+    """Build (or find) the observation table; returns its folder ``<out_dir>/<key>``.
+
+    ``out_dir`` defaults to :func:`uevavd.paths.tables_dir`. A finished table with the same
+    key is reused; an interrupted build resumes from its finished scenes.
+    """
+    from tqdm.auto import tqdm
+
+    from ..data.reader import read_dataset
+
+    data_root = Path(data_root).expanduser().resolve()
+    spec = resolve_spec(spec_or_method, overrides)
+    manifest = read_dataset(data_root)
+    scenes = context_scenes(manifest)
+    segmenter, encoder, classifier = build_components(
+        spec, data_root, None if classifier_path is None else str(classifier_path))
+    if tuple(classifier.classes) != TARGETS:
+        raise ValueError(f"classifier classes {list(classifier.classes)}; the table needs {list(TARGETS)}")
+    decomposing = segmenter is not None
+    gray_seed = int(spec.get("perception.gray_seed", 0))
+    parts = {
+        "schema_version": SCHEMA_VERSION,
+        "dataset": dataset_fingerprint(manifest, scenes),
+        "segmenter": segmenter.identity() if decomposing else None,
+        "decompose": decomposing,
+        "gray_seed": gray_seed if decomposing else None,
+        "encoder": encoder.identity(),
+        "classifier": classifier.identity(),
+    }
+    key = table_key(parts)
+    out_dir = Path(out_dir).expanduser() if out_dir is not None else tables_dir()
+    final = out_dir / key
+    if final.is_dir():
+        try:
+            ObservationTable.load(final, expect_key=key)
+            log.info("prepare: table %s already built", final)
+            return final
+        except TableError as exc:
+            log.warning("prepare: existing table %s is unusable (%s); rebuilding", final, exc)
+    partial = out_dir / f"{key}.partial"
+    partial.mkdir(parents=True, exist_ok=True)
+    (partial / "key.json").write_text(json.dumps(parts, indent=1, sort_keys=True), encoding="utf-8")
+    k = len(TARGETS)
+    shards: dict[str, dict[str, np.ndarray]] = {}
+    todo = []
+    for scene, recs in scenes:
+        done = _read_shard(partial / f"{scene}.npz", encoder.feature_dim, k)
+        if done is None:
+            todo.append((scene, recs))
+        else:
+            shards[scene] = done
+    need_seg = decomposing and bool(getattr(segmenter, "needs_ground_truth", False))
+    bar = tqdm(total=len(scenes) * N_VIEWS, initial=len(shards) * N_VIEWS, desc=f"prepare {key[:8]}",
+               unit="view", disable=not progress)
+    with Decoder(workers) as dec:
+        nxt = dec.submit(_load_scene, dec, manifest, *todo[0], need_seg) if todo else None
+        for i, (scene, recs) in enumerate(todo):
+            loaded = nxt.result()
+            nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], need_seg) if i + 1 < len(todo) else None
+            arrays = _compute_scene(scene, recs, loaded, segmenter=segmenter, encoder=encoder,
+                                    classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size)
+            _write_shard(partial / f"{scene}.npz", arrays)
+            shards[scene] = arrays
+            bar.update(N_VIEWS)
+    bar.close()
+    names = [s for s, _ in scenes]
+    stack = {a: np.stack([shards[s][a] for s in names]) for a in SHARD_ARRAYS}
+    config = {
+        "method": spec.name,
+        "method_hash": spec.hash,
+        "perception": spec.to_dict().get("perception", {}),
+        "key_parts": parts,
+        "data_root": str(data_root),
+    }
+    table = ObservationTable.from_arrays(
+        stack["features"], stack["probs"], stack["boxes"], visible=stack["visible"],
+        scenes=names,
+        targets=[recs[0].target for _, recs in scenes],
+        splits=[recs[0].split for _, recs in scenes],
+        contexts=[recs[0].context for _, recs in scenes],
+        config=config, key=key,
+    )
+    table.save(final)
+    shutil.rmtree(partial, ignore_errors=True)
+    return final

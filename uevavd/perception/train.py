@@ -1,0 +1,219 @@
+"""Training the recognition classifier (``uevavd train-classifier``).
+
+A torchvision ResNet18 on the unoccluded ``train_605`` crops of the five targets. A share
+of the *viewpoints* (the same views for every target) is held out for validation.
+Augmentation keeps the task honest: photometric jitter (brightness, contrast,
+saturation), small shifts and scale; no flips or rotations (orientation is fixed by the
+camera model). Initial weights: ImageNet when the user names a file or torch's cache has
+it, else random (with a logged warning).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..data.splits import TARGETS
+from .nets import IMAGENET_MEAN, IMAGENET_STD
+from .weights import (
+    WeightsError,
+    imagenet_path,
+    load_state_dict_file,
+    load_strict,
+    make_resnet,
+    state_dict_hash,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainSettings:
+    epochs: int = 6
+    batch_size: int = 64
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    val_fraction: float = 0.15
+    seed: int = 0
+    shift: float = 0.06  #: max shift, fraction of the image size
+    scale: float = 0.08  #: max relative zoom in or out
+    jitter: float = 0.25  #: max relative change of brightness / contrast / saturation
+
+    def check(self) -> None:
+        if self.epochs < 1 or self.batch_size < 1:
+            raise ValueError(f"epochs={self.epochs}, batch_size={self.batch_size}: expected positive integers")
+        if not 0.0 < self.val_fraction < 1.0:
+            raise ValueError(f"val_fraction={self.val_fraction}: expected a share in (0, 1)")
+        if not self.lr > 0:
+            raise ValueError(f"lr={self.lr}: expected > 0")
+
+
+def split_views(n_views: int, val_fraction: float, seed: int) -> np.ndarray:
+    """Sorted int64 view indices held out for validation (seeded; the same for every target)."""
+    k = max(1, round(val_fraction * n_views))
+    return np.sort(np.random.default_rng(seed).choice(n_views, size=k, replace=False)).astype(np.int64)
+
+
+def initial_model(imagenet: str | None, n_classes: int, seed: int) -> tuple[torch.nn.Module, str]:
+    """ResNet18 with a fresh ``n_classes`` head; backbone from ImageNet when available."""
+    model = make_resnet("resnet18", num_classes=n_classes, seed=seed)
+    path: Path | None = Path(imagenet) if imagenet else None
+    if path is None:
+        try:
+            path = imagenet_path("resnet18")
+        except WeightsError:
+            log.warning("train-classifier: no ImageNet ResNet18 file in torch's cache; starting from random "
+                        "weights (seed %d). Pass --imagenet FILE to start from ImageNet.", seed)
+            return model, f"random:{seed}"
+    sd = load_state_dict_file(path)
+    head = {k: v for k, v in model.state_dict().items() if k.startswith("fc.")}
+    backbone = {k: v for k, v in sd.items() if not k.startswith("fc.")}
+    load_strict(model, {**backbone, **head}, arch="resnet18", source=str(path))
+    return model, f"imagenet:{path.name}"
+
+
+def augment(x: torch.Tensor, s: TrainSettings, gen: torch.Generator) -> torch.Tensor:
+    """(N, 3, H, W) float in [0, 1] -> jittered, shifted and scaled copy (no flips/rotations)."""
+    n = x.shape[0]
+
+    def u(lo, hi):
+        return lo + (hi - lo) * torch.rand(n, 1, 1, 1, generator=gen)
+
+    j = s.jitter
+    gray = x.mean(dim=1, keepdim=True)
+    x = gray + (x - gray) * u(1 - j, 1 + j)  # saturation
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = mean + (x - mean) * u(1 - j, 1 + j)  # contrast
+    x = (x * u(1 - j, 1 + j)).clamp(0, 1)  # brightness
+    zoom = u(1 - s.scale, 1 + s.scale).view(n)
+    theta = torch.zeros(n, 2, 3)
+    theta[:, 0, 0] = theta[:, 1, 1] = 1.0 / zoom
+    theta[:, :, 2] = (torch.rand(n, 2, generator=gen) * 2 - 1) * 2 * s.shift
+    grid = F.affine_grid(theta, list(x.shape), align_corners=False)
+    return F.grid_sample(x, grid, mode="bilinear", padding_mode="border", align_corners=False)
+
+
+def _normalise(x: torch.Tensor) -> torch.Tensor:
+    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    return ((x - mean) / std).contiguous(memory_format=torch.channels_last)
+
+
+def _to_float(images: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
+
+
+@torch.inference_mode()
+def predict(model: torch.nn.Module, images: np.ndarray, batch_size: int = 256) -> np.ndarray:
+    """(N, H, W, 3) uint8 -> (N, K) float32 probabilities (CPU, eval mode)."""
+    model.eval()
+    out = [torch.softmax(model(_normalise(_to_float(images[i : i + batch_size]))), 1)
+           for i in range(0, len(images), batch_size)]
+    return torch.cat(out).numpy() if out else np.zeros((0, 0), np.float32)
+
+
+def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: TrainSettings, *,
+        imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True):
+    """Train on (N, H, W, 3) uint8 crops with (N,) int class labels and (N,) view indices.
+
+    Returns ``(model, info)``; ``info`` holds the held-out views, clean validation accuracy,
+    per-epoch history and the initial weights used.
+    """
+    from tqdm.auto import tqdm
+
+    settings.check()
+    images, labels, views = np.asarray(images), np.asarray(labels, np.int64), np.asarray(views, np.int64)
+    n_views = int(views.max()) + 1 if len(views) else 0
+    val_views = split_views(max(n_views, 1), settings.val_fraction, settings.seed)
+    is_val = np.isin(views, val_views)
+    tr, va = np.flatnonzero(~is_val), np.flatnonzero(is_val)
+    if len(tr) == 0 or len(va) == 0:
+        raise ValueError(f"{len(images)} crops leave {len(tr)} for training and {len(va)} for validation")
+    model, init = initial_model(imagenet, n_classes, settings.seed)
+    model = model.to(memory_format=torch.channels_last)
+    gen = torch.Generator().manual_seed(settings.seed)
+    steps_per_epoch = math.ceil(len(tr) / settings.batch_size)
+    total = settings.epochs * steps_per_epoch
+    opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=total, pct_start=0.2)
+    history = []
+    bar = tqdm(total=total, desc="train-classifier", unit="batch", disable=not progress)
+    t0 = time.perf_counter()
+    for epoch in range(settings.epochs):
+        model.train()
+        order = tr[torch.randperm(len(tr), generator=gen).numpy()]
+        losses = []
+        for i in range(0, len(order), settings.batch_size):
+            idx = order[i : i + settings.batch_size]
+            x = _normalise(augment(_to_float(images[idx]), settings, gen))
+            loss = F.cross_entropy(model(x), torch.from_numpy(labels[idx]))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            losses.append(loss.item())
+            bar.update(1)
+            bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.3f}")
+        acc = float((predict(model, images[va]).argmax(1) == labels[va]).mean())
+        history.append({"epoch": epoch + 1, "loss": float(np.mean(losses)), "val_accuracy": acc})
+        bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses):.3f}", val_acc=f"{acc:.3f}")
+    bar.close()
+    model.eval()
+    info = {
+        "init": init,
+        "val_views": val_views.tolist(),
+        "n_train": len(tr),
+        "n_val": len(va),
+        "val_accuracy": history[-1]["val_accuracy"],
+        "history": history,
+        "seconds": round(time.perf_counter() - t0, 1),
+        "settings": asdict(settings),
+        "weights_hash": state_dict_hash(model.state_dict()),
+    }
+    return model, info
+
+
+def train_classifier(data: str | Path, out: str | Path | None = None, *, settings: TrainSettings | None = None,
+                     imagenet: str | None = None, workers: int = 2, report_views: int = 3000,
+                     progress: bool = True) -> Path:
+    """Train on ``data``'s ``train_605`` crops, write the classifier file (safetensors) and
+    its report (``<out>.md`` and ``<out>.png``) beside it. ``out=None`` writes to the
+    default location the pipeline reads (:func:`default_classifier_path`). Returns ``out``."""
+    from ..data.reader import read_dataset
+    from .classifier import classifiers_dir, data_hash, train_records, write_classifier_file
+    from .images import Decoder
+    from .report import visibility_report
+
+    settings = settings or TrainSettings()
+    manifest = read_dataset(data)
+    recs = train_records(manifest)
+    digest = data_hash(recs)
+    out = Path(out) if out is not None else classifiers_dir() / f"{digest}.safetensors"
+    if out.suffix != ".safetensors":
+        raise ValueError(f"--out {out}: the classifier is written as safetensors; name it *.safetensors")
+    with Decoder(workers) as dec:
+        images = dec.images([r.image for r in recs])
+        labels = np.array([TARGETS.index(r.target) for r in recs], np.int64)
+        views = np.array([r.view for r in recs], np.int64)
+        model, info = fit(images, labels, views, settings, imagenet=imagenet, progress=progress)
+        meta = {
+            "arch": "resnet18",
+            "classes": list(TARGETS),
+            "input_size": list(images.shape[1:3]),
+            "mean": list(IMAGENET_MEAN),
+            "std": list(IMAGENET_STD),
+            "data_hash": digest,
+            "data_root": str(Path(data).resolve()),
+            "train": {k: v for k, v in info.items() if k != "val_views"},
+            "val_views": info["val_views"],
+        }
+        path = write_classifier_file(out, model.state_dict(), meta)
+        visibility_report(model, manifest, path, info, decoder=dec, max_views=report_views, seed=settings.seed)
+    return path
