@@ -165,8 +165,10 @@ def test_order_ignores_creation_order(tmp_path, write_scene_fn):
         for tok in order:
             targets = ["suv", "pickup"] if tok == "00" else ["suv"]
             for t in (targets if seed == 1 else targets[::-1]):
-                write_scene_fn(root / tok, target=t, token=tok, seed=seed)
-        manifests.append(read_dataset(root))
+                write_scene_fn(root / tok, target=t, token=tok, seed=seed, views=range(0, N_VIEWS, 5))
+        m = read_dataset(root, check=False)  # a fifth of the views: skip the count check
+        assert m.problems == ()
+        manifests.append(m)
     a, b = ([(r.scene, r.target, r.view, r.image.name, r.box) for r in m] for m in manifests)
     assert a == b
     assert [s for s in manifests[0].scenes()] == ["3", "012", "00"]

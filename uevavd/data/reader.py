@@ -207,9 +207,9 @@ def _load_tables(scene_dir: Path, files: list[str], problems: list[Problem]) -> 
         try:
             boxes, errors = read_table(path)
         except AnnotationError as e:
-            problems.append(Problem("unparseable_annotation", path, str(e)))
+            problems.append(Problem("unparseable_annotation", path, str(e).removeprefix(f"{path}: ")))
             continue
-        problems.extend(Problem("unparseable_annotation", path, msg) for msg in errors)
+        problems.extend(Problem("unparseable_annotation", path, msg.removeprefix(f"{path} ")) for msg in errors)
         for k, v in boxes.items():
             merged.setdefault(k, v)
     return merged
@@ -280,7 +280,8 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
                                         f".json or .xml beside it, or a row for {name!r} in annotations.csv"))
                 continue
         except AnnotationError as e:
-            problems.append(Problem("unparseable_annotation", ann_path or path, str(e)))
+            where = ann_path or path
+            problems.append(Problem("unparseable_annotation", where, str(e).removeprefix(f"{where}: ")))
             continue
         if check and ann.label is not None:
             try:
