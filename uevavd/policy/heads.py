@@ -1,0 +1,108 @@
+"""Q heads (``head`` plugins): map the state s_t to Q-values over (type, range) actions.
+
+A head is an ``nn.Module`` whose ``forward(s)`` returns a tuple of Q tensors ("branches")
+and which knows how to act greedily, read the Q of taken actions and bootstrap a TD
+target from them (the math is in :mod:`uevavd.policy.targets`). s: (..., state_dim)
+float32; masks: (..., 7, A) bool from the environment.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import nn
+
+from . import targets as T
+
+
+def _mlp(inp: int, hidden: int, out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(inp, hidden), nn.ReLU(), nn.Linear(hidden, out))
+
+
+class BranchingDuelingHead(nn.Module):
+    """Two-channel dueling head: shared value V(s), advantages A_type (7) and A_range (A);
+    Q_type = V + A_type - mean A_type, Q_range = V + A_range - mean A_range."""
+
+    n_branches = 2
+
+    def __init__(self, state_dim: int, hidden: int, n_types: int, n_ranges: int, td_target: str) -> None:
+        super().__init__()
+        if td_target not in ("mean", "indep"):
+            raise ValueError(f"td_target={td_target!r}: expected 'mean' or 'indep'")
+        self.state_dim, self.n_types, self.n_ranges, self.td_target = state_dim, n_types, n_ranges, td_target
+        self.value = _mlp(state_dim, hidden, 1)
+        self.adv_type = _mlp(state_dim, hidden, n_types)
+        self.adv_range = _mlp(state_dim, hidden, n_ranges)
+
+    def forward(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        v = self.value(s)
+        return T.dueling(v, self.adv_type(s)), T.dueling(v, self.adv_range(s))
+
+    def greedy(self, q: tuple[torch.Tensor, ...], mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        return T.branch_greedy(q[0], q[1], mask)
+
+    def taken(self, q: tuple[torch.Tensor, ...], a_type: torch.Tensor, a_range: torch.Tensor) -> torch.Tensor:
+        """(..., K=2): Q_type(s, a_type), Q_range(s, a_range)."""
+        return torch.stack(
+            [q[0].gather(-1, a_type[..., None])[..., 0], q[1].gather(-1, a_range[..., None])[..., 0]], dim=-1
+        )
+
+    def bootstrap(
+        self, q_online: tuple[torch.Tensor, ...], q_target: tuple[torch.Tensor, ...], mask: torch.Tensor | None
+    ) -> torch.Tensor:
+        a_type, a_range = self.greedy(q_online, mask)
+        return T.branch_bootstrap(q_target[0], q_target[1], a_type, a_range, self.td_target)
+
+    def weights(self, a_type: torch.Tensor) -> torch.Tensor:
+        return T.branch_weights(a_type)
+
+
+class JointDuelingHead(nn.Module):
+    """Standard dueling DQN over the 7*A joint actions (type-major: index = type*A + range)."""
+
+    n_branches = 1
+
+    def __init__(self, state_dim: int, hidden: int, n_types: int, n_ranges: int) -> None:
+        super().__init__()
+        self.state_dim, self.n_types, self.n_ranges = state_dim, n_types, n_ranges
+        self.value = _mlp(state_dim, hidden, 1)
+        self.advantage = _mlp(state_dim, hidden, n_types * n_ranges)
+
+    def forward(self, s: torch.Tensor) -> tuple[torch.Tensor]:
+        return (T.dueling(self.value(s), self.advantage(s)),)
+
+    def greedy(self, q: tuple[torch.Tensor, ...], mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        return T.joint_greedy(q[0], mask, self.n_ranges)
+
+    def taken(self, q: tuple[torch.Tensor, ...], a_type: torch.Tensor, a_range: torch.Tensor) -> torch.Tensor:
+        flat = a_type * self.n_ranges + a_range
+        return q[0].gather(-1, flat[..., None])
+
+    def bootstrap(
+        self, q_online: tuple[torch.Tensor, ...], q_target: tuple[torch.Tensor, ...], mask: torch.Tensor | None
+    ) -> torch.Tensor:
+        a_type, a_range = self.greedy(q_online, mask)
+        return self.taken(q_target, a_type, a_range)
+
+    def weights(self, a_type: torch.Tensor) -> torch.Tensor:
+        return torch.ones(*a_type.shape, 1, device=a_type.device)
+
+
+def build_branching_dueling(
+    *,
+    state_dim: int = 512,
+    hidden: int = 256,
+    n_types: int = 7,
+    n_ranges: int = 4,
+    td_target: Literal["mean", "indep"] = "mean",
+) -> BranchingDuelingHead:
+    """MAP's two-channel dueling head; ``td_target`` "mean" (BDQ) or "indep"."""
+    return BranchingDuelingHead(state_dim, hidden, n_types, n_ranges, td_target)
+
+
+def build_joint_dueling(
+    *, state_dim: int = 512, hidden: int = 256, n_types: int = 7, n_ranges: int = 4
+) -> JointDuelingHead:
+    """Dueling head over the 28 joint (type, range) actions."""
+    return JointDuelingHead(state_dim, hidden, n_types, n_ranges)

@@ -1,0 +1,315 @@
+"""Training loop of MAP / Memo-MAP / IBE-MAP: double DQN over whole replayed episodes.
+
+Reads top to bottom like CleanRL's ``dqn.py``: settings, seeding, setup (or resume),
+one loop that acts in N parallel environments, stores finished episodes, learns, and
+after every epoch evaluates, logs and checkpoints. Run directory::
+
+    method.toml     the resolved method spec          settings.json  every setting
+    checkpoint.pt   atomic, exact-resume state        evals.jsonl    one row per epoch x split
+    tb/             TensorBoard scalars               done.json      written when finished
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import tempfile
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
+from ..env.config import EnvConfig
+from .agent import GreedyPolicy, Learner, TableLookup, random_actions
+from .checkpoint import CheckpointError, checkpoint_meta, load_checkpoint, save_checkpoint
+from .config import TrainConfig
+from .network import build_network
+from .replay import EpisodeReplay
+
+#: Settings whose change makes a run directory another run (device and progress may change).
+RUN_KEYS = ("method", "spec_hash", "table_key", "seed", "train", "env", "feature_dim")
+
+
+class RunDirError(ValueError):
+    """A run directory holds another configuration, or is not a run directory."""
+
+
+def resolve_device(device: str) -> torch.device:
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def resolve_spec(run_dir: str | Path) -> MethodSpec:
+    """The method spec saved in a run directory."""
+    path = Path(run_dir) / "method.toml"
+    if not path.is_file():
+        raise RunDirError(f"{run_dir} is not a training run: no method.toml")
+    return load_method(path)
+
+
+def apply_overrides(spec: MethodSpec, overrides: dict[str, Any] | None) -> MethodSpec:
+    """The spec with dotted overrides (``{"train.batch_size": 32}``) applied and validated."""
+    if not overrides:
+        return spec
+    data = spec.to_dict()
+    for key, value in overrides.items():
+        _apply_override(data, key, value)
+    source = f"{spec.source} with overrides {dict(overrides)}"
+    validate(data, source)
+    return MethodSpec(name=data["name"], data=_freeze(data), source=spec.source)
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(obj if isinstance(obj, str) else json.dumps(obj, indent=1, sort_keys=True, default=str))
+    os.replace(tmp, path)
+
+
+def _versions() -> dict[str, str]:
+    from .. import __version__
+
+    return {"uevavd": __version__, "torch": torch.__version__, "numpy": np.__version__,
+            "python": platform.python_version()}
+
+
+def _check_run_dir(out: Path, settings: dict[str, Any]) -> None:
+    path = out / "settings.json"
+    if not path.is_file():
+        if out.exists() and any(p.name not in ("tb",) for p in out.iterdir()):
+            raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
+        return
+    old = json.loads(path.read_text(encoding="utf-8"))
+    diffs = []
+    for k in RUN_KEYS:
+        if old.get(k) != settings.get(k):
+            if isinstance(old.get(k), dict) and isinstance(settings.get(k), dict):
+                for kk in sorted(set(old[k]) | set(settings[k])):
+                    if old[k].get(kk) != settings[k].get(kk):
+                        diffs.append(f"{k}.{kk}: run has {old[k].get(kk)!r}, now {settings[k].get(kk)!r}")
+            else:
+                diffs.append(f"{k}: run has {old.get(k)!r}, now {settings.get(k)!r}")
+    if diffs:
+        raise RunDirError(f"{out} holds a run of another configuration ({'; '.join(diffs)}); "
+                          "use another --out, or the same settings to resume it")
+
+
+class _Evaluator:
+    """Per-epoch evaluation on each split, its device tensors built once."""
+
+    def __init__(self, table: Any, cfg: TrainConfig, env_cfg: EnvConfig, device: torch.device) -> None:
+        from ..env.aod_env import select_scenes
+        from ..env.batched import EnvTensors
+
+        self.tensors = {}
+        for split in cfg.eval_splits:
+            ctx = table.contexts[select_scenes(table, split)]
+            if cfg.eval_contexts and cfg.eval_contexts < len(ctx):
+                ctx = ctx[np.linspace(0, len(ctx) - 1, cfg.eval_contexts).round().astype(int)]
+            self.tensors[split] = EnvTensors(table, split, env_cfg, device=device, contexts=ctx,
+                                             features_dtype=torch.float16)
+        self.device = device
+
+    def __call__(self, net: Any) -> dict[str, dict[str, Any]]:
+        from ..env.evaluate import evaluate_policy
+
+        out = {split: evaluate_policy(tb, split, GreedyPolicy(net, device=self.device)).summary()
+               for split, tb in self.tensors.items()}
+        net.train()
+        return out
+
+
+def train(
+    spec: MethodSpec,
+    table: Any,
+    *,
+    out: Path,
+    episodes: int | None = None,
+    seed: int = 0,
+    device: str = "auto",
+    progress: bool = True,
+    overrides: dict | None = None,
+    max_epochs: int | None = None,
+) -> Path:
+    """Train ``spec`` on an observation table (or its folder) into run directory ``out``.
+
+    Resumes an unfinished run of the same spec, table and settings; refuses a directory
+    holding another configuration (naming what differs); returns at once for a finished
+    run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
+    """
+    from ..env.aod_env import load_table
+    from ..env.batched import BatchedAODEnv
+
+    # -- settings -----------------------------------------------------------------------------
+    spec = apply_overrides(spec, overrides)
+    table = load_table(table)
+    train_section = dict(spec.get("train", {}) or {})
+    cfg = TrainConfig.from_dict({**train_section, "seed": seed,
+                                 **({"episodes": episodes} if episodes is not None else {})})
+    env_cfg = EnvConfig().replace(**dict(spec.get("env", {}) or {}))
+    dev = resolve_device(device if device != "auto" else cfg.device)
+    out = Path(out)
+    state_name, _ = spec.component("state")
+    head_name, _ = spec.component("head")
+    settings = {
+        "method": spec.name, "spec_hash": spec.hash, "table_key": table.key,
+        "table_path": str(table.path) if table.path else None, "feature_dim": table.feature_dim,
+        "seed": seed, "train": cfg.to_dict(), "env": env_cfg.to_dict(), "n_types": 7,
+        "n_ranges": env_cfg.max_range, "t_max": env_cfg.t_max, "state": state_name, "head": head_name,
+        "device": str(dev), "versions": _versions(),
+    }
+    _check_run_dir(out, settings)
+    if (out / "done.json").is_file():
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    spec.save(out / "method.toml")
+    _write_json(out / "settings.json", settings)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+
+    # -- seeding and setup --------------------------------------------------------------------
+    torch.manual_seed(cfg.seed)
+    net = build_network(spec, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
+    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
+    replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
+                           seed=cfg.seed + 1, device=dev)
+    env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=cfg.seed + 2,
+                        features_dtype=torch.float16)
+    lookup = TableLookup(env.tables)
+    evaluator = _Evaluator(table, cfg, env_cfg, dev)
+    act_gen = torch.Generator(device=dev)
+    act_gen.manual_seed(cfg.seed + 3)
+    n, tmax = cfg.n_envs, env_cfg.t_max
+    ar = torch.arange(n, device=dev)
+    # running episodes: views o_0..o_T, actions and rewards so far
+    ep_views = torch.zeros(n, tmax + 1, dtype=torch.int64, device=dev)
+    ep_type = torch.zeros(n, tmax, dtype=torch.int64, device=dev)
+    ep_range = torch.zeros(n, tmax, dtype=torch.int64, device=dev)
+    ep_reward = torch.zeros(n, tmax, dtype=torch.float32, device=dev)
+    hidden = net.initial_hidden(n, dev)
+    loop = {"episodes": 0, "env_steps": 0, "epoch": 0, "credit": 0.0, "wall": 0.0}
+    evals: list[dict[str, Any]] = []
+    ckpt_path = out / "checkpoint.pt"
+    if ckpt_path.is_file():
+        ck = load_checkpoint(ckpt_path, expect=settings)
+        net.load_state_dict(ck["net"])
+        learner.target.load_state_dict(ck["target"])
+        learner.optimizer.load_state_dict(ck["optimizer"])
+        learner.updates = int(ck["updates"])
+        replay.load_state_dict(ck["replay"])
+        env.load_state_dict(ck["env"])
+        act_gen.set_state(ck["act_rng"])
+        for name, tensor in (("ep_views", ep_views), ("ep_type", ep_type), ("ep_range", ep_range),
+                             ("ep_reward", ep_reward), ("hidden", hidden)):
+            tensor.copy_(ck[name])
+        loop.update(ck["loop"])
+        evals = json.loads(ck["evals"])
+        obs = env.observe()
+    else:
+        obs = env.reset()
+
+    def checkpoint() -> None:
+        save_checkpoint(ckpt_path, {
+            "meta": checkpoint_meta(settings), "net": net.state_dict(), "target": learner.target.state_dict(),
+            "optimizer": learner.optimizer.state_dict(), "updates": learner.updates,
+            "replay": replay.state_dict(), "env": env.state_dict(), "act_rng": act_gen.get_state(),
+            "ep_views": ep_views.cpu(), "ep_type": ep_type.cpu(), "ep_range": ep_range.cpu(),
+            "ep_reward": ep_reward.cpu(), "hidden": hidden.cpu(), "loop": dict(loop), "evals": json.dumps(evals),
+        })
+
+    from torch.utils.tensorboard import SummaryWriter
+    from tqdm.auto import tqdm
+
+    writer = SummaryWriter(str(out / "tb"))
+    bar = tqdm(total=cfg.episodes, initial=min(loop["episodes"], cfg.episodes), unit="ep",
+               desc=f"train {spec.name}", disable=not progress, dynamic_ncols=True)
+    recent: deque[float] = deque(maxlen=1000)
+    epochs_this_call = 0
+    t0 = time.perf_counter() - loop["wall"]
+    loss_val = float("nan")
+
+    # -- the loop -------------------------------------------------------------------------------
+    while loop["episodes"] < cfg.episodes:
+        # act: epsilon-greedy over allowed actions; the GRU memory restarts at t = 0
+        t = obs["t"]
+        with torch.no_grad():
+            hidden = hidden * (t != 0)[:, None].to(hidden.dtype)
+            q, hidden = net.step(obs["features"], obs["box"], hidden)
+            a_type, a_range = net.head.greedy(q, obs["mask"])
+            eps = cfg.epsilon(loop["episodes"])
+            explore = torch.rand(n, generator=act_gen, device=dev) < eps
+            r_type, r_range = random_actions(obs["mask"], act_gen)
+            a_type = torch.where(explore, r_type, a_type)
+            a_range = torch.where(explore, r_range, a_range)
+        ep_views[ar, t] = obs["view"]
+        ep_type[ar, t] = a_type
+        ep_range[ar, t] = a_range
+        scene = obs["scene"]
+        obs, reward, done, info = env.step(a_type, a_range)
+        ep_reward[ar, t] = reward
+        loop["env_steps"] += n
+
+        # store finished episodes whole (at most T_max decisions, T_max + 1 views)
+        if bool(done.any()):
+            idx = done.nonzero()[:, 0]
+            ep_views[idx, t[idx] + 1] = info["final_view"][idx]
+            replay.add(scene[idx], ep_views[idx], ep_type[idx], ep_range[idx], ep_reward[idx], t[idx] + 1)
+            ep_reward[idx] = 0.0
+            k = int(idx.numel())
+            loop["episodes"] += k
+            recent.extend(info["final_return"][idx].tolist())
+            bar.update(k)
+
+        # learn
+        if len(replay) >= cfg.learning_starts:
+            loop["credit"] += cfg.updates_per_step
+            while loop["credit"] >= 1.0:
+                loop["credit"] -= 1.0
+                batch = replay.sample(cfg.batch_size, cfg.beta(loop["episodes"]))
+                loss_val, td = learner.update(batch, lookup)
+                replay.update_priorities(batch.index, td)
+                if learner.updates % cfg.target_update == 0:
+                    learner.sync_target()
+
+        # epoch end: evaluate, log, checkpoint
+        if loop["episodes"] >= (loop["epoch"] + 1) * cfg.epoch_episodes or loop["episodes"] >= cfg.episodes:
+            loop["epoch"] += 1
+            epochs_this_call += 1
+            loop["wall"] = time.perf_counter() - t0
+            ret = float(np.mean(recent)) if recent else float("nan")
+            writer.add_scalar("train/recent_return", ret, loop["episodes"])
+            writer.add_scalar("train/epsilon", eps, loop["episodes"])
+            writer.add_scalar("train/loss", loss_val, loop["episodes"])
+            writer.add_scalar("train/episodes_per_s", loop["episodes"] / max(loop["wall"], 1e-9), loop["episodes"])
+            if cfg.eval_splits:
+                for split, summary in evaluator(net).items():
+                    row = {("eval_episodes" if k == "episodes" else k): v for k, v in summary.items()}
+                    evals.append({"epoch": loop["epoch"], "episodes": loop["episodes"], "wall_s": loop["wall"],
+                                  "split": split, **row})
+                    for key, value in summary.items():
+                        if isinstance(value, int | float):
+                            writer.add_scalar(f"eval_{split}/{key}", value, loop["episodes"])
+                _write_json(out / "evals.jsonl", "".join(json.dumps(r, default=str) + "\n" for r in evals))
+            if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes:
+                checkpoint()
+            writer.flush()
+            bar.set_postfix(ret=f"{ret:.3f}", eps=f"{eps:.2f}", loss=f"{loss_val:.4f}")
+            if max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes:
+                break
+
+    bar.close()
+    writer.close()
+    if loop["episodes"] >= cfg.episodes:
+        _write_json(out / "done.json", {"episodes": loop["episodes"], "env_steps": loop["env_steps"],
+                                        "updates": learner.updates, "wall_s": loop["wall"],
+                                        "final_eval": evals[-len(cfg.eval_splits):] if cfg.eval_splits else []})
+    return out
+
+
+__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "resolve_spec", "apply_overrides"]

@@ -1,0 +1,68 @@
+"""State estimators: from observations o_1..o_t to the state s_t the Q head reads.
+
+Every estimator starts with the same :class:`ObservationEncoder` (DESIGN.md section 2):
+g_t = [ReLU(Linear(D -> 512)) on the table feature, ReLU(Linear(4 -> 32)) on the box]
+(544-d). Estimators then map g_t (single view) or g_1..g_t (recurrent) to s_t.
+
+Shapes: features (B, T, D) float32 table features, boxes (B, T, 4) float32 XYXY
+normalised to [0, 1] (all zero = occluded). Sequences start at the episode's first
+observation; padding after an episode's end is allowed (causal: position t never reads
+positions > t).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+from torch import nn
+
+
+class ObservationEncoder(nn.Module):
+    """g_t = [ReLU(W_img f + b), ReLU(W_box b + c)]: (..., D), (..., 4) -> (..., image_dim + box_dim)."""
+
+    def __init__(self, feature_dim: int, image_dim: int = 512, box_dim: int = 32) -> None:
+        super().__init__()
+        if feature_dim < 1 or image_dim < 1 or box_dim < 1:
+            raise ValueError(
+                f"ObservationEncoder sizes must be >= 1: feature_dim={feature_dim}, "
+                f"image_dim={image_dim}, box_dim={box_dim}"
+            )
+        self.feature_dim, self.image_dim, self.box_dim = feature_dim, image_dim, box_dim
+        self.image = nn.Linear(feature_dim, image_dim)
+        self.box = nn.Linear(4, box_dim)
+
+    @property
+    def out_dim(self) -> int:
+        return self.image_dim + self.box_dim
+
+    def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        if features.shape[-1] != self.feature_dim:
+            raise ValueError(
+                f"features have {features.shape[-1]} channels but the encoder was built for "
+                f"{self.feature_dim}; build the state estimator with feature_dim={features.shape[-1]}"
+            )
+        return torch.cat([torch.relu(self.image(features)), torch.relu(self.box(boxes))], dim=-1)
+
+
+@runtime_checkable
+class StateEstimator(Protocol):
+    """What a ``state`` plugin builds (an ``nn.Module``)."""
+
+    feature_dim: int  #: D, the table feature size it reads
+    state_dim: int  #: size of s_t
+    recurrent: bool  #: True when s_t depends on earlier observations
+
+    def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        """(B, T, D), (B, T, 4) float32 -> (B, T, state_dim) float32: s_t for every t."""
+        ...
+
+    def initial_hidden(self, n: int, device: torch.device | str = "cpu") -> torch.Tensor:
+        """(n, H) float32 memory at an episode start (H = 0 when not recurrent)."""
+        ...
+
+    def step(
+        self, features: torch.Tensor, boxes: torch.Tensor, hidden: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """One decision: (N, D), (N, 4), (N, H) -> s_t (N, state_dim), new hidden (N, H)."""
+        ...

@@ -1,0 +1,49 @@
+"""Memo-MAP / IBE-MAP's state estimator: a GRU over the episode's observations."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .base import ObservationEncoder
+
+
+class GRUState(nn.Module):
+    """h_t = GRU(g_t, h_{t-1}) from h_0 = 0 at the episode start; s_t = ReLU(Linear(h_t)).
+
+    (B, T, D), (B, T, 4) -> (B, T, state_dim); sequences must start at the episode start.
+    """
+
+    recurrent = True
+
+    def __init__(self, feature_dim: int, input_dim: int, box_dim: int, hidden: int, state_dim: int) -> None:
+        super().__init__()
+        if input_dim <= box_dim:
+            raise ValueError(f"input_dim={input_dim} must exceed box_dim={box_dim} (g_t = image + box)")
+        self.feature_dim, self.hidden_dim, self.state_dim = feature_dim, hidden, state_dim
+        self.encoder = ObservationEncoder(feature_dim, input_dim - box_dim, box_dim)
+        self.gru = nn.GRU(input_dim, hidden, batch_first=True)
+        self.out = nn.Linear(hidden, state_dim)
+
+    def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        h, _ = self.gru(self.encoder(features, boxes))
+        return torch.relu(self.out(h))
+
+    def initial_hidden(self, n: int, device: torch.device | str = "cpu") -> torch.Tensor:
+        return torch.zeros(n, self.hidden_dim, device=device)
+
+    def step(
+        self, features: torch.Tensor, boxes: torch.Tensor, hidden: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        g = self.encoder(features, boxes)[:, None]
+        h, _ = self.gru(g, hidden[None].contiguous())
+        h = h[:, 0]
+        return torch.relu(self.out(h)), h
+
+
+def build_gru(
+    *, feature_dim: int = 2048, input_dim: int = 544, box_dim: int = 32, hidden: int = 544, state_dim: int = 512
+) -> GRUState:
+    """The recurrent estimator (paper sizes: g_t 544, h_t 544, s_t 512). ``feature_dim``
+    (D of the table) is passed by the trainer at build time."""
+    return GRUState(feature_dim, input_dim, box_dim, hidden, state_dim)

@@ -1,0 +1,41 @@
+"""MAP's state estimator: an MLP on the current observation only."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .base import ObservationEncoder
+
+
+class SingleViewState(nn.Module):
+    """s_t = ReLU(Linear(g_t)): (B, T, D), (B, T, 4) -> (B, T, state_dim); no memory."""
+
+    recurrent = False
+
+    def __init__(self, feature_dim: int, input_dim: int, box_dim: int, state_dim: int) -> None:
+        super().__init__()
+        if input_dim <= box_dim:
+            raise ValueError(f"input_dim={input_dim} must exceed box_dim={box_dim} (g_t = image + box)")
+        self.feature_dim, self.state_dim = feature_dim, state_dim
+        self.encoder = ObservationEncoder(feature_dim, input_dim - box_dim, box_dim)
+        self.mlp = nn.Linear(input_dim, state_dim)
+
+    def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.mlp(self.encoder(features, boxes)))
+
+    def initial_hidden(self, n: int, device: torch.device | str = "cpu") -> torch.Tensor:
+        return torch.zeros(n, 0, device=device)
+
+    def step(
+        self, features: torch.Tensor, boxes: torch.Tensor, hidden: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.forward(features, boxes), hidden
+
+
+def build_single_view(
+    *, feature_dim: int = 2048, input_dim: int = 544, box_dim: int = 32, state_dim: int = 512
+) -> SingleViewState:
+    """MAP's estimator. ``feature_dim`` (D of the table) is passed by the trainer at build
+    time; g_t has ``input_dim`` = (input_dim - box_dim) image + ``box_dim`` box channels."""
+    return SingleViewState(feature_dim, input_dim, box_dim, state_dim)
