@@ -39,6 +39,7 @@ from ..perception.table import ObservationTable, TableError
 from .config import EnvConfig, make_config
 
 ENV_ID = "uevavd/AOD-v0"
+F16_MAX = float(np.finfo(np.float16).max)
 
 
 def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationTable:
@@ -108,7 +109,8 @@ class AODEnv(gym.Env):
         d = self.table.feature_dim
         self.observation_space = spaces.Dict(
             {
-                "features": spaces.Box(-np.inf, np.inf, (d,), np.float32),
+                # features are stored as float16: its finite range bounds them
+                "features": spaces.Box(-F16_MAX, F16_MAX, (d,), np.float32),
                 "box": spaces.Box(0.0, 1.0, (4,), np.float32),
                 "action_mask": spaces.Box(0, 1, (7, cfg.max_range), np.int8),
                 "t": spaces.Discrete(cfg.t_max + 1),
@@ -125,8 +127,8 @@ class AODEnv(gym.Env):
     def _obs(self) -> dict[str, Any]:
         s, v = self._scene, self._view
         return {
-            "features": np.asarray(self.table.features[s, v], dtype=np.float32),
-            "box": np.asarray(self.table.boxes[s, v], dtype=np.float32),
+            "features": np.array(self.table.features[s, v], dtype=np.float32),
+            "box": np.array(self.table.boxes[s, v], dtype=np.float32),
             "action_mask": self._mask_i8[v].copy(),
             "t": int(self._t),
         }
@@ -136,7 +138,7 @@ class AODEnv(gym.Env):
         return {
             "view": int(v),
             "xyz": view_coords(v),
-            "probs": np.asarray(self.table.probs[s, v], dtype=np.float32),
+            "probs": np.array(self.table.probs[s, v], dtype=np.float32),
             "visible": float(self.table.visible[s, v]),
             "distance_m": float(self._dist),
             "steps": int(self._steps),

@@ -63,7 +63,7 @@ class EnvConfig:
                 raise bad(name, "a number >= 0 (the sign is part of the reward's definition)")
         if not 0.0 <= self.thre < 1.0:
             raise bad("thre", "a probability threshold in [0, 1)")
-        self.start_view  # validates start
+        _ = self.start_view  # validates start
 
     @property
     def start_view(self) -> int | None:

@@ -1,0 +1,175 @@
+"""AODEnv: the reward of every branch of Eq. 2/3, clamping, path length, T_max, bad input."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from conftest import make_table
+from gymnasium.utils.env_checker import check_env
+
+import uevavd.env  # noqa: F401  (registers uevavd/AOD-v0)
+from uevavd.data.grid import N_VIEWS, STOP, view_index
+from uevavd.env import AODEnv, DiscreteActions, EnvConfig, EnvConfigError
+from uevavd.perception.table import ObservationTable, TableError
+
+# views with x = 0 / y = 0 / z = 80 m (centre), and at the x = +50 m edge
+CENTRE = view_index(5, 5, 2)
+EDGE_X = view_index(10, 5, 2)
+
+
+def reco_table(recognised_views: set[int], target: int = 1) -> ObservationTable:
+    """One train scene whose true class has p = 0.9 at ``recognised_views``, 0.1 elsewhere."""
+    probs = np.full((1, N_VIEWS, 5), 0.0, np.float32)
+    other = (target + 1) % 5
+    probs[0, :, target] = 0.1
+    probs[0, :, other] = 0.9
+    for v in recognised_views:
+        probs[0, v, target], probs[0, v, other] = 0.9, 0.1
+    return make_table(1, splits=("train",), probs=probs, seed=3).__class__.from_arrays(
+        np.zeros((1, N_VIEWS, 4)), probs, np.zeros((1, N_VIEWS, 4)),
+        scenes=["001"], contexts=[1], targets=[target], splits=["train"],
+    )
+
+
+def run(env: AODEnv, view: int, actions: list[tuple[int, int]]):
+    env.reset(seed=0, options={"view": view})
+    rewards, info, term, trunc = [], {}, False, False
+    for a in actions:
+        _, r, term, trunc, info = env.step(np.array(a))
+        rewards.append(r)
+    return rewards, term, trunc, info
+
+
+def test_stop_rewards_and_ends():
+    env = AODEnv(reco_table({CENTRE}), "train")
+    rewards, term, trunc, info = run(env, CENTRE, [(STOP, 3)])
+    assert rewards == [0.5] and term and not trunc  # stop ignores its range: no cost
+    assert info["recognized"] and info["correct"] and info["stopped"] and info["distance_m"] == 0.0
+    rewards, *_ , info = run(env, CENTRE + 1, [(STOP, 0)])
+    assert rewards == [-0.5] and not info["recognized"] and not info["correct"]
+
+
+def test_move_then_terminal_at_tmax():
+    # T_max = 2: move (non-terminal), then a move at t = T_max-1 ends at the new view
+    cfg = EnvConfig(t_max=2)
+    target_view = view_index(5, 8, 2)  # forward (+y) 3 steps from the centre
+    env = AODEnv(reco_table({target_view}), "train", cfg)
+    rewards, term, trunc, info = run(env, CENTRE, [(0, 1), (0, 0)])  # +2 then +1 steps forward
+    assert rewards[0] == pytest.approx(-0.1 - 0.02 * 2)
+    assert rewards[1] == pytest.approx(0.5 - 0.02 * 1)
+    assert term and not trunc and info["view"] == target_view and info["recognized"]
+    assert info["steps"] == 3 and info["distance_m"] == 30.0
+    assert info["return"] == pytest.approx(rewards[0] + 0.9 * rewards[1])
+    rewards, term, _, info = run(env, CENTRE, [(0, 1), (1, 3)])  # ends unrecognised
+    assert rewards[1] == pytest.approx(-0.5 - 0.02 * 4) and term and not info["recognized"]
+    assert not info["stopped"]
+
+
+def test_stop_after_moves_has_no_movement_cost():
+    env = AODEnv(reco_table({view_index(4, 5, 2)}), "train")
+    rewards, term, _, info = run(env, CENTRE, [(2, 0), (STOP, 2)])  # left 1 step, stop
+    assert rewards == pytest.approx([-0.12, 0.5]) and term and info["recognized"]
+    assert info["t"] == 2 and info["return"] == pytest.approx(-0.12 + 0.9 * 0.5)
+
+
+def test_clamping_costs_requested_range_and_flies_actual_distance():
+    env = AODEnv(reco_table(set()), "train")
+    obs, _ = env.reset(options={"view": EDGE_X})
+    assert obs["action_mask"][3].tolist() == [0, 0, 0, 0]  # right is clamped at x = +50
+    assert obs["action_mask"][2].tolist() == [1, 1, 1, 1] and obs["action_mask"][STOP].all()
+    _, r, term, _, info = env.step(np.array([3, 3]))  # right 4: stays at the edge
+    assert info["view"] == EDGE_X and info["distance_m"] == 0.0 and info["steps"] == 0
+    assert r == pytest.approx(-0.1 - 0.08) and not term
+    _, r, *_ , info = env.step(np.array([5, 3]))  # up 4 from z = 80: flies 2 steps to z = 100
+    assert info["xyz"].tolist() == [50.0, 0.0, 100.0] and info["distance_m"] == 20.0 and info["steps"] == 2
+    assert r == pytest.approx(-0.18)
+
+
+def test_tmax_ends_episode_and_step_after_end_refused():
+    env = AODEnv(reco_table(set()), "train", t_max=3)
+    env.reset(options={"view": CENTRE})
+    ends = [env.step(np.array([0, 0]))[2:4] for _ in range(3)]
+    assert ends == [(False, False), (False, False), (True, False)]
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.array([0, 0]))
+
+
+def test_info_and_observation_contents(table):
+    env = AODEnv(table, "hard")
+    obs, info = env.reset(seed=5, options={"context": 6, "view": 17})
+    assert info["context"] == 6 and info["scene"] == 5 and info["view"] == 17 and info["t"] == 0
+    np.testing.assert_array_equal(obs["features"], table.features[5, 17].astype(np.float32))
+    np.testing.assert_array_equal(obs["box"], table.boxes[5, 17])
+    np.testing.assert_array_equal(info["probs"], table.probs[5, 17])
+    assert info["visible"] == pytest.approx(float(table.visible[5, 17]))
+    assert info["target"] == int(table.targets[5])
+    seen = {env.reset(seed=s)[1]["context"] for s in range(20)}
+    assert seen == {5, 6}  # only contexts of the split
+
+
+@pytest.mark.filterwarnings("ignore:.*different from the unwrapped version")
+def test_check_env_and_gym_make(table):
+    check_env(AODEnv(table, "train"), skip_render_check=True)
+    check_env(DiscreteActions(AODEnv(table, "train", t_max=2)), skip_render_check=True)
+    env = gym.make("uevavd/AOD-v0", table=table, split="simple", t_max=3)
+    obs, info = env.reset(seed=0)
+    assert env.action_space == gym.spaces.MultiDiscrete([7, 4]) and info["context"] == 4
+    wrapped = DiscreteActions(env)
+    assert wrapped.action_space == gym.spaces.Discrete(28)
+    obs, _ = wrapped.reset(seed=0, options={"view": EDGE_X})
+    assert obs["action_mask"].shape == (28,) and obs["action_mask"][3 * 4 : 4 * 4].sum() == 0
+    _, _, term, _, info = wrapped.step(6 * 4 + 2)  # stop with any range
+    assert term and info["stopped"]
+
+
+def test_fixed_start_from_config(table):
+    env = AODEnv(table, "train", start="302")
+    assert all(env.reset(seed=s)[1]["view"] == 302 for s in range(3))
+
+
+def test_bad_input(table, tmp_path):
+    env = AODEnv(table, "train")
+    env.reset(seed=0)
+    for bad in ([7, 0], [0, 4], [-1, 0], [1, 2, 3]):
+        with pytest.raises(ValueError, match="action"):
+            env.step(np.array(bad))
+    with pytest.raises(ValueError, match="outside Discrete"):
+        DiscreteActions(AODEnv(table, "train")).step(28)
+    with pytest.raises(ValueError, match="context=9"):
+        env.reset(options={"context": 9})
+    with pytest.raises(ValueError, match="view=605"):
+        env.reset(options={"view": 605})
+    with pytest.raises(ValueError, match="unknown reset option"):
+        env.reset(options={"start": 3})
+    only_train = make_table(2, splits=("train", "train"))
+    with pytest.raises(TableError, match="no scenes in split 'hard'"):
+        AODEnv(only_train, "hard")
+    for kwargs, match in (({"t_max": 0}, "t_max"), ({"gamma": 1.5}, "gamma"), ({"thre": 1.0}, "thre"),
+                          ({"start": "middle"}, "start"), ({"xi1": -1}, "xi1")):
+        with pytest.raises(EnvConfigError, match=match):
+            EnvConfig(**kwargs)
+    with pytest.raises(EnvConfigError, match="unknown EnvConfig field"):
+        AODEnv(table, "train", tmax=3)
+    # NaN in a table on disk is refused at load, naming the file
+    path = table.save(tmp_path / "tbl")
+    feats = np.load(path / "features.npy")
+    feats[2, 7, 0] = np.nan
+    np.save(path / "features.npy", feats)
+    with pytest.raises(TableError, match="NaN"):
+        AODEnv(path, "train")
+
+
+def test_sb3_dqn_trains_on_discrete_form(table):
+    sb3 = pytest.importorskip("stable_baselines3")
+    env = DiscreteActions(AODEnv(table, "train"))
+    model = sb3.DQN(
+        "MultiInputPolicy", env, learning_starts=100, buffer_size=1000, batch_size=32,
+        train_freq=4, target_update_interval=100, policy_kwargs={"net_arch": [32]}, seed=0, device="cpu",
+    )
+    model.learn(total_timesteps=500)
+    obs, _ = env.reset(seed=1)
+    action, _ = model.predict(obs, deterministic=True)
+    assert env.action_space.contains(int(action))
+    _, _, term, trunc, _ = env.step(int(action))
+    assert not trunc
