@@ -11,6 +11,8 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
     "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
+    "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map) on an observation table"),
+    "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run beside random, passive and oracle; table + JSON"),
     "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the ResNet18 recognizer on train_605"),
     "prepare": ("uevavd.perception.cli:add_prepare", "build the observation table of a dataset for a method"),
     "validate": ("uevavd.data.validate:add_validate", "check a dataset root: names, annotations, views, images; exit 1 on problems"),
