@@ -5,13 +5,14 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
-from conftest import make_table
 from gymnasium.utils.env_checker import check_env
 
 import uevavd.env  # noqa: F401  (registers uevavd/AOD-v0)
 from uevavd.data.grid import N_VIEWS, STOP, view_index
 from uevavd.env import AODEnv, DiscreteActions, EnvConfig, EnvConfigError
 from uevavd.perception.table import ObservationTable, TableError
+
+from .conftest import make_table
 
 # views with x = 0 / y = 0 / z = 80 m (centre), and at the x = +50 m edge
 CENTRE = view_index(5, 5, 2)
