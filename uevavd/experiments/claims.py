@@ -1,0 +1,246 @@
+"""The paper's claims (EXPERIMENTS section) checked against an ablation's results.
+
+Each claim becomes a :class:`Claim` with a verdict:
+
+* ``"agrees"``: every comparison the claim makes has its 95% t-interval wholly on the
+  claimed side of zero;
+* ``"disagrees"``: at least one comparison's interval lies wholly on the wrong side;
+* ``"cannot tell"``: otherwise (an interval covers zero, one seed only, or the data
+  the claim needs was not produced); the evidence says which.
+
+Comparisons between methods are differences of means over independent seeds (Welch t
+interval); a deterministic baseline (passive) is an exact constant; a sweep trend is
+the least-squares slope over all (setting, seed) points with its t interval. Every
+comparison uses the final evaluation point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pandas as pd
+
+from .report_data import (
+    default_setting,
+    estimate,
+    final_rows,
+    gengap_estimate,
+    label,
+    learned,
+    sweep_methods,
+    sweep_rows,
+)
+from .stats import Estimate, difference, sign_verdict, slope
+
+AGREES = "agrees"
+DISAGREES = "disagrees"
+CANNOT_TELL = "cannot tell"
+
+CLAIM_TEXT: dict[str, str] = {
+    "a": "Every method beats passive perception (hard-test return above passive's).",
+    "b": "IBE-MAP has the highest hard-test return and the smallest GenGap.",
+    "c": "Memo-MAP's GenGap is below MAP's.",
+    "d": "A higher thre gives a lower return and a longer path (Table 2).",
+    "e": "A higher C gives a shorter path and a lower accuracy (Table 3).",
+}
+
+
+@dataclass(frozen=True)
+class Claim:
+    """One checked claim: ``id`` ("a".."e"), the claim ``text``, the ``verdict``
+    (``"agrees"``, ``"disagrees"`` or ``"cannot tell"``) and the ``evidence`` (numbers
+    and 95% intervals it rests on, or why it cannot be judged)."""
+
+    id: str
+    text: str
+    verdict: str
+    evidence: str
+
+
+def _ci(e: Estimate, digits: int = 3) -> str:
+    if not e.defined:
+        return f"{e.mean:+.{digits}f} (no interval: n={e.n})"
+    return f"{e.mean:+.{digits}f} [{e.lo:+.{digits}f}, {e.hi:+.{digits}f}]"
+
+
+def _combine(parts: list[tuple[str | None, str]]) -> tuple[str, str]:
+    """Verdict over several comparisons, and the evidence joined. ``parts``: (verdict of
+    one comparison or None when it has no interval, its evidence)."""
+    verdicts = [v for v, _ in parts]
+    evidence = "; ".join(e for _, e in parts)
+    if DISAGREES in verdicts:
+        return DISAGREES, evidence
+    if verdicts and all(v == AGREES for v in verdicts):
+        return AGREES, evidence
+    if any(v is None for v in verdicts):
+        return CANNOT_TELL, "not judged: fewer than two seeds, no interval. " + evidence
+    return CANNOT_TELL, "the interval of a comparison covers zero (CIs overlap). " + evidence
+
+
+def _missing(cid: str, what: str) -> Claim:
+    return Claim(cid, CLAIM_TEXT[cid], CANNOT_TELL, f"not judged: {what}")
+
+
+def _claim_a(final: pd.DataFrame, setting: str) -> Claim:
+    methods = learned(final["method"].unique())
+    passive = estimate(final, "passive", "hard", "return", setting)
+    if passive.n == 0:
+        return _missing("a", f"no passive rows on the hard split in setting {setting!r}")
+    if not methods:
+        return _missing("a", "no learned method in the results")
+    parts = []
+    for m in methods:
+        e = estimate(final, m, "hard", "return", setting)
+        if e.n == 0:
+            parts.append((None, f"{label(m)}: no hard-split rows"))
+            continue
+        d = difference(e, passive)
+        parts.append((sign_verdict(d, +1),
+                      f"{label(m)} {e.fmt()} (n={e.n}) minus passive {passive.mean:.3f} = {_ci(d)}"))
+    return Claim("a", CLAIM_TEXT["a"], *_combine(parts))
+
+
+def _claim_b(final: pd.DataFrame, setting: str) -> Claim:
+    methods = learned(final["method"].unique())
+    if "ibe_map" not in methods:
+        return _missing("b", "IBE-MAP (method 'ibe_map') is not in the results")
+    others = [m for m in methods if m != "ibe_map"]
+    if not others:
+        return _missing("b", "no other learned method to compare IBE-MAP with")
+    parts = []
+    ibe_r = estimate(final, "ibe_map", "hard", "return", setting)
+    ibe_g = gengap_estimate(final, "ibe_map", setting)
+    for m in others:
+        r = estimate(final, m, "hard", "return", setting)
+        d = difference(ibe_r, r)
+        parts.append((sign_verdict(d, +1), f"hard return IBE-MAP {ibe_r.fmt()} minus {label(m)} {r.fmt()} = {_ci(d)}"))
+    for m in others:
+        g = gengap_estimate(final, m, setting)
+        d = difference(ibe_g, g)
+        parts.append((sign_verdict(d, -1), f"GenGap IBE-MAP {ibe_g.fmt()} minus {label(m)} {g.fmt()} = {_ci(d)}"))
+    return Claim("b", CLAIM_TEXT["b"], *_combine(parts))
+
+
+def _claim_c(final: pd.DataFrame, setting: str) -> Claim:
+    methods = learned(final["method"].unique())
+    absent = [m for m in ("memo_map", "map") if m not in methods]
+    if absent:
+        return _missing("c", f"method(s) {absent} not in the results")
+    memo = gengap_estimate(final, "memo_map", setting)
+    plain = gengap_estimate(final, "map", setting)
+    d = difference(memo, plain)
+    return Claim("c", CLAIM_TEXT["c"], *_combine(
+        [(sign_verdict(d, -1), f"GenGap Memo-MAP {memo.fmt()} minus MAP {plain.fmt()} = {_ci(d)}")]))
+
+
+def _claim_sweep(final: pd.DataFrame, cid: str, param: str, checks: tuple[tuple[str, int, str], ...]) -> Claim:
+    methods = sweep_methods(final, param)
+    if not methods:
+        return _missing(cid, f"the {param} sweep was not run (no '{param}=...' settings in results.csv)")
+    m = methods[0]
+    rows = sweep_rows(final, param, m)
+    rows = rows[rows["split"] == "hard"]
+    if rows.empty:
+        return _missing(cid, f"the {param} sweep of {label(m)} has no hard-split rows")
+    values = sorted(rows[param].unique())
+    parts = []
+    for metric, want, name in checks:
+        s = slope(rows[param], rows[metric])
+        means = ", ".join(
+            f"{param}={v:g}: {rows.loc[rows[param] == v, metric].mean():.3f}" for v in values)
+        verdict = sign_verdict(s, want) if rows.groupby(param)["seed"].nunique().min() >= 2 else None
+        parts.append((verdict, f"{label(m)} hard-test {name} per unit {param}: slope {_ci(s)} ({means})"))
+    return Claim(cid, CLAIM_TEXT[cid], *_combine(parts))
+
+
+def check_claims(results: pd.DataFrame) -> list[Claim]:
+    """Check claims (a)-(e) on a results table (the rows of ``results.csv`` as read by
+    :func:`uevavd.experiments.report_data.load_results`; final rows are selected here).
+    Returns five :class:`Claim` in order a..e."""
+    final = final_rows(results)
+    setting = default_setting(final)
+    return [
+        _claim_a(final, setting),
+        _claim_b(final, setting),
+        _claim_c(final, setting),
+        _claim_sweep(final, "d", "thre", (("return", -1, "return"), ("path_m", +1, "path (m)"))),
+        _claim_sweep(final, "e", "C", (("path_m", -1, "path (m)"), ("accuracy", -1, "accuracy"))),
+    ]
+
+
+def _late_trend(results: pd.DataFrame, method: str, setting: str, split: str = "hard") -> Estimate:
+    """Slope of the raw return against training episodes (per 10^4 episodes) over the
+    second half of the evaluation points, pooled over seeds."""
+    rows = results[(results["method"] == method) & (results["setting"] == setting) & (results["split"] == split)
+                   & (results["episodes"] >= 0)]
+    if rows.empty:
+        return Estimate.of([])
+    cut = rows["episodes"].quantile(0.5)
+    late = rows[rows["episodes"] >= cut]
+    return slope(late["episodes"] / 1e4, late["return"])
+
+
+def diagnose(results: pd.DataFrame, claims: list[Claim]) -> list[str]:
+    """Facts that bear on claims that do not agree, for the report: seeds, training
+    length, whether returns still rise, the room active viewing has (oracle minus
+    passive), the world's own train/hard difference (passive's GenGap), and sanity
+    checks of the results that would point to a bug. Empty when every claim agrees and
+    no sanity check fails."""
+    final = final_rows(results)
+    setting = default_setting(final)
+    notes: list[str] = []
+    runs = final[~final["method"].isin(("random", "passive", "oracle")) & (final["episodes"] >= 0)]
+    if any(c.verdict != AGREES for c in claims):
+        n_seeds = runs.groupby("method")["seed"].nunique()
+        if len(n_seeds) and n_seeds.min() < 5:
+            span = f"{n_seeds.min()}" if n_seeds.min() == n_seeds.max() else f"{n_seeds.min()} to {n_seeds.max()}"
+            notes.append(f"Seeds: {span} per method (the paper uses 5); with few seeds "
+                         "the t-intervals are wide and small differences cannot be told apart.")
+        if len(runs):
+            ep = int(runs["episodes"].max())
+            notes.append(f"Training length: {ep:,} episodes at the final point, {ep / 300_000:.1%} of the paper's "
+                         "300,000.")
+        for m in learned(runs["method"].unique()):
+            t = _late_trend(results, m, setting)
+            if t.defined and t.lo > 0:
+                notes.append(f"{label(m)}'s hard-test return is still rising over the second half of training "
+                             f"(slope {_ci(t, 4)} per 10^4 episodes): not converged, train longer.")
+        passive = estimate(final, "passive", "hard", "return", setting)
+        oracle = estimate(final, "oracle", "hard", "return", setting)
+        if passive.n and oracle.n:
+            room = oracle.mean - passive.mean
+            parts = []
+            for m in learned(runs["method"].unique()):
+                e = estimate(final, m, "hard", "return", setting)
+                if e.n and room > 0:
+                    parts.append(f"{label(m)} {(e.mean - passive.mean) / room:+.0%}")
+            notes.append(f"Room for active viewing on the hard-test contexts: oracle {oracle.mean:.3f} minus passive "
+                         f"{passive.mean:.3f} = {room:.3f}; share of it recovered: "
+                         f"{', '.join(parts) or 'n/a'}. A small room means the world leaves little to gain by moving.")
+        pg = gengap_estimate(final, "passive", setting)
+        if pg.n:
+            notes.append(f"The world's own train − hard difference (passive's GenGap) is {pg.mean:.3f}: this part "
+                         "of every GenGap comes from the contexts, not from the policy.")
+    notes += _sanity(final)
+    return notes
+
+
+def _sanity(final: pd.DataFrame) -> list[str]:
+    """Checks that hold by construction (DESIGN.md section 2); a failure points to a bug."""
+    out = []
+    bad = final[(final["path_m"] - 10.0 * final["path_steps"]).abs() > 1e-6 * (1 + final["path_m"].abs())]
+    if len(bad):
+        out.append(f"Possible bug: path_m != 10 x path_steps in {len(bad)} final row(s) (e.g. "
+                   f"{bad.iloc[0]['method']} seed {bad.iloc[0]['seed']} {bad.iloc[0]['split']}).")
+    # With 5 classes the argmax probability is >= 0.2, so a correct argmax is recognised at thre <= 0.2
+    # (up to a uniform tie): recognition should not fall below accuracy there.
+    low = final[(final["thre"] <= 0.2 + 1e-9) & (final["recognition"] + 1e-6 < final["accuracy"] - 0.01)]
+    if len(low):
+        out.append(f"Possible bug: recognition below accuracy at thre <= 0.2 in {len(low)} final row(s) (e.g. "
+                   f"{low.iloc[0]['method']} {low.iloc[0]['split']}: {low.iloc[0]['recognition']:.3f} < "
+                   f"{low.iloc[0]['accuracy']:.3f}).")
+    for col in ("stop_rate", "accuracy", "recognition"):
+        off = final[(final[col] < -1e-9) | (final[col] > 1 + 1e-9)]
+        if len(off):
+            out.append(f"Possible bug: {col} outside [0, 1] in {len(off)} final row(s).")
+    return out

@@ -1,0 +1,192 @@
+"""Figures of the ablation report (headless matplotlib, Agg): the Fig. 9-style
+learning curves and the Fig. 8-style observation strips.
+
+Both functions write a PNG atomically (temp file in the same folder, then
+``os.replace``) and return its path.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+import seaborn as sns  # noqa: E402
+
+from ..data.grid import ACTION_TYPES, STOP, XS, YS, ZS, view_coords  # noqa: E402
+from .report_data import BASELINES, label, order_methods  # noqa: E402
+from .stats import smooth  # noqa: E402
+
+#: Fig. 9 panels: (column, y-axis label).
+CURVE_METRICS: tuple[tuple[str, str], ...] = (
+    ("return", "return"),
+    ("recognition", "recognition rate"),
+    ("path_m", "movement distance (m)"),
+)
+CURVE_SPLITS: tuple[tuple[str, str], ...] = (("train", "training contexts"), ("hard", "hard-test contexts"))
+_BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "oracle": "black"}
+
+
+def _save(fig, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.png")
+    try:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def smoothed_curves(curves: pd.DataFrame, window: int) -> pd.DataFrame:
+    """Each (method, seed, split) curve sorted by episodes with every metric of
+    :data:`CURVE_METRICS` replaced by its trailing ``window``-point sliding mean."""
+    out = []
+    for _, g in curves.groupby(["method", "seed", "split"], sort=False):
+        g = g.sort_values("episodes").copy()
+        for col, _ in CURVE_METRICS:
+            g[col] = smooth(g[col].to_numpy(), window)
+        out.append(g)
+    return pd.concat(out, ignore_index=True) if out else curves.iloc[0:0]
+
+
+def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, window: int) -> Path:
+    """Fig. 9: 3 metrics (rows) x {train, hard} (columns) against training episodes.
+
+    ``curves``: learned-method rows of one setting (``episodes >= 0``); each seed's curve
+    is smoothed with a ``window``-point sliding mean, then seaborn draws the mean over
+    seeds and a 95% confidence band (``errorbar=("ci", 95)``, bootstrap, fixed seed).
+    ``baselines``: final baseline rows of the same setting, drawn as dashed lines at
+    their mean over seeds.
+    """
+    data = smoothed_curves(curves, window)
+    data = data.assign(policy=data["method"].map(label))
+    hue_order = [label(m) for m in order_methods(data["method"].unique())]
+    palette = dict(zip(hue_order, sns.color_palette("tab10", len(hue_order)), strict=True))
+    fig, axes = plt.subplots(len(CURVE_METRICS), len(CURVE_SPLITS), figsize=(11, 10), squeeze=False)
+    for i, (col, ylabel) in enumerate(CURVE_METRICS):
+        for j, (split, title) in enumerate(CURVE_SPLITS):
+            ax = axes[i, j]
+            sub = data[data["split"] == split]
+            if sub.empty:
+                ax.text(0.5, 0.5, f"no {split} rows", ha="center", va="center", transform=ax.transAxes)
+            else:
+                sns.lineplot(data=sub, x="episodes", y=col, hue="policy", hue_order=hue_order, palette=palette,
+                             errorbar=("ci", 95), seed=0, ax=ax, legend=False)
+            base = baselines[baselines["split"] == split]
+            for m in BASELINES:
+                vals = base.loc[base["method"] == m, col]
+                if len(vals):
+                    ax.axhline(float(vals.mean()), ls="--", lw=1.2, color=_BASELINE_COLOURS[m])
+            ax.set_xlabel("training episodes")
+            ax.set_ylabel(ylabel)
+            ax.set_title(f"({'abc'[i]}) {ylabel}, {title}", fontsize=10)
+            ax.grid(alpha=0.3)
+    handles = [plt.Line2D([], [], color=palette[h], lw=2, label=h) for h in hue_order]
+    present = set(baselines["method"])
+    handles += [plt.Line2D([], [], color=_BASELINE_COLOURS[m], ls="--", label=label(m))
+                for m in BASELINES if m in present]
+    fig.legend(handles=handles, loc="lower center", ncol=max(1, len(handles)), frameon=False,
+               bbox_to_anchor=(0.5, -0.01))
+    fig.suptitle(f"Mean over seeds and 95% CI after a {window}-point sliding-window mean", fontsize=11)
+    fig.tight_layout(rect=(0, 0.03, 1, 0.97))
+    return _save(fig, path)
+
+
+def _action_text(action: Sequence[int] | None) -> str:
+    if action is None:
+        return "(end)"
+    a_type, a_range = int(action[0]), int(action[1])
+    if a_type == STOP:
+        return "stop"
+    name = ACTION_TYPES[a_type] if 0 <= a_type < len(ACTION_TYPES) else f"type {a_type}"
+    return f"{name} x{a_range + 1}"
+
+
+def _grid_axes(ax, views: Sequence[int]):
+    gx, gy = np.meshgrid(XS, YS, indexing="ij")
+    ax.scatter(gx.ravel(), gy.ravel(), s=4, color="0.8", zorder=1)
+    ax.scatter([0], [0], marker="s", s=40, color="tab:red", zorder=2)
+    xyz = view_coords(np.asarray(views, dtype=np.int64)).reshape(-1, 3)
+    ax.plot(xyz[:, 0], xyz[:, 1], "-", color="0.3", lw=1.2, zorder=3)
+    size = 20 + (xyz[:, 2] - ZS[0]) * 2.0
+    sc = ax.scatter(xyz[:, 0], xyz[:, 1], c=xyz[:, 2], s=size, cmap="viridis", vmin=ZS[0], vmax=ZS[-1],
+                    edgecolors="black", linewidths=0.5, zorder=4)
+    ax.scatter(xyz[:1, 0], xyz[:1, 1], marker="*", s=220, facecolors="none", edgecolors="tab:red",
+               linewidths=1.5, zorder=5)
+    for k, (x, y) in enumerate(xyz[:, :2]):
+        ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7, zorder=6)
+    ax.set_xlim(XS[0] - 8, XS[-1] + 8)
+    ax.set_ylim(YS[0] - 8, YS[-1] + 8)
+    ax.set_aspect("equal")
+    ax.set_xticks([XS[0], 0, XS[-1]])
+    ax.set_yticks([YS[0], 0, YS[-1]])
+    ax.tick_params(labelsize=7)
+    ax.set_xlabel("x (m)", fontsize=7)
+    ax.set_ylabel("y (m)", fontsize=7)
+    return sc
+
+
+def plot_strips(trajectories: Sequence[dict], image_for: Callable[[dict, int], np.ndarray | None],
+                path: Path) -> Path:
+    """Fig. 8: one row per policy; the first panel is the top-down viewpoint grid (x-y,
+    target at the origin as a red square) with the path drawn, altitude as marker colour
+    and size, the start as a red star; then the observed crops along the path, each
+    captioned with its step, altitude and the action taken there.
+
+    ``trajectories``: dicts as in ``trajectories.json`` (keys method, seed, views,
+    actions, recognized, correct, return). ``image_for(traj, view)`` returns an
+    (H, W, 3) uint8 RGB crop or None when the image cannot be found (drawn as a gray
+    "missing" panel).
+    """
+    n_rows = max(1, len(trajectories))
+    n_cols = 1 + max((len(t["views"]) for t in trajectories), default=1)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.1 * n_cols + 0.8, 2.6 * n_rows + 0.4), squeeze=False,
+                             gridspec_kw={"width_ratios": [1.4] + [1.0] * (n_cols - 1)})
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.55 / (2.6 * n_rows + 0.4) + 0.04, top=0.95,
+                        wspace=0.12, hspace=0.55)
+    sc = None
+    for r, traj in enumerate(trajectories):
+        views = [int(v) for v in traj["views"]]
+        actions = list(traj.get("actions") or [])
+        sc = _grid_axes(axes[r, 0], views)
+        reco = "recognised" if traj.get("recognized") else "not recognised"
+        corr = "correct" if traj.get("correct") else "wrong"
+        axes[r, 0].set_title(f"{label(traj['method'])} (seed {traj.get('seed', 0)})\n{reco}, {corr}, "
+                             f"R={float(traj.get('return', float('nan'))):.2f}", fontsize=7)
+        for k in range(1, n_cols):
+            ax = axes[r, k]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if k - 1 >= len(views):
+                ax.axis("off")
+                continue
+            view = views[k - 1]
+            img = image_for(traj, view)
+            if img is None:
+                ax.imshow(np.full((8, 8, 3), 200, np.uint8))
+                ax.text(0.5, 0.5, "missing", ha="center", va="center", transform=ax.transAxes, fontsize=8)
+            else:
+                ax.imshow(img)
+            x, y, z = view_coords(view)
+            ax.set_title(f"t={k - 1}  ({x:+.0f}, {y:+.0f}, {z:.0f})", fontsize=7)
+            act = actions[k - 1] if k - 1 < len(actions) else None
+            ax.set_xlabel(_action_text(act), fontsize=7)
+    if not trajectories:
+        axes[0, 0].text(0.5, 0.5, "no trajectories", ha="center", va="center")
+        axes[0, 0].axis("off")
+    elif sc is not None:
+        cax = fig.add_axes((0.05, 0.012, 0.16, 0.012))
+        bar = fig.colorbar(sc, cax=cax, orientation="horizontal")
+        bar.set_label("altitude z (m): marker colour and size", fontsize=7)
+        bar.ax.tick_params(labelsize=6)
+    return _save(fig, path)

@@ -1,0 +1,334 @@
+"""The ablation report: ``DIR/report/report.md`` (+ PNGs and ``summary.csv``) written
+from the files of an ablation directory alone, so it can be regenerated any time
+(``uevavd report DIR``).
+
+Inputs (written by the ablation runner):
+
+* ``DIR/results.csv``: one row per method x seed x setting x evaluation point x split
+  (:data:`uevavd.experiments.report_data.REQUIRED_COLUMNS`); required.
+* ``DIR/trajectories.json``: greedy episodes of the final policies from one start in a
+  hard-test context (Fig. 8); optional.
+* ``DIR/ablation.json``: preset, methods, seeds, sweeps, data_root, stage timings;
+  optional (the setup section says what is missing).
+
+Outputs in ``DIR/report/``: ``report.md`` (GitHub-readable, relative image links),
+``fig9_curves.png``, ``fig8_strips.png``, ``summary.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .claims import Claim, check_claims, diagnose
+from .report_data import (
+    BASELINES,
+    DEFAULT_C,
+    DEFAULT_THRE,
+    DETERMINISTIC,
+    METRICS,
+    SPLITS,
+    default_setting,
+    estimate,
+    final_rows,
+    gengap_estimate,
+    is_baseline,
+    label,
+    learned,
+    load_results,
+    order_methods,
+    sweep_methods,
+    sweep_rows,
+)
+from .stats import Estimate
+from .strips import load_trajectories, strip_images
+
+__all__ = ["Claim", "check_claims", "write_report", "summary_table", "add_report"]
+
+REPORT_DIR = "report"
+#: Metrics of the results table: (column, header, digits).
+TABLE_METRICS: tuple[tuple[str, str, int], ...] = (
+    ("return", "Return", 3),
+    ("accuracy", "Accuracy", 3),
+    ("recognition", "Recognition", 3),
+    ("path_m", "Path (m)", 1),
+    ("path_steps", "Path (steps)", 2),
+    ("steps", "Decisions", 2),
+)
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _read_json(path: Path, notes: list[str]):
+    if not path.is_file():
+        notes.append(f"`{path.name}` not found in the ablation directory.")
+        return None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except ValueError as e:
+        raise ValueError(f"{path}: not valid JSON ({e}); expected the file the ablation runner writes") from None
+
+
+def _cell(e: Estimate, digits: int) -> str:
+    if e.n == 0:
+        return "–"
+    if not math.isfinite(e.std):
+        return f"{e.mean:.{digits}f} (n=1)"
+    if e.n == 1:  # an exact (deterministic) value
+        return f"{e.mean:.{digits}f}"
+    return f"{e.mean:.{digits}f} ± {e.std:.{digits}f}<br>[{e.lo:.{digits}f}, {e.hi:.{digits}f}]"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return out
+
+
+def summary_table(final: pd.DataFrame) -> pd.DataFrame:
+    """The final-point table of every method x setting x split: ``n`` seeds, and per
+    metric ``<m>_mean``, ``<m>_std``, ``<m>_ci_lo``, ``<m>_ci_hi`` (95% t-interval;
+    exact for deterministic baselines), plus ``episodes`` (max over seeds)."""
+    default = default_setting(final)
+    rank = {m: i for i, m in enumerate(order_methods(final["method"].unique()))}
+    rows = []
+    for (setting, m, split), sel in final.groupby(["setting", "method", "split"], sort=False):
+        row = {"setting": setting, "method": m, "split": split, "thre": float(sel["thre"].iloc[0]),
+               "C": float(sel["C"].iloc[0]), "n": int(sel["seed"].nunique()), "episodes": int(sel["episodes"].max())}
+        for metric in METRICS:
+            v = sel[metric].to_numpy(dtype=np.float64)
+            e = Estimate.exact(float(v.mean())) if m in DETERMINISTIC else Estimate.of(v)
+            row.update({f"{metric}_mean": e.mean, f"{metric}_std": e.std,
+                        f"{metric}_ci_lo": e.lo, f"{metric}_ci_hi": e.hi})
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    if out.empty:
+        return out
+    key = [(s != default, s, rank[m], SPLITS.index(sp)) for s, m, sp in out[["setting", "method", "split"]].to_numpy()]
+    return out.iloc[sorted(range(len(out)), key=key.__getitem__)].reset_index(drop=True)
+
+
+def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame, notes: list[str]) -> list[str]:
+    out = ["## Setup", ""]
+    meta = meta or {}
+    methods = meta.get("methods") or learned(results["method"].unique())
+    seeds = meta.get("seeds") or sorted(results.loc[~is_baseline(results), "seed"].unique().tolist())
+    runs = final[~is_baseline(final)]
+    episodes = sorted(runs["episodes"].unique().tolist())
+    out += [
+        f"- Preset: `{meta.get('preset', 'unknown')}`",
+        f"- Methods: {', '.join(label(m) for m in methods)}; references: "
+        f"{', '.join(label(m) for m in BASELINES if m in set(results['method']))}",
+        f"- Seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)})",
+        f"- Sweeps: {json.dumps(meta.get('sweeps', {}))}; default thre = {DEFAULT_THRE}, C = {DEFAULT_C}",
+        f"- Training episodes at the final evaluation point: {', '.join(str(e) for e in episodes) or 'n/a'}"
+        " (the paper trains 300,000)",
+        f"- Data: `{meta.get('data_root', 'unknown')}`",
+    ]
+    for n in notes:
+        out.append(f"- Note: {n}")
+    stages = meta.get("stages") or {}
+    if stages:
+        out += ["", "Stage timings:", ""]
+        rows = [[str(k), f"{float(v):.1f}"] for k, v in stages.items()]
+        rows.append(["**total**", f"**{sum(float(v) for v in stages.values()):.1f}**"])
+        out += _table(["stage", "wall (s)"], rows)
+    out.append("")
+    return out
+
+
+def _results_section(final: pd.DataFrame, setting: str) -> list[str]:
+    out = ["## Results at the final evaluation point", "",
+           f"Setting `{setting}`. Cells: mean ± std over seeds, and the 95% confidence interval "
+           "(Student t over seeds) below it; passive and oracle are deterministic (one exact value). "
+           "All values per episode: return is discounted (gamma = 0.9), accuracy is argmax == true "
+           "class at the final view, recognition is the rate of reco = 1 at the end.", ""]
+    for split in SPLITS:
+        sel = final[(final["split"] == split) & (final["setting"] == setting)]
+        if sel.empty:
+            continue
+        out += [f"**{split} contexts**", ""]
+        rows = []
+        for m in order_methods(sel["method"].unique()):
+            n = int(sel.loc[sel["method"] == m, "seed"].nunique())
+            rows.append([label(m), str(n)] + [_cell(estimate(final, m, split, c, setting), d)
+                                              for c, _, d in TABLE_METRICS])
+        out += _table(["Policy", "seeds", *[h for _, h, _ in TABLE_METRICS]], rows) + [""]
+    out += ["All settings, splits and metrics with their intervals: [`summary.csv`](summary.csv).", ""]
+    return out
+
+
+def _gengap_section(final: pd.DataFrame, setting: str) -> list[str]:
+    out = ["## Generalisation gap", "",
+           "GenGap = return on training contexts minus return on test contexts, per seed (same run), "
+           "then mean ± std and 95% t-interval over seeds. Smaller is better.", ""]
+    rows = []
+    for m in order_methods(final.loc[final["setting"] == setting, "method"].unique()):
+        tr = estimate(final, m, "train", "return", setting)
+        hd = estimate(final, m, "hard", "return", setting)
+        rows.append([label(m), _cell(tr, 3), _cell(hd, 3), _cell(gengap_estimate(final, m, setting, "hard"), 3),
+                     _cell(gengap_estimate(final, m, setting, "simple"), 3)])
+    out += _table(["Policy", "train return", "hard-test return", "GenGap (train − hard)",
+                   "GenGap (train − simple)"], rows) + [""]
+    return out
+
+
+def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, out_dir: Path,
+                    window: int | None) -> list[str]:
+    from .figures import plot_curves
+
+    curves = results[~is_baseline(results) & (results["setting"] == setting) & (results["episodes"] >= 0)]
+    out = ["## Learning curves (Fig. 9)", ""]
+    if curves.empty:
+        return out + ["No learning-curve rows in the default setting.", ""]
+    points = int(curves.groupby(["method", "seed", "split"])["episodes"].nunique().min())
+    w = int(window) if window is not None else max(1, min(5, points // 4))
+    base = final[is_baseline(final) & (final["setting"] == setting)]
+    plot_curves(curves, base, out_dir / "fig9_curves.png", window=w)
+    out += [f"Return, recognition rate and movement distance against training episodes on the training and "
+            f"hard-test contexts ({setting} setting). Each seed's curve ({points}+ evaluation points) is smoothed "
+            f"with a {w}-point trailing sliding-window mean; the line is the mean over seeds and the band a 95% "
+            "confidence interval (seaborn, bootstrap). Dashed lines: random, passive, oracle.", "",
+            "![Fig. 9: learning curves](fig9_curves.png)", ""]
+    return out
+
+
+def _sweep_section(final: pd.DataFrame, param: str, table_no: int, ablation_dir: Path) -> list[str]:
+    title = {"thre": "classification threshold thre", "C": "movement-cost bound C"}[param]
+    out = [f"## Table {table_no}: policy performance versus the {title}", ""]
+    methods = sweep_methods(final, param)
+    if not methods:
+        return out + [f"The {param} sweep was not run (results.csv has no `{param}=...` setting). "
+                      f"Run it with `uevavd ablate --sweep {param}` (the values go to `ablation.json` "
+                      f"`sweeps.{param}`), then `uevavd report {ablation_dir}`.", ""]
+    rows_spec = (("return", "Return", 3, max), ("accuracy", "Accuracy", 3, max),
+                 ("recognition", "Recognition", 3, max), ("path_m", "Path (m)", 1, min),
+                 ("path_steps", "Path (steps)", 2, min))
+    for m in methods:
+        rows = sweep_rows(final, param, m)
+        rows = rows[rows["split"] == "hard"]
+        values = sorted(rows[param].unique())
+        if not values:
+            out += [f"{label(m)}: the {param} sweep has no hard-split rows.", ""]
+            continue
+        out += [f"{label(m)} on the hard-test contexts, mean ± std over seeds (best in bold).", ""]
+        table = []
+        for col, name, d, best in rows_spec:
+            ests = [Estimate.of(rows.loc[np.isclose(rows[param], v), col]) for v in values]
+            top = best(e.mean for e in ests)
+            cells = []
+            for e in ests:
+                s = f"{e.mean:.{d}f} ± {e.std:.{d}f}" if math.isfinite(e.std) else f"{e.mean:.{d}f} (n=1)"
+                cells.append(f"**{s}**" if e.mean == top else s)
+            table.append([name, *cells])
+        seeds = [str(rows.loc[np.isclose(rows[param], v), "seed"].nunique()) for v in values]
+        table.append(["seeds", *seeds])
+        out += _table(["", *[f"{param}={v:g}" for v in values]], table) + [""]
+    return out
+
+
+def _strips_section(ablation_dir: Path, meta: dict | None, out_dir: Path) -> list[str]:
+    from .figures import plot_strips
+
+    out = ["## Observation sequences (Fig. 8)", ""]
+    trajs, note = load_trajectories(ablation_dir / "trajectories.json")
+    if not trajs:
+        return out + [note, ""]
+    lookup = strip_images(trajs, (meta or {}).get("data_root"))
+    plot_strips(trajs, lookup, out_dir / "fig8_strips.png")
+    t0 = trajs[0]
+    out += [f"Greedy episode of each final policy from the same start (view {t0.get('start_view')}) in hard-test "
+            f"context {t0.get('context')} (scene `{t0.get('scene')}`). Left: the viewpoint grid seen from "
+            "above (target at the red square), the path with the start as a red star, altitude as marker colour "
+            "and size; right: the crops observed along the path with the action taken at each.", "",
+            "![Fig. 8: observation sequences](fig8_strips.png)", ""]
+    if note:
+        out += [note, ""]
+    out.append(f"Images read from {lookup.source}.")
+    if lookup.missing:
+        out.append(f"{lookup.missing} crop(s) could not be found under the dataset root and are drawn as gray panels.")
+    out.append("")
+    rows = [[label(t["method"]), str(t.get("seed", 0)), str(len(t["views"]) - 1),
+             "yes" if t.get("recognized") else "no", "yes" if t.get("correct") else "no",
+             f"{float(t.get('return', float('nan'))):.3f}"] for t in trajs]
+    out += _table(["Policy", "seed", "moves", "recognised", "correct", "return"], rows) + [""]
+    return out
+
+
+def _claims_section(claims: list[Claim], notes: list[str]) -> list[str]:
+    out = ["## Claims checked", "",
+           "Each claim of the paper against our final-point numbers. A comparison agrees when its whole 95% "
+           "interval (Student t over seeds; Welch for differences between methods, exact for the deterministic "
+           "passive baseline; least-squares slope over (setting, seed) points for sweeps) lies on the claimed "
+           "side of zero, disagrees when it lies wholly on the other side, and cannot tell otherwise.", ""]
+    for c in claims:
+        out.append(f"- **({c.id}) {c.text}** — **{c.verdict}**. {c.evidence}")
+    out += ["", "### What could explain a claim that does not agree", ""]
+    out += [f"- {n}" for n in notes] if notes else ["- Every claim agrees."]
+    out.append("")
+    return out
+
+
+def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002 - the public signature
+    """Write ``dir/report/report.md`` (+ ``fig9_curves.png``, ``fig8_strips.png``,
+    ``summary.csv``) from ``dir/results.csv``, ``dir/trajectories.json`` and
+    ``dir/ablation.json``; return the path of ``report.md``.
+
+    ``window``: sliding-window length (evaluation points) of the curve smoothing;
+    default ``min(5, points // 4)`` (at least 1).
+    """
+    ablation_dir = Path(dir)
+    if not ablation_dir.is_dir():
+        raise FileNotFoundError(f"{ablation_dir} is not a directory; expected an ablation directory "
+                                "holding results.csv")
+    results = load_results(ablation_dir / "results.csv")
+    notes: list[str] = []
+    meta = _read_json(ablation_dir / "ablation.json", notes)
+    out_dir = ablation_dir / REPORT_DIR
+    out_dir.mkdir(parents=True, exist_ok=True)
+    final = final_rows(results)
+    setting = default_setting(final)
+    summary = summary_table(final)
+    tmp = out_dir / f".summary.csv.tmp{os.getpid()}"
+    summary.to_csv(tmp, index=False, float_format="%.6g")
+    os.replace(tmp, out_dir / "summary.csv")
+    claims = check_claims(results)
+    title = f"# Ablation report: preset `{(meta or {}).get('preset', 'unknown')}`"
+    lines = [title, "", f"Generated by `uevavd report {ablation_dir}` from the files in that directory.", ""]
+    lines += _setup_section(meta, results, final, notes)
+    lines += _results_section(final, setting)
+    lines += _gengap_section(final, setting)
+    lines += _curves_section(results, final, setting, out_dir, window)
+    lines += _sweep_section(final, "thre", 2, ablation_dir)
+    lines += _sweep_section(final, "C", 3, ablation_dir)
+    lines += _strips_section(ablation_dir, meta, out_dir)
+    lines += _claims_section(claims, diagnose(results, claims))
+    path = out_dir / "report.md"
+    _atomic_write(path, "\n".join(lines))
+    return path
+
+
+def add_report(parser: argparse.ArgumentParser):
+    """``uevavd report DIR``: (re)write DIR/report/report.md from the ablation's files."""
+    parser.add_argument("dir", type=Path, metavar="DIR", help="ablation directory holding results.csv")
+    parser.add_argument("--window", type=int, default=None,
+                        help="sliding-window length (evaluation points) for the curves; default min(5, points/4)")
+
+    def handler(args: argparse.Namespace) -> int:
+        path = write_report(args.dir, window=args.window)
+        print(path)
+        for c in check_claims(load_results(args.dir / "results.csv")):
+            print(f"({c.id}) {c.verdict}: {c.text}")
+        return 0
+
+    return handler

@@ -1,0 +1,209 @@
+"""Reading an ablation directory for the report: ``results.csv`` (checked), and the
+selections the report and the claims share (final evaluation point, default setting,
+sweeps, per-seed GenGap).
+
+``results.csv`` is tidy: one row per method x seed x setting x evaluation point x split
+(columns in :data:`REQUIRED_COLUMNS`). Baselines (random, passive, oracle) have
+``episodes == -1`` and are constant reference values.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .stats import Estimate
+
+#: Reference policies: constant lines/rows, not learning curves.
+BASELINES: tuple[str, ...] = ("random", "passive", "oracle")
+#: Baselines that are deterministic (one row, seed 0): their value is exact.
+DETERMINISTIC: tuple[str, ...] = ("passive", "oracle")
+#: Display order and names of the methods (unknown methods follow, by name).
+METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "oracle")
+LABELS: dict[str, str] = {
+    "map": "MAP",
+    "memo_map": "Memo-MAP",
+    "ibe_map": "IBE-MAP",
+    "random": "Random",
+    "passive": "Passive",
+    "oracle": "Oracle",
+}
+SPLITS: tuple[str, ...] = ("train", "simple", "hard")
+#: The paper's defaults: thre = 0.2, C = 0.02 (DESIGN.md section 2).
+DEFAULT_THRE = 0.2
+DEFAULT_C = 0.02
+METRICS: tuple[str, ...] = (
+    "return", "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
+)
+REQUIRED_COLUMNS: tuple[str, ...] = (
+    "method", "seed", "setting", "thre", "C", "episodes", "final", "split", *METRICS,
+)
+#: Sweep name -> (column, the setting-name prefix of its rows).
+SWEEPS: dict[str, str] = {"thre": "thre", "C": "C"}
+
+
+def label(method: str) -> str:
+    """Display name of a method ("ibe_map" -> "IBE-MAP")."""
+    return LABELS.get(method, method)
+
+
+def order_methods(methods) -> list[str]:
+    """Methods in report order: known ones as :data:`METHOD_ORDER`, then others sorted."""
+    ms = list(dict.fromkeys(methods))
+    known = [m for m in METHOD_ORDER if m in ms]
+    return known + sorted(m for m in ms if m not in METHOD_ORDER)
+
+
+def learned(methods) -> list[str]:
+    """The methods that are trained (not baselines), in report order."""
+    return [m for m in order_methods(methods) if m not in BASELINES]
+
+
+def _as_bool(col: pd.Series, path: Path) -> pd.Series:
+    if col.dtype == bool:
+        return col
+    mapping = {"true": True, "1": True, "1.0": True, "false": False, "0": False, "0.0": False}
+    out = col.astype(str).str.strip().str.lower().map(mapping)
+    if out.isna().any():
+        bad = col[out.isna()].iloc[0]
+        raise ValueError(f"{path}: column 'final' holds {bad!r}; expected True/False (or 1/0)")
+    return out.astype(bool)
+
+
+def load_results(path: str | Path) -> pd.DataFrame:
+    """Read and check ``results.csv``; returns a DataFrame with typed columns
+    (``seed``/``episodes`` int64, ``final`` bool, metrics float64, ``setting``/``method``/
+    ``split`` str). Raises ``FileNotFoundError``/``ValueError`` naming the file and what
+    was expected."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path} does not exist; expected the ablation's results table (run `uevavd ablate` "
+            f"or `uevavd demo` first, then `uevavd report {path.parent}`)"
+        )
+    try:
+        df = pd.read_csv(path, dtype={"setting": str, "method": str, "split": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: cannot parse as CSV ({e})") from None
+    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}")
+    if df.empty:
+        raise ValueError(f"{path}: no rows; expected one row per method x seed x setting x eval point x split")
+    bad_split = sorted(set(df["split"]) - set(SPLITS))
+    if bad_split:
+        raise ValueError(f"{path}: unknown split(s) {bad_split}; expected one of {list(SPLITS)}")
+    for col in ("seed", "episodes"):
+        try:
+            df[col] = pd.to_numeric(df[col], errors="raise").astype(np.int64)
+        except (ValueError, TypeError):
+            raise ValueError(f"{path}: column {col!r} must hold integers") from None
+    for col in ("thre", "C", *METRICS):
+        try:
+            df[col] = pd.to_numeric(df[col], errors="raise").astype(np.float64)
+        except (ValueError, TypeError):
+            raise ValueError(f"{path}: column {col!r} must hold numbers") from None
+    df["final"] = _as_bool(df["final"], path)
+    df["setting"] = df["setting"].fillna("default").astype(str)
+    return df
+
+
+def is_baseline(df: pd.DataFrame) -> pd.Series:
+    """Rows of reference policies: a baseline method name or ``episodes < 0``."""
+    return df["method"].isin(BASELINES) | (df["episodes"] < 0)
+
+
+def final_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """One row per (method, seed, setting, split) at the final evaluation point.
+
+    Learned runs use the rows flagged ``final``; a run with none flagged (interrupted)
+    uses its last evaluation point. Baseline rows are averaged per key (they are
+    constant). Returns the metric columns plus ``episodes``, ``thre`` and ``C``.
+    """
+    keys = ["method", "seed", "setting", "split"]
+    base = df[is_baseline(df)]
+    runs = df[~is_baseline(df)]
+    parts = []
+    if not runs.empty:
+        flagged = runs[runs["final"]]
+        have = set(map(tuple, flagged[keys].drop_duplicates().to_numpy()))
+        rest = runs[[tuple(k) not in have for k in runs[keys].to_numpy()]]
+        if not rest.empty:
+            last = rest.groupby(keys)["episodes"].transform("max")
+            rest = rest[rest["episodes"] == last]
+        parts.append(pd.concat([flagged, rest]).groupby(keys, as_index=False).last())
+    if not base.empty:
+        parts.append(base.groupby(keys, as_index=False).agg({
+            **{m: "mean" for m in METRICS}, "thre": "first", "C": "first", "episodes": "max", "final": "first"}))
+    if not parts:
+        return df.iloc[0:0]
+    return pd.concat(parts, ignore_index=True)
+
+
+def default_setting(df: pd.DataFrame) -> str:
+    """Name of the default setting: "default" if present, else the setting at thre=0.2,
+    C=0.02, else the most common setting."""
+    settings = df["setting"].unique().tolist()
+    if "default" in settings:
+        return "default"
+    at = df[np.isclose(df["thre"], DEFAULT_THRE) & np.isclose(df["C"], DEFAULT_C)]
+    if not at.empty:
+        return str(at["setting"].mode().iloc[0])
+    return str(df["setting"].mode().iloc[0])
+
+
+def sweep_rows(final: pd.DataFrame, param: str, method: str | None = None) -> pd.DataFrame:
+    """Final rows of the ``param`` sweep ("thre" or "C") of learned methods: the rows whose
+    setting is named ``"<param>=..."`` plus the default setting (the sweep's default
+    point). Where a named setting duplicates the default value, the named one wins.
+    Empty when no ``"<param>=..."`` rows exist."""
+    if param not in SWEEPS:
+        raise ValueError(f"unknown sweep {param!r}: expected one of {list(SWEEPS)}")
+    runs = final[~is_baseline(final)]
+    if method is not None:
+        runs = runs[runs["method"] == method]
+    named = runs[runs["setting"].str.replace(" ", "").str.startswith(f"{param}=")]
+    if named.empty:
+        return named
+    default = runs[runs["setting"] == default_setting(final)]
+    default = default[~default[param].round(9).isin(named[param].round(9))]
+    return pd.concat([named, default], ignore_index=True).sort_values([param, "method", "seed"])
+
+
+def sweep_methods(final: pd.DataFrame, param: str) -> list[str]:
+    """Learned methods that have rows of the ``param`` sweep, IBE-MAP first."""
+    runs = final[~is_baseline(final)]
+    ms = runs.loc[runs["setting"].str.replace(" ", "").str.startswith(f"{param}="), "method"].unique().tolist()
+    return sorted(ms, key=lambda m: (m != "ibe_map", order_methods(ms).index(m)))
+
+
+def per_seed(final: pd.DataFrame, method: str, split: str, metric: str, setting: str) -> np.ndarray:
+    """(n_seeds,) float64 values of ``metric`` at the final point, ordered by seed."""
+    sel = final[(final["method"] == method) & (final["split"] == split) & (final["setting"] == setting)]
+    return sel.sort_values("seed")[metric].to_numpy(dtype=np.float64)
+
+
+def estimate(final: pd.DataFrame, method: str, split: str, metric: str, setting: str) -> Estimate:
+    """Mean/std/t-CI over seeds; exact for a deterministic baseline (passive, oracle)."""
+    v = per_seed(final, method, split, metric, setting)
+    if method in DETERMINISTIC and v.size:
+        return Estimate.exact(float(v.mean()))
+    return Estimate.of(v)
+
+
+def gengap(final: pd.DataFrame, method: str, setting: str, test: str = "hard") -> np.ndarray:
+    """(n,) per-seed GenGap = return(train) - return(``test``), seeds present in both."""
+    sel = final[(final["method"] == method) & (final["setting"] == setting)]
+    wide = sel.pivot_table(index="seed", columns="split", values="return", aggfunc="mean")
+    if "train" not in wide or test not in wide:
+        return np.zeros(0)
+    return (wide["train"] - wide[test]).dropna().to_numpy(dtype=np.float64)
+
+
+def gengap_estimate(final: pd.DataFrame, method: str, setting: str, test: str = "hard") -> Estimate:
+    v = gengap(final, method, setting, test)
+    if method in DETERMINISTIC and v.size:
+        return Estimate.exact(float(v.mean()))
+    return Estimate.of(v)
