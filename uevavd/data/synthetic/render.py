@@ -1,0 +1,374 @@
+"""Pinhole camera and analytic ray caster for the synthetic world (numpy, one process).
+
+Camera: at a grid viewpoint, looking at the target's centre; image "up" is world +y
+projected onto the image plane; focal length ``f = 8 * size`` px (a 256 px crop out of a
+4096 px wide, 90 degree frame is f = 2048 px at 256 px). Pixel (u, v) has its centre at
+(u + 0.5, v + 0.5); u grows to the right, v downwards.
+
+Method (measured in ``benchmarks/bench_render.py``): every primitive is projected to the
+screen once per view (its vertices, or the corners of its box for ellipsoids) and ray-cast
+only over the pixel rectangle it covers, so the narrow view frustum culls almost the whole
+world. The ground plane is intersected analytically for every pixel. Shadow rays towards
+the sun are cast from every hit point against the primitives whose bounding sphere can
+shade the visible footprint, each over just the pixels inside its shadow cylinder.
+Shading: Lambert with the sun (coloured) and a sky-weighted ambient term, procedural
+textures for facades (windows), canopies (leaf clumps), glass and the ground map.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..grid import N_VIEWS, view_coords
+from .geometry import M_CABIN, M_CANOPY, M_FACADE
+from .ground import lookup
+from .world import TARGET_ID, Scene
+
+_INF = np.inf
+
+
+@dataclass
+class View:
+    """One rendered view: ``rgb`` (H, W, 3) uint8; ``seg`` (H, W) uint16 instance ids;
+    ``box`` (4,) int32 XYXY pixels over visible target pixels, x2/y2 exclusive,
+    [0, 0, 0, 0] when none is visible; ``visible`` float: visible target pixels / target
+    pixels with occluders removed."""
+
+    rgb: np.ndarray
+    seg: np.ndarray
+    box: np.ndarray
+    visible: float
+
+
+@dataclass
+class ContextViews:
+    """All 605 views of one scene, in grid view order: ``rgb`` (605, H, W, 3) uint8,
+    ``seg`` (605, H, W) uint16, ``boxes`` (605, 4) int32 XYXY (x2, y2 exclusive),
+    ``visible`` (605,) float32, ``categories`` {instance id: category}, ``target`` name."""
+
+    rgb: np.ndarray
+    seg: np.ndarray
+    boxes: np.ndarray
+    visible: np.ndarray
+    categories: dict[int, str]
+    target: str
+
+
+def focal_px(size: int) -> float:
+    """Focal length in pixels for a ``size`` px crop (8 * size)."""
+    return 8.0 * size
+
+
+def camera_basis(position: np.ndarray, look_at: np.ndarray) -> np.ndarray:
+    """(3, 3) rows: forward, right, up (unit vectors, world frame)."""
+    f = np.asarray(look_at, np.float64) - np.asarray(position, np.float64)
+    f /= np.linalg.norm(f)
+    up = np.array([0.0, 1.0, 0.0]) - f[1] * f
+    n = np.linalg.norm(up)
+    if n < 1e-9:
+        raise ValueError(f"camera at {position} looks along the y axis: image up is undefined")
+    up /= n
+    right = np.cross(f, up)
+    return np.stack([f, right, up])
+
+
+class _Prep:
+    """Per-scene precomputation: hulls grouped by instance (consecutive parts of one object
+    are cast together), bounding spheres, ellipsoid corner boxes."""
+
+    def __init__(self, scene: Scene):
+        p = scene.prims
+        self.p = dict(p)
+        self.planes64 = p["h_planes"]
+        self.p["h_planes"] = p["h_planes"].astype(np.float32)
+        p = self.p
+        inst = p["h_inst"]
+        starts = np.nonzero(np.r_[True, inst[1:] != inst[:-1]])[0] if len(inst) else np.zeros(0, np.int64)
+        self.g_start = starts
+        self.g_end = np.r_[starts[1:], len(inst)].astype(np.int64)
+        self.g_target = inst[starts] == TARGET_ID if len(inst) else np.zeros(0, bool)
+        hv = p["h_verts"]
+        self.g_c = np.array([hv[a:b].reshape(-1, 3).mean(0) for a, b in zip(starts, self.g_end, strict=True)]).reshape(-1, 3)
+        self.g_r = np.array(
+            [np.linalg.norm(hv[a:b].reshape(-1, 3) - c, axis=1).max() for a, b, c in zip(starts, self.g_end, self.g_c, strict=True)]
+        )
+        self.e_c = p["e_centre"]
+        self.e_r = p["e_radii"].max(1) if len(self.e_c) else np.zeros(0)
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+        self.e_corners = self.e_c[:, None, :] + signs[None] * p["e_radii"][:, None, :]
+
+    def group_rects(self, origin, basis, size: int, fpx: float) -> np.ndarray:
+        """(G, 4) pixel rectangles of the hull groups (union of their parts' rectangles)."""
+        r = _rects(self.p["h_verts"], origin, basis, size, fpx)
+        if len(r) == 0:
+            return r
+        empty = (r[:, 0] >= r[:, 1]) | (r[:, 2] >= r[:, 3])
+        r = r.copy()
+        r[empty] = (size, 0, size, 0)
+        lo = np.minimum.reduceat(r[:, [0, 2]], self.g_start, axis=0)
+        hi = np.maximum.reduceat(r[:, [1, 3]], self.g_start, axis=0)
+        return np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], 1)
+
+
+def _rects(points: np.ndarray, origin, basis, size: int, fpx: float) -> np.ndarray:
+    """(P, 4) int64 pixel rectangles [y0, y1, x0, x1] covering projected point sets (P, M, 3)."""
+    if len(points) == 0:
+        return np.zeros((0, 4), np.int64)
+    q = (points - origin) @ basis.T  # (P, M, 3): depth, x, y
+    depth = q[..., 0]
+    behind = (depth < 0.1).any(1)
+    depth = np.maximum(depth, 0.1)
+    px = fpx * q[..., 1] / depth + size / 2
+    py = size / 2 - fpx * q[..., 2] / depth
+    x0 = np.floor(px.min(1)).astype(np.int64)
+    x1 = np.ceil(px.max(1)).astype(np.int64) + 1
+    y0 = np.floor(py.min(1)).astype(np.int64)
+    y1 = np.ceil(py.max(1)).astype(np.int64) + 1
+    r = np.stack([np.clip(y0, 0, size), np.clip(y1, 0, size), np.clip(x0, 0, size), np.clip(x1, 0, size)], 1)
+    r[behind] = (0, size, 0, size)
+    return r
+
+
+def _hull_t(origin_term: np.ndarray, den: np.ndarray, axis: int) -> np.ndarray:
+    """Entry distance of rays into a convex hull, ``inf`` on a miss.
+
+    ``origin_term`` (d - n . o) and ``den`` (n . dir) broadcast together with the hull's
+    planes along ``axis`` (kept leading so the reduction runs over contiguous slabs). A plane
+    parallel to a ray gives t = +-inf (inside / outside its half-space)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = origin_term / den
+    enter = den < 0
+    tn = np.where(enter, t, -_INF).max(axis)
+    tf = np.where(enter, _INF, t).min(axis)
+    return np.where((tn <= tf) & (tn > 1e-6), tn, _INF)
+
+
+def _entry_plane(planes: np.ndarray, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(N,) index of the plane through which rays (origin (3,), dirs (N, 3)) enter hulls
+    (planes (N, K, 4), one hull per ray)."""
+    den = np.einsum("nkc,nc->nk", planes[..., :3], dirs)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (planes[..., 3] - planes[..., :3] @ origin) / den
+    return np.where(den < 0, t, -_INF).argmax(-1)
+
+
+def _ellipsoid_t(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Nearest positive distance along rays o + t d (o (...,3) or (3,), d (...,3) or (3,))."""
+    oo = (o - centre) / radii
+    dd = d / radii
+    a = np.sum(dd * dd, -1)
+    b = 2.0 * np.sum(oo * dd, -1)
+    c = np.sum(oo * oo, -1) - 1.0
+    disc = b * b - 4 * a * c
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    t = (-b - sq) / (2 * a)
+    return np.where((disc > 0) & (t > 1e-6), t, _INF)
+
+
+def _pixel_dirs(size: int, basis: np.ndarray) -> np.ndarray:
+    c = np.arange(size, dtype=np.float64) + 0.5 - size / 2
+    f, right, up = basis
+    return (focal_px(size) * f)[None, None] + c[None, :, None] * right + (-c)[:, None, None] * up
+
+
+def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None) -> View:
+    """Render one viewpoint (grid index 0..604) of ``scene`` at ``size`` x ``size`` px."""
+    prep = prep or _Prep(scene)
+    p = prep.p
+    origin = view_coords(view)
+    basis = camera_basis(origin, scene.look_at)
+    fpx = focal_px(size)
+    dirs = _pixel_dirs(size, basis).astype(np.float32)  # (H, W, 3), not normalised
+    # ground plane z = 0 (every ray looks down)
+    tbest = (-origin[2] / dirs[..., 2]).astype(np.float32)
+    kind = np.zeros((size, size), np.int8)  # 0 ground, 1 hull, 2 ellipsoid
+    pid = np.zeros((size, size), np.int64)
+    ttar = np.full((size, size), _INF, np.float32)
+    for g, (y0, y1, x0, x1) in enumerate(prep.group_rects(origin, basis, size, fpx)):
+        if y0 >= y1 or x0 >= x1:
+            continue
+        a, b = prep.g_start[g], prep.g_end[g]
+        pl = p["h_planes"][a:b]  # (P, K, 4)
+        d = dirs[y0:y1, x0:x1]
+        hh, ww = y1 - y0, x1 - x0
+        den = (pl[..., :3].reshape(-1, 3) @ d.reshape(-1, 3).T).reshape(b - a, -1, hh * ww)
+        t = _hull_t((pl[..., 3] - pl[..., :3] @ origin).astype(np.float32)[..., None], den, 1)  # (P, M)
+        if b - a > 1:
+            part = t.argmin(0).reshape(hh, ww)
+            t = t.min(0).reshape(hh, ww)
+        else:
+            part = np.zeros((hh, ww), np.int64)
+            t = t[0].reshape(hh, ww)
+        if prep.g_target[g]:
+            np.minimum(ttar[y0:y1, x0:x1], t, out=ttar[y0:y1, x0:x1])
+        better = t < tbest[y0:y1, x0:x1]
+        np.copyto(tbest[y0:y1, x0:x1], t, where=better)
+        kind[y0:y1, x0:x1][better] = 1
+        pid[y0:y1, x0:x1][better] = a + part[better]
+    for i, (y0, y1, x0, x1) in enumerate(_rects(prep.e_corners, origin, basis, size, fpx)):
+        if y0 >= y1 or x0 >= x1:
+            continue
+        t = _ellipsoid_t(origin, dirs[y0:y1, x0:x1], p["e_centre"][i], p["e_radii"][i])
+        better = t < tbest[y0:y1, x0:x1]
+        np.copyto(tbest[y0:y1, x0:x1], t, where=better)
+        kind[y0:y1, x0:x1][better] = 2
+        pid[y0:y1, x0:x1][better] = i
+    pts = origin.astype(np.float32) + tbest.reshape(-1, 1) * dirs.reshape(-1, 3)  # (N, 3) hit points
+    ground_rgb, seg = lookup(scene.ground_rgb, scene.ground_ids, pts[:, 0], pts[:, 1])
+    kind, pid = kind.ravel(), pid.ravel()
+    h, e = np.nonzero(kind == 1)[0], np.nonzero(kind == 2)[0]
+    seg[h] = p["h_inst"][pid[h]]
+    seg[e] = p["e_inst"][pid[e]]
+    seg = seg.reshape(size, size)
+    rgb = _shade(scene, prep, origin, dirs.reshape(-1, 3), pts, ground_rgb, h, e, pid).reshape(size, size, 3)
+    vis = seg == TARGET_ID
+    full = int(np.isfinite(ttar).sum())
+    n_vis = int(vis.sum())
+    if n_vis:
+        ys, xs = np.nonzero(vis)
+        bx = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.int32)
+    else:
+        bx = np.zeros(4, np.int32)
+    return View(rgb=rgb, seg=seg, box=bx, visible=float(n_vis / full) if full else 0.0)
+
+
+def _shadow(prep: _Prep, pts: np.ndarray, lam: np.ndarray, sun: np.ndarray, res: int) -> np.ndarray:
+    """(N,) bool: points (N, 3) that something hides from the sun.
+
+    A shadow map: an orthographic ray cast from the sun over the (u, v) rectangle that
+    the points span across the sun direction, ``res`` cells along its longer side, each
+    primitive cast only over the cells its projected vertices cover; a point is in shadow
+    when an occluder's surface lies higher along the sun direction in its cell (bias grows
+    with the surface's grazing angle, from its Lambert term ``lam`` (N,))."""
+    p = prep.p
+    lit_u = np.cross(sun, [0.0, 0.0, 1.0] if abs(sun[2]) < 0.99 else [1.0, 0.0, 0.0])
+    lit_u /= np.linalg.norm(lit_u)
+    frame = np.stack([lit_u, np.cross(sun, lit_u), sun])  # (3, 3) rows u, v, a
+    q = pts @ frame.T
+    lo, hi = q.min(0), q.max(0)
+    cell = max(hi[0] - lo[0], hi[1] - lo[1], 1e-3) / res
+    nu = int((hi[0] - lo[0]) / cell) + 1
+    nv = int((hi[1] - lo[1]) / cell) + 1
+    cu = lo[0] + (np.arange(nu) + 0.5) * cell
+    cv = lo[1] + (np.arange(nv) + 0.5) * cell
+    top = 200.0  # start the sun rays above everything (a < 200 m for every primitive)
+    depth = np.full((nv, nu), -_INF)
+    for kind, corners in (("h", p["h_verts"]), ("e", prep.e_corners)):
+        if len(corners) == 0:
+            continue
+        proj = corners @ frame.T  # (P, M, 3)
+        plo, phi = proj.min(1), proj.max(1)
+        i0 = np.clip(np.floor((plo[:, 0] - lo[0]) / cell).astype(np.int64), 0, nu)
+        i1 = np.clip(np.ceil((phi[:, 0] - lo[0]) / cell).astype(np.int64) + 1, 0, nu)
+        j0 = np.clip(np.floor((plo[:, 1] - lo[1]) / cell).astype(np.int64), 0, nv)
+        j1 = np.clip(np.ceil((phi[:, 1] - lo[1]) / cell).astype(np.int64) + 1, 0, nv)
+        cand = np.nonzero((i0 < i1) & (j0 < j1) & (phi[:, 2] > lo[2]))[0]
+        for i in cand:
+            o = (cu[None, i0[i]:i1[i], None] * lit_u + cv[j0[i]:j1[i], None, None] * frame[1]
+                 + top * sun)  # (h, w, 3) ray origins, direction -sun
+            if kind == "h":
+                pl = p["h_planes"][i]
+                t = _hull_t(pl[:, 3, None] - pl[:, :3] @ o.reshape(-1, 3).T, -(pl[:, :3] @ sun)[:, None], 0)
+                t = t.reshape(o.shape[:2])
+            else:
+                t = _ellipsoid_t(o, -sun, p["e_centre"][i], p["e_radii"][i])
+            sub = depth[j0[i]:j1[i], i0[i]:i1[i]]
+            np.maximum(sub, top - t, out=sub)
+    iu = np.clip(((q[:, 0] - lo[0]) / cell).astype(np.int64), 0, nu - 1)
+    iv = np.clip(((q[:, 1] - lo[1]) / cell).astype(np.int64), 0, nv - 1)
+    slope = np.sqrt(np.maximum(1.0 - lam * lam, 0.0)) / np.maximum(lam, 0.2)
+    return q[:, 2] < depth[iv, iu] - (0.04 + 1.5 * cell * slope)
+
+
+def _wave_noise(pts: np.ndarray, freq: float) -> np.ndarray:
+    """Cheap deterministic 3D pattern in about [-1, 1], (N, 3) -> (N, 3)."""
+    x, y, z = pts[:, 0] * freq, pts[:, 1] * freq, pts[:, 2] * freq
+    return np.stack(
+        [np.sin(x * 1.7 + np.sin(y * 2.3 + z)), np.sin(y * 1.9 + np.sin(z * 2.1 + x)),
+         np.sin(z * 2.2 + np.sin(x * 1.3 + y))], 1)
+
+
+def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) -> np.ndarray:
+    """(N, 3) uint8 colours of hit points ``pts`` (N, 3); ``h`` / ``e``: indices of pixels that
+    hit a hull / an ellipsoid (the rest hit the ground, coloured ``ground_rgb``)."""
+    p = prep.p
+    size = int(round(np.sqrt(len(pts))))
+    normal = np.zeros(pts.shape, np.float32)
+    normal[:, 2] = 1.0
+    col = ground_rgb.copy()
+    if len(h):
+        hp = pid[h]
+        hpl = prep.planes64[hp]
+        normal[h] = hpl[np.arange(len(h)), _entry_plane(hpl, origin, dirs[h].astype(np.float64)), :3]
+        c = p["h_rgb"][hp]
+        mat = p["h_mat"][hp]
+        par = p["h_par"][hp]
+        cab = (mat == M_CABIN) & (normal[h, 2] < 0.9)
+        c[cab] = par[cab, :3]
+        fac = mat == M_FACADE
+        if fac.any():
+            c[fac] = _facade(pts[h[fac]], normal[h[fac]], c[fac], par[fac])
+        col[h] = c
+    if len(e):
+        ep = pid[e]
+        n = (pts[e] - p["e_centre"][ep]) / p["e_radii"][ep] ** 2
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        c = p["e_rgb"][ep].copy()
+        can = p["e_mat"][ep] == M_CANOPY
+        if can.any():
+            wn = _wave_noise(pts[e[can]], 1.6)
+            n[can] += 0.55 * wn
+            n[can] /= np.linalg.norm(n[can], axis=1, keepdims=True)
+            c[can] *= (1.0 + 0.18 * wn[:, :1])
+        normal[e] = n
+        col[e] = c
+    sun = scene.sun_dir
+    lam = np.clip(normal @ sun.astype(np.float32), 0.0, 1.0)
+    lit = lam > 0
+    if lit.any():
+        sh = _shadow(prep, pts[lit], lam[lit], sun, size)
+        lam[np.nonzero(lit)[0][sh]] = 0.0
+    light = scene.ambient_rgb[None] * (0.65 + 0.35 * normal[:, 2:3]) + scene.sun_rgb[None] * lam[:, None]
+    return np.clip(col * (light * 255.0).astype(np.float32) + 0.5, 0, 255).astype(np.uint8)
+
+
+def _facade(pts, normal, wall, par) -> np.ndarray:
+    """Facade texture: window grid on walls (floor height par[:,0], spacing par[:,1], up to
+    the roof height par[:,2]), a darker gravel tone on roofs."""
+    out = wall.copy()
+    wallish = np.abs(normal[:, 2]) < 0.5
+    u = pts[:, 0] * -normal[:, 1] + pts[:, 1] * normal[:, 0]
+    z = pts[:, 2]
+    fu = np.mod(u, par[:, 1]) / par[:, 1]
+    fz = np.mod(z, par[:, 0]) / par[:, 0]
+    win = wallish & (fu > 0.28) & (fu < 0.72) & (fz > 0.35) & (fz < 0.8) & (z > 1.5) & (z < par[:, 2] - 0.8)
+    glass = np.stack([0.16 + 0.08 * par[:, 3], 0.19 + 0.06 * par[:, 3], 0.24 + 0.04 * par[:, 3]], 1)
+    out[win] = glass[win]
+    roof = normal[:, 2] > 0.5
+    grain = 0.04 * np.sin(pts[:, 0] * 7.1 + np.sin(pts[:, 1] * 5.3)) * np.sin(pts[:, 1] * 6.7)
+    out[roof] = out[roof] * 0.62 + 0.12 + grain[roof, None]
+    return out
+
+
+def render_views(scene: Scene, size: int, views=None) -> ContextViews:
+    """Render ``views`` (default: all 605, in grid order) of a scene."""
+    views = range(N_VIEWS) if views is None else views
+    prep = _Prep(scene)
+    out = [render_view(scene, v, size, prep) for v in views]
+    return ContextViews(
+        rgb=np.stack([o.rgb for o in out]),
+        seg=np.stack([o.seg for o in out]),
+        boxes=np.stack([o.box for o in out]).astype(np.int32),
+        visible=np.array([o.visible for o in out], np.float32),
+        categories=dict(scene.categories),
+        target=scene.target,
+    )
+
+
+def render_context(context_id: int, *, size: int, seed: int) -> ContextViews:
+    """All 605 views of context ``context_id`` at ``size`` px for a world seed (in memory)."""
+    from .world import build_context
+
+    return render_views(build_context(context_id, seed=seed), size)
