@@ -102,6 +102,21 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
     return _save(fig, path)
 
 
+def _move_text(a: int, b: int, last: bool, stopped: bool) -> str:
+    """The move from view ``a`` to ``b`` inferred from the grid (when the episode has no
+    recorded actions): the axis and metres flown, "no move" (a clamped move), or at the
+    last view "stop" / "(end)"."""
+    if last:
+        return "stop" if stopped else "(end)"
+    d = view_coords(b) - view_coords(a)
+    if not d.any():
+        return "no move (edge)"
+    axis = int(np.flatnonzero(d)[0])
+    name = {(0, 1): "right", (0, -1): "left", (1, 1): "forward", (1, -1): "backward", (2, 1): "up",
+            (2, -1): "down"}[(axis, int(np.sign(d[axis])))]
+    return f"{name} {abs(d[axis]):.0f} m"
+
+
 def _action_text(action: Sequence[int] | None) -> str:
     if action is None:
         return "(end)"
@@ -137,7 +152,7 @@ def _grid_axes(ax, views: Sequence[int]):
 
 
 def plot_strips(trajectories: Sequence[dict], image_for: Callable[[dict, int], np.ndarray | None],
-                path: Path) -> Path:
+                path: Path, *, t_max: int = 5) -> Path:
     """Fig. 8: one row per policy; the first panel is the top-down viewpoint grid (x-y,
     target at the origin as a red square) with the path drawn, altitude as marker colour
     and size, the start as a red star; then the observed crops along the path, each
@@ -146,7 +161,8 @@ def plot_strips(trajectories: Sequence[dict], image_for: Callable[[dict, int], n
     ``trajectories``: dicts as in ``trajectories.json`` (keys method, seed, views,
     actions, recognized, correct, return). ``image_for(traj, view)`` returns an
     (H, W, 3) uint8 RGB crop or None when the image cannot be found (drawn as a gray
-    "missing" panel).
+    "missing" panel). Without recorded ``actions`` the moves are read off the views, and
+    an episode with fewer than ``t_max`` moves ended with stop.
     """
     n_rows = max(1, len(trajectories))
     n_cols = 1 + max((len(t["views"]) for t in trajectories), default=1)
@@ -179,8 +195,12 @@ def plot_strips(trajectories: Sequence[dict], image_for: Callable[[dict, int], n
                 ax.imshow(img)
             x, y, z = view_coords(view)
             ax.set_title(f"t={k - 1}  ({x:+.0f}, {y:+.0f}, {z:.0f})", fontsize=7)
-            act = actions[k - 1] if k - 1 < len(actions) else None
-            ax.set_xlabel(_action_text(act), fontsize=7)
+            if actions:
+                text = _action_text(actions[k - 1] if k - 1 < len(actions) else None)
+            else:
+                last = k == len(views)
+                text = _move_text(view, views[k] if not last else view, last, len(views) - 1 < t_max)
+            ax.set_xlabel(text, fontsize=7)
     if not trajectories:
         axes[0, 0].text(0.5, 0.5, "no trajectories", ha="center", va="center")
         axes[0, 0].axis("off")

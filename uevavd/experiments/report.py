@@ -122,7 +122,10 @@ def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame
     out = ["## Setup", ""]
     meta = meta or {}
     methods = meta.get("methods") or learned(results["method"].unique())
-    seeds = meta.get("seeds") or sorted(results.loc[~is_baseline(results), "seed"].unique().tolist())
+    # ablation.json may list the seeds or give their number; the results say which ran
+    seeds = sorted(results.loc[~is_baseline(results), "seed"].unique().tolist())
+    if isinstance(meta.get("seeds"), list) and meta["seeds"]:
+        seeds = list(meta["seeds"])
     runs = final[~is_baseline(final)]
     episodes = sorted(runs["episodes"].unique().tolist())
     out += [
@@ -245,7 +248,8 @@ def _strips_section(ablation_dir: Path, meta: dict | None, out_dir: Path) -> lis
     if not trajs:
         return out + [note, ""]
     lookup = strip_images(trajs, (meta or {}).get("data_root"))
-    plot_strips(trajs, lookup, out_dir / "fig8_strips.png")
+    t_max = int((meta or {}).get("t_max", 5))
+    plot_strips(trajs, lookup, out_dir / "fig8_strips.png", t_max=t_max)
     t0 = trajs[0]
     out += [f"Greedy episode of each final policy from the same start (view {t0.get('start_view')}) in hard-test "
             f"context {t0.get('context')} (scene `{t0.get('scene')}`). Left: the viewpoint grid seen from "
