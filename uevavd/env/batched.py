@@ -82,15 +82,26 @@ class EnvTensors:
         self.next_view = torch.as_tensor(np.array(tr.next_view), device=dev)
         self.steps = torch.as_tensor(np.array(tr.steps), device=dev)
         self.mask = torch.as_tensor(np.array(tr.mask), device=dev)
+        # flat views of the same memory for fast gathers
+        self._features_flat = self.features.reshape(len(sel) * N_VIEWS, self.features.shape[2])
+        self._boxes_flat = self.boxes.reshape(-1, 4)
+        self._reco_flat = self.reco.reshape(-1)
+        self._acc_flat = self.acc.reshape(-1)
+        self._mask_flat = self.mask.reshape(N_VIEWS, -1)
+        self._next_flat = self.next_view.reshape(-1)
+        self._steps_flat = self.steps.reshape(-1)
 
     def observe(self, local_scene: torch.Tensor, view: torch.Tensor, t: torch.Tensor) -> dict[str, torch.Tensor]:
         """Observation dict (see module doc) of envs at (local scene, view) after t decisions."""
+        # index_select on flattened tables: several times faster than 2-D advanced indexing
+        flat = local_scene * N_VIEWS + view
+        a = self.config.max_range
         return {
-            "features": self.features[local_scene, view].float(),
-            "box": self.boxes[local_scene, view],
-            "mask": self.mask[view],
+            "features": self._features_flat.index_select(0, flat).float(),
+            "box": self._boxes_flat.index_select(0, flat),
+            "mask": self._mask_flat.index_select(0, view).view(-1, 7, a),
             "t": t,
-            "scene": self.scenes[local_scene],
+            "scene": self.scenes.index_select(0, local_scene),
             "view": view,
         }
 
@@ -119,10 +130,12 @@ class EnvTensors:
         """One decision for every env: ``next_view``, ``reward`` (float64), ``final`` (bool),
         ``steps`` flown (int64), ``stopped``, ``recognized`` and ``correct`` at the next view."""
         cfg = self.config
-        nv = self.next_view[view, a_type, a_range]  # stop stays (grid table)
+        act = (view * 7 + a_type) * cfg.max_range + a_range  # flat (view, type, range)
+        nv = self._next_flat.index_select(0, act)  # stop stays (grid table)
         stopped = a_type == STOP
         final = stopped | (t >= cfg.t_max - 1)
-        reco = self.reco[local_scene, nv]
+        at = local_scene * N_VIEWS + nv
+        reco = self._reco_flat.index_select(0, at)
         # float64 arithmetic in the same order as AODEnv, so the float32 rewards agree exactly
         cost = torch.where(stopped, 0.0, cfg.C * (a_range + 1).double())
         term = torch.where(reco, cfg.xi1, -cfg.xi1).double()
@@ -131,10 +144,10 @@ class EnvTensors:
             "next_view": nv,
             "reward": reward,
             "final": final,
-            "steps": self.steps[view, a_type, a_range],
+            "steps": self._steps_flat.index_select(0, act),
             "stopped": stopped,
             "recognized": reco,
-            "correct": self.acc[local_scene, nv],
+            "correct": self._acc_flat.index_select(0, at),
         }
 
 
