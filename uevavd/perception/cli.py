@@ -26,14 +26,21 @@ def add_train_classifier(p: argparse.ArgumentParser):
     p.add_argument("--imagenet", default=None,
                    help="ImageNet ResNet18 weights file to start from (default: torch's cache, else random)")
     p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--max-views", type=int, default=None,
+                   help="train on a seeded sample of this many viewpoints (default: all 605)")
     p.add_argument("--workers", type=int, default=2, help="image decoding threads")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
 
     def run(args) -> int:
         from .train import TrainSettings, train_classifier
 
         _logging()
+        if args.threads:
+            import torch
+
+            torch.set_num_threads(args.threads)
         s = TrainSettings(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                          val_fraction=args.val_fraction, seed=args.seed)
+                          val_fraction=args.val_fraction, seed=args.seed, max_views=args.max_views)
         path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers)
         print(path)
         print(f"report: {path.with_suffix('.md')}")
@@ -50,9 +57,15 @@ def add_prepare(p: argparse.ArgumentParser):
     p.add_argument("--classifier", default=None, help="classifier .safetensors (default: the dataset's default)")
     p.add_argument("--out", default=None, help="tables folder (default: <cache>/tables)")
     p.add_argument("--workers", type=int, default=2, help="image decoding threads")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
 
     def run(args) -> int:
         from ..config import parse_override
+
+        if args.threads:
+            import torch
+
+            torch.set_num_threads(args.threads)
         from .prepare import prepare_table
 
         _logging()

@@ -47,7 +47,7 @@ def visibility_report(model, manifest, weights_path: Path, info: dict, *, decode
         "",
         f"- initial weights: {info['init']}; {info['settings']['epochs']} epochs, "
         f"{info['n_train']} training crops, {info['n_val']} held-out crops "
-        f"({len(info['val_views'])} of 605 viewpoints), {info['seconds']} s",
+        f"({len(info['val_views'])} held-out viewpoints), {info['seconds']} s",
         f"- **held-out clean accuracy: {info['val_accuracy']:.4f}**",
         "",
         "| epoch | loss | held-out accuracy |",

@@ -45,12 +45,15 @@ class TrainSettings:
     shift: float = 0.06  #: max shift, fraction of the image size
     scale: float = 0.08  #: max relative zoom in or out
     jitter: float = 0.25  #: max relative change of brightness / contrast / saturation
+    max_views: int | None = None  #: use only this many viewpoints (seeded sample) for train + val
 
     def check(self) -> None:
         if self.epochs < 1 or self.batch_size < 1:
             raise ValueError(f"epochs={self.epochs}, batch_size={self.batch_size}: expected positive integers")
         if not 0.0 < self.val_fraction < 1.0:
             raise ValueError(f"val_fraction={self.val_fraction}: expected a share in (0, 1)")
+        if self.max_views is not None and self.max_views < 2:
+            raise ValueError(f"max_views={self.max_views}: expected at least 2 (or None for all)")
         if not self.lr > 0:
             raise ValueError(f"lr={self.lr}: expected > 0")
 
@@ -59,6 +62,14 @@ def split_views(n_views: int, val_fraction: float, seed: int) -> np.ndarray:
     """Sorted int64 view indices held out for validation (seeded; the same for every target)."""
     k = max(1, round(val_fraction * n_views))
     return np.sort(np.random.default_rng(seed).choice(n_views, size=k, replace=False)).astype(np.int64)
+
+
+def sample_views(views: np.ndarray, settings: TrainSettings) -> np.ndarray:
+    """The viewpoints used for training + validation: all, or a seeded ``max_views`` sample."""
+    if settings.max_views is None or settings.max_views >= len(views):
+        return views
+    rng = np.random.default_rng(settings.seed + 1)
+    return np.sort(rng.choice(views, settings.max_views, replace=False))
 
 
 def initial_model(imagenet: str | None, n_classes: int, seed: int) -> tuple[torch.nn.Module, str]:
@@ -130,10 +141,11 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tra
 
     settings.check()
     images, labels, views = np.asarray(images), np.asarray(labels, np.int64), np.asarray(views, np.int64)
-    n_views = int(views.max()) + 1 if len(views) else 0
-    val_views = split_views(max(n_views, 1), settings.val_fraction, settings.seed)
+    all_views = sample_views(np.unique(views), settings)
+    val_views = all_views[split_views(len(all_views), settings.val_fraction, settings.seed)]
     is_val = np.isin(views, val_views)
-    tr, va = np.flatnonzero(~is_val), np.flatnonzero(is_val)
+    used = np.isin(views, all_views)
+    tr, va = np.flatnonzero(used & ~is_val), np.flatnonzero(is_val)
     if len(tr) == 0 or len(va) == 0:
         raise ValueError(f"{len(images)} crops leave {len(tr)} for training and {len(va)} for validation")
     model, init = initial_model(imagenet, n_classes, settings.seed)
@@ -198,6 +210,8 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
     out = Path(out) if out is not None else classifiers_dir() / f"{digest}.safetensors"
     if out.suffix != ".safetensors":
         raise ValueError(f"--out {out}: the classifier is written as safetensors; name it *.safetensors")
+    used = set(sample_views(np.unique([r.view for r in recs]), settings).tolist())
+    recs = [r for r in recs if r.view in used]
     with Decoder(workers) as dec:
         images = dec.images([r.image for r in recs])
         labels = np.array([TARGETS.index(r.target) for r in recs], np.int64)
