@@ -174,3 +174,13 @@ def test_sb3_dqn_trains_on_discrete_form(table):
     assert env.action_space.contains(int(action))
     _, _, term, trunc, _ = env.step(int(action))
     assert not trunc
+
+
+def test_env_section_of_method_configs_is_envconfig():
+    from uevavd.config import ConfigError, validate
+
+    validate({"name": "m", "env": {"t_max": 3, "C": 0.05, "start": "uniform"}})
+    with pytest.raises(ConfigError, match="did you mean 't_max'"):
+        validate({"name": "m", "env": {"tmax": 3}})
+    uevavd.env.register()  # idempotent
+    assert "uevavd/AOD-v0" in gym.registry

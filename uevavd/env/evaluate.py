@@ -150,6 +150,8 @@ def evaluate_policy(
 ) -> EvalResult:
     """Run ``policy`` greedily from every (context, start view) pair of ``split``.
 
+    Starts are exhaustive, so ``config.start`` is ignored here; every other constant applies.
+
     ``table`` may also be a prepared :class:`~uevavd.env.batched.EnvTensors` (reuse it
     across epochs to skip the copy to the device; ``split``/``config``/``contexts`` then
     come from it). Returns an :class:`EvalResult`.
