@@ -98,6 +98,15 @@ class _Prep:
         self.e_r = p["e_radii"].max(1) if len(self.e_c) else np.zeros(0)
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
         self.e_corners = self.e_c[:, None, :] + signs[None] * p["e_radii"][:, None, :]
+        self._shadow: dict = {}
+
+    def shadow_map(self, sun: np.ndarray, size: int) -> _ShadowMap:
+        """The scene's cached shadow map for crops of ``size`` px (cells ~0.8 of the pixel
+        footprint at the nearest viewpoint, 60 m)."""
+        key = (size, *np.round(sun, 9))
+        if key not in self._shadow:
+            self._shadow[key] = _ShadowMap(self, sun, 0.8 * 60.0 / focal_px(size))
+        return self._shadow[key]
 
     def group_rects(self, origin, basis, size: int, fpx: float) -> np.ndarray:
         """(G, 4) pixel rectangles of the hull groups (union of their parts' rectangles)."""
@@ -234,52 +243,81 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None) -
     return View(rgb=rgb, seg=seg, box=bx, visible=float(n_vis / full) if full else 0.0)
 
 
-def _shadow(prep: _Prep, pts: np.ndarray, lam: np.ndarray, sun: np.ndarray, res: int) -> np.ndarray:
-    """(N,) bool: points (N, 3) that something hides from the sun.
+class _ShadowMap:
+    """Lazily built, cached shadow map of a scene (the sun and the geometry are static).
 
-    A shadow map: an orthographic ray cast from the sun over the (u, v) rectangle that
-    the points span across the sun direction, ``res`` cells along its longer side, each
-    primitive cast only over the cells its projected vertices cover; a point is in shadow
-    when an occluder's surface lies higher along the sun direction in its cell (bias grows
-    with the surface's grazing angle, from its Lambert term ``lam`` (N,))."""
-    p = prep.p
-    lit_u = np.cross(sun, [0.0, 0.0, 1.0] if abs(sun[2]) < 0.99 else [1.0, 0.0, 0.0])
-    lit_u /= np.linalg.norm(lit_u)
-    frame = np.stack([lit_u, np.cross(sun, lit_u), sun])  # (3, 3) rows u, v, a
-    q = pts @ frame.T
-    lo, hi = q.min(0), q.max(0)
-    cell = max(hi[0] - lo[0], hi[1] - lo[1], 1e-3) / res
-    nu = int((hi[0] - lo[0]) / cell) + 1
-    nv = int((hi[1] - lo[1]) / cell) + 1
-    cu = lo[0] + (np.arange(nu) + 0.5) * cell
-    cv = lo[1] + (np.arange(nv) + 0.5) * cell
-    top = 200.0  # start the sun rays above everything (a < 200 m for every primitive)
-    depth = np.full((nv, nu), -_INF)
-    for kind, corners in (("h", p["h_verts"]), ("e", prep.e_corners)):
-        if len(corners) == 0:
-            continue
-        proj = corners @ frame.T  # (P, M, 3)
-        plo, phi = proj.min(1), proj.max(1)
-        i0 = np.clip(np.floor((plo[:, 0] - lo[0]) / cell).astype(np.int64), 0, nu)
-        i1 = np.clip(np.ceil((phi[:, 0] - lo[0]) / cell).astype(np.int64) + 1, 0, nu)
-        j0 = np.clip(np.floor((plo[:, 1] - lo[1]) / cell).astype(np.int64), 0, nv)
-        j1 = np.clip(np.ceil((phi[:, 1] - lo[1]) / cell).astype(np.int64) + 1, 0, nv)
-        cand = np.nonzero((i0 < i1) & (j0 < j1) & (phi[:, 2] > lo[2]))[0]
-        for i in cand:
-            o = (cu[None, i0[i]:i1[i], None] * lit_u + cv[j0[i]:j1[i], None, None] * frame[1]
-                 + top * sun)  # (h, w, 3) ray origins, direction -sun
-            if kind == "h":
-                pl = p["h_planes"][i]
-                t = _hull_t(pl[:, 3, None] - pl[:, :3] @ o.reshape(-1, 3).T, -(pl[:, :3] @ sun)[:, None], 0)
-                t = t.reshape(o.shape[:2])
-            else:
-                t = _ellipsoid_t(o, -sun, p["e_centre"][i], p["e_radii"][i])
-            sub = depth[j0[i]:j1[i], i0[i]:i1[i]]
-            np.maximum(sub, top - t, out=sub)
-    iu = np.clip(((q[:, 0] - lo[0]) / cell).astype(np.int64), 0, nu - 1)
-    iv = np.clip(((q[:, 1] - lo[1]) / cell).astype(np.int64), 0, nv - 1)
-    slope = np.sqrt(np.maximum(1.0 - lam * lam, 0.0)) / np.maximum(lam, 0.2)
-    return q[:, 2] < depth[iv, iu] - (0.04 + 1.5 * cell * slope)
+    Frame (u, v, a) with a along the sun. The (u, v) plane is cut into tiles of ``TILE`` x
+    ``TILE`` cells of ``cell`` metres; a tile holds, per cell, the highest a at which an
+    orthographic ray from the sun enters a primitive, cast only against the primitives whose
+    projected vertices overlap the tile. Tiles are computed the first time a view needs them
+    and reused by every later view."""
+
+    TILE = 96
+
+    def __init__(self, prep: _Prep, sun: np.ndarray, cell: float):
+        p = prep.p
+        lit_u = np.cross(sun, [0.0, 0.0, 1.0] if abs(sun[2]) < 0.99 else [1.0, 0.0, 0.0])
+        lit_u /= np.linalg.norm(lit_u)
+        self.frame = np.stack([lit_u, np.cross(sun, lit_u), sun])  # rows u, v, a
+        self.sun = sun
+        self.cell = cell
+        self.tiles: dict[tuple[int, int], np.ndarray] = {}
+        self.prims = []  # (kind, index, ulo, uhi, vlo, vhi)
+        for kind, corners in (("h", p["h_verts"]), ("e", prep.e_corners)):
+            if len(corners):
+                proj = corners @ self.frame.T
+                lo, hi = proj.min(1), proj.max(1)
+                self.prims.append((kind, lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]))
+        self.p = p
+
+    def _tile(self, tu: int, tv: int) -> np.ndarray:
+        span = self.TILE * self.cell
+        u0, v0 = tu * span, tv * span
+        cu = u0 + (np.arange(self.TILE) + 0.5) * self.cell
+        cv = v0 + (np.arange(self.TILE) + 0.5) * self.cell
+        top = 200.0  # sun rays start above everything (a < 200 m for every primitive)
+        depth = np.full((self.TILE, self.TILE), -_INF, np.float32)
+        fu, fv, sun = self.frame[0], self.frame[1], self.sun
+        for kind, ulo, uhi, vlo, vhi in self.prims:
+            hit = np.nonzero((ulo < u0 + span) & (uhi > u0) & (vlo < v0 + span) & (vhi > v0))[0]
+            for i in hit:
+                i0 = max(int((ulo[i] - u0) / self.cell), 0)
+                i1 = min(int((uhi[i] - u0) / self.cell) + 2, self.TILE)
+                j0 = max(int((vlo[i] - v0) / self.cell), 0)
+                j1 = min(int((vhi[i] - v0) / self.cell) + 2, self.TILE)
+                o = (cu[None, i0:i1, None] * fu + cv[j0:j1, None, None] * fv + top * sun).reshape(-1, 3)
+                if kind == "h":
+                    pl = self.p["h_planes"][i].astype(np.float64)
+                    t = _hull_t(pl[:, 3, None] - pl[:, :3] @ o.T, -(pl[:, :3] @ sun)[:, None], 0)
+                else:
+                    t = _ellipsoid_t(o, -sun, self.p["e_centre"][i], self.p["e_radii"][i])
+                sub = depth[j0:j1, i0:i1]
+                np.maximum(sub, (top - t).reshape(sub.shape), out=sub)
+        return depth
+
+    def shadowed(self, pts: np.ndarray, lam: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        """(N,) bool: points (N, 3) hidden from the sun; ``lam`` (N,) their Lambert term (the
+        depth bias grows with the grazing angle) and ``bias`` (N,) extra metres of bias."""
+        q = pts.astype(np.float64) @ self.frame.T
+        iu = np.floor(q[:, 0] / self.cell).astype(np.int64)
+        iv = np.floor(q[:, 1] / self.cell).astype(np.int64)
+        tu, tv = iu // self.TILE, iv // self.TILE
+        key = tu * 1_000_003 + tv
+        depth = np.empty(len(pts), np.float32)
+        uniq, inv = np.unique(key, return_inverse=True)
+        if len(uniq) == 1:
+            groups = [np.arange(len(pts))]
+        else:
+            order = np.argsort(inv, kind="stable")
+            groups = np.split(order, np.cumsum(np.bincount(inv))[:-1])
+        for idx in groups:
+            k = (int(tu[idx[0]]), int(tv[idx[0]]))
+            tile = self.tiles.get(k)
+            if tile is None:
+                tile = self.tiles[k] = self._tile(*k)
+            depth[idx] = tile[iv[idx] - k[1] * self.TILE, iu[idx] - k[0] * self.TILE]
+        slope = np.sqrt(np.maximum(1.0 - lam * lam, 0.0)) / np.maximum(lam, 0.2)
+        return q[:, 2] < depth - (0.04 + bias + 1.5 * self.cell * slope)
 
 
 def _wave_noise(pts: np.ndarray, freq: float) -> np.ndarray:
@@ -298,6 +336,7 @@ def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) 
     normal = np.zeros(pts.shape, np.float32)
     normal[:, 2] = 1.0
     col = ground_rgb.copy()
+    bias = np.zeros(len(pts), np.float32)  # canopies: bumpy normals on a smooth ellipsoid
     if len(h):
         hp = pid[h]
         hpl = prep.planes64[hp]
@@ -324,11 +363,12 @@ def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) 
             c[can] *= (1.0 + 0.18 * wn[:, :1])
         normal[e] = n
         col[e] = c
+        bias[e] = 0.6
     sun = scene.sun_dir
     lam = np.clip(normal @ sun.astype(np.float32), 0.0, 1.0)
     lit = lam > 0
     if lit.any():
-        sh = _shadow(prep, pts[lit], lam[lit], sun, size)
+        sh = prep.shadow_map(sun, size).shadowed(pts[lit], lam[lit], bias[lit])
         lam[np.nonzero(lit)[0][sh]] = 0.0
     light = scene.ambient_rgb[None] * (0.65 + 0.35 * normal[:, 2:3]) + scene.sun_rgb[None] * lam[:, None]
     return np.clip(col * (light * 255.0).astype(np.float32) + 0.5, 0, 255).astype(np.uint8)
@@ -347,8 +387,8 @@ def _facade(pts, normal, wall, par) -> np.ndarray:
     glass = np.stack([0.16 + 0.08 * par[:, 3], 0.19 + 0.06 * par[:, 3], 0.24 + 0.04 * par[:, 3]], 1)
     out[win] = glass[win]
     roof = normal[:, 2] > 0.5
-    grain = 0.04 * np.sin(pts[:, 0] * 7.1 + np.sin(pts[:, 1] * 5.3)) * np.sin(pts[:, 1] * 6.7)
-    out[roof] = out[roof] * 0.62 + 0.12 + grain[roof, None]
+    grain = 0.035 * _wave_noise(pts[roof], 0.7)[:, :1] + 0.02 * _wave_noise(pts[roof], 3.1)[:, 1:2]
+    out[roof] = out[roof] * 0.62 + 0.12 + grain
     return out
 
 

@@ -4,10 +4,10 @@ Each model is a list of parts ``(profile, half_width, lateral, material)``; a pr
 a counter-clockwise polygon in the car's (length l, height z) plane, l > 0 towards the
 front. All five share one paint and one glass colour, so that shape is the only cue:
 
-* hatchback: 4.1 m, short body, cabin reaching the steep rear hatch (short tail);
+* hatchback: 3.95 m, short body, cabin reaching the steep rear hatch (short tail);
 * pickup: 5.3 m, tall cab and an open bed (low floor inside thin side walls);
-* sedan: 4.8 m, cabin in the middle, a long hood and a separate trunk deck;
-* sportscar: 4.5 m, low (1.15 m) and wide (1.95 m), cabin set far back;
+* sedan: 4.85 m, cabin in the middle, a long hood and a separate trunk deck;
+* sportscar: 4.35 m, low (1.15 m) and wide (2.0 m), cabin set far back;
 * suv: 4.75 m, tall (1.8 m) and boxy, the cabin running to a vertical rear.
 """
 
@@ -32,9 +32,9 @@ def _wheels(length_axle: float, half_track: float, radius: float) -> list[Part]:
 
 def _hatchback() -> list[Part]:
     half = 1.75 / 2
-    body = [(-2.05, 0.28), (2.05, 0.28), (2.05, 0.68), (1.70, 0.86), (-2.05, 0.92)]
-    cabin = [(-2.00, 0.88), (0.75, 0.88), (-0.05, 1.48), (-1.85, 1.48)]
-    return [(body, half, 0.0, M_PAINT), (cabin, half * 0.86, 0.0, M_CABIN)] + _wheels(2.5, half - 0.12, 0.31)
+    body = [(-1.98, 0.28), (1.98, 0.28), (1.98, 0.68), (1.62, 0.86), (-1.98, 0.92)]
+    cabin = [(-1.93, 0.88), (0.70, 0.88), (-0.08, 1.48), (-1.78, 1.48)]
+    return [(body, half, 0.0, M_PAINT), (cabin, half * 0.86, 0.0, M_CABIN)] + _wheels(2.45, half - 0.12, 0.31)
 
 
 def _pickup() -> list[Part]:
@@ -57,17 +57,17 @@ def _pickup() -> list[Part]:
 
 
 def _sedan() -> list[Part]:
-    half = 1.82 / 2
-    body = [(-2.40, 0.28), (2.40, 0.28), (2.40, 0.66), (2.10, 0.82), (-2.40, 0.90)]
+    half = 1.80 / 2
+    body = [(-2.43, 0.28), (2.43, 0.28), (2.43, 0.66), (2.13, 0.82), (-2.43, 0.90)]
     cabin = [(-1.25, 0.86), (1.05, 0.86), (0.25, 1.45), (-0.75, 1.45)]
-    return [(body, half, 0.0, M_PAINT), (cabin, half * 0.86, 0.0, M_CABIN)] + _wheels(2.8, half - 0.12, 0.32)
+    return [(body, half, 0.0, M_PAINT), (cabin, half * 0.86, 0.0, M_CABIN)] + _wheels(2.85, half - 0.12, 0.32)
 
 
 def _sportscar() -> list[Part]:
-    half = 1.95 / 2
-    body = [(-2.25, 0.16), (2.25, 0.16), (2.25, 0.42), (1.20, 0.70), (-2.25, 0.74)]
-    cabin = [(-1.70, 0.70), (0.55, 0.70), (-0.30, 1.15), (-1.20, 1.15)]
-    return [(body, half, 0.0, M_PAINT), (cabin, half * 0.78, 0.0, M_CABIN)] + _wheels(2.7, half - 0.14, 0.33)
+    half = 2.0 / 2
+    body = [(-2.18, 0.16), (2.18, 0.16), (2.18, 0.42), (1.15, 0.70), (-2.18, 0.74)]
+    cabin = [(-1.65, 0.70), (0.50, 0.70), (-0.30, 1.15), (-1.20, 1.15)]
+    return [(body, half, 0.0, M_PAINT), (cabin, half * 0.78, 0.0, M_CABIN)] + _wheels(2.6, half - 0.14, 0.33)
 
 
 def _suv() -> list[Part]:

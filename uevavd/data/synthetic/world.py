@@ -195,9 +195,9 @@ def _woodland(prims: Primitives, ids: _Ids, rng, target: str):
     t_lo = my * rng.uniform(1.8, 3.5)
     track = (min(t_lo, t_lo + my * track_w), max(t_lo, t_lo + my * track_w))
     strips = [Strip("x", track[0], track[1], "track")]
-    clearing = rng.uniform(2.5, 4.5)
-    spacing = rng.uniform(5.0, 7.0)
-    density = rng.uniform(0.55, 0.85)
+    clearing = rng.uniform(1.5, 3.5)
+    spacing = rng.uniform(4.5, 6.0)
+    density = rng.uniform(0.75, 0.95)
     n = int(110 / spacing)
     houses = []
     for _ in range(rng.integers(1, 4)):
@@ -218,7 +218,7 @@ def _woodland(prims: Primitives, ids: _Ids, rng, target: str):
                 continue
             if any(a < x < b and c < y < d for a, b, c, d in houses):
                 continue
-            _add_tree(prims, ids, rng, x, y, scale=rng.uniform(1.0, 1.3))
+            _add_tree(prims, ids, rng, x, y, scale=rng.uniform(1.1, 1.5))
     names = sorted(MODELS)
     for _ in range(rng.integers(0, 3)):
         cx = rng.choice([-1, 1]) * rng.uniform(7, 30)

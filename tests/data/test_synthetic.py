@@ -1,0 +1,130 @@
+"""The synthetic world: camera, occlusion geometry, vehicle shapes, ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from uevavd.data.grid import NZ, view_coords, view_index
+from uevavd.data.splits import TARGETS
+from uevavd.data.synthetic import build_context, build_unoccluded, render_view
+from uevavd.data.synthetic.geometry import M_FACADE, Primitives, box
+from uevavd.data.synthetic.world import TARGET_ID
+
+
+def _with_building(scene, centre, size_xy, height):
+    """The scene plus one building (instance id 999)."""
+    extra = Primitives()
+    extra.add_hull(box(centre, size_xy, size_xy, 0.0, height), M_FACADE, 999, (0.6, 0.6, 0.6), (3.0, 3.0, height, 0.5))
+    ea = extra.arrays()
+    prims = {k: np.concatenate([v, ea[k]]) if k.startswith("h_") else v for k, v in scene.prims.items()}
+    return dataclasses.replace(scene, prims=prims, categories={**scene.categories, 999: "building"})
+
+
+@pytest.mark.parametrize("iz", range(NZ))
+def test_camera_looks_at_target_from_every_altitude(iz):
+    size = 48
+    scene = build_unoccluded("sedan", seed=0)
+    for ix, iy in [(0, 0), (5, 5), (10, 3), (2, 9)]:
+        view = render_view(scene, view_index(ix, iy, iz), size)
+        ys, xs = np.nonzero(view.seg == TARGET_ID)
+        assert len(xs) > 0.02 * size * size, "the unoccluded target should cover a good part of the crop"
+        centre = (size - 1) / 2
+        assert abs(xs.mean() - centre) < 0.1 * size and abs(ys.mean() - centre) < 0.1 * size
+        assert view.visible == 1.0
+
+
+def test_image_up_is_world_north_at_nadir():
+    # the target heads +y (north); at the nadir view its length runs along the image's v axis
+    view = render_view(build_unoccluded("pickup", seed=0), view_index(5, 5, 4), 64)
+    ys, xs = np.nonzero(view.seg == TARGET_ID)
+    assert (ys.max() - ys.min()) > 1.8 * (xs.max() - xs.min())
+
+
+def test_building_on_the_line_of_sight_hides_the_target():
+    scene = build_unoccluded("suv", seed=0)
+    v = view_index(0, 0, 0)  # UAV at (-50, -50, 60)
+    assert render_view(scene, v, 32).visible == 1.0
+    blocked = _with_building(scene, (-25.0, -25.0), 12.0, 40.0)
+    view = render_view(blocked, v, 32)
+    assert view.visible == 0.0
+    assert view.box.tolist() == [0, 0, 0, 0]
+    assert (view.seg == 999).any() and not (view.seg == TARGET_ID).any()
+    # a view from the other side still sees the whole target
+    assert render_view(blocked, view_index(10, 10, 0), 32).visible == 1.0
+
+
+def test_partial_occlusion_box_covers_only_visible_pixels():
+    scene = _with_building(build_unoccluded("sedan", seed=0), (-4.5, 0.0), 6.0, 2.5)  # a low wall
+    view = render_view(scene, view_index(0, 5, 0), 64)  # from the west, low
+    assert 0.0 < view.visible < 1.0
+    ys, xs = np.nonzero(view.seg == TARGET_ID)
+    assert view.box.tolist() == [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1]
+    assert view.box.dtype == np.int32
+
+
+@pytest.mark.parametrize("view", [view_index(3, 2, 1), view_index(0, 5, 0), view_index(10, 8, 2)])
+def test_five_silhouettes_differ_from_the_same_viewpoint(view):
+    masks = {t: render_view(build_unoccluded(t, seed=0), view, 64).seg == TARGET_ID for t in TARGETS}
+    for i, a in enumerate(TARGETS):
+        for b in TARGETS[i + 1:]:
+            inter = (masks[a] & masks[b]).sum()
+            union = (masks[a] | masks[b]).sum()
+            assert inter / union < 0.9, f"{a} and {b} have nearly the same silhouette from view {view}"
+
+
+def test_five_classes_differ_at_nadir():
+    # from straight above footprints overlap a lot; the crops must still differ clearly
+    v = view_index(5, 5, 4)
+    crops = {t: render_view(build_unoccluded(t, seed=0), v, 64).rgb.astype(int) for t in TARGETS}
+    for i, a in enumerate(TARGETS):
+        for b in TARGETS[i + 1:]:
+            assert np.abs(crops[a] - crops[b]).sum(-1).astype(bool).mean() > 0.01, (a, b)
+
+
+def test_shared_paint_and_shading():
+    # same paint for all classes: the target's brightest colour is the same paint lit by the sun
+    v = view_index(5, 5, 2)
+    tops = []
+    for t in TARGETS:
+        view = render_view(build_unoccluded(t, seed=0), v, 64)
+        px = view.rgb[view.seg == TARGET_ID].astype(int)
+        tops.append(np.percentile(px.sum(1), 90))
+    assert max(tops) - min(tops) < 40
+    # shading is not flat: the ground shows a range of tones
+    view = render_view(build_context(1, seed=0), v, 64)
+    assert view.rgb.std() > 10
+
+
+def test_context_ground_truth_is_consistent():
+    scene = build_context(3, seed=0)
+    assert scene.terrain == "urban" and scene.target == "hatchback"
+    assert scene.categories[TARGET_ID] == "target"
+    hard = build_context(26, seed=0)
+    assert hard.terrain == "woodland"
+    assert build_context(31, seed=0).target == "pickup"
+    seen = set()
+    for v in (0, 302, 604, 150):
+        view = render_view(scene, v, 32)
+        seen |= set(np.unique(view.seg).tolist())
+        assert view.rgb.shape == (32, 32, 3) and view.rgb.dtype == np.uint8
+        assert view.seg.dtype == np.uint16
+    assert seen <= set(scene.categories), "every instance id in the segmentation has a category"
+    cats = set(scene.categories.values())
+    assert {"target", "building", "road", "ground"} <= cats
+
+
+def test_scenes_are_deterministic_and_differ_between_contexts():
+    a = render_view(build_context(2, seed=5), 100, 32)
+    b = render_view(build_context(2, seed=5), 100, 32)
+    c = render_view(build_context(2, seed=6), 100, 32)
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.seg, b.seg)
+    assert not np.array_equal(a.rgb, c.rgb)
+
+
+def test_view_coords_match_camera_positions():
+    # a view from the east sees the target's east side: the target's centroid column stays centred,
+    # and the camera's position is the grid position
+    assert view_coords(view_index(10, 5, 0)).tolist() == [50.0, 0.0, 60.0]

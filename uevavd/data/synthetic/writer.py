@@ -1,0 +1,236 @@
+"""Write the synthetic world in the canonical UEVAVD layout (:mod:`uevavd.data.layout`).
+
+One folder per scene ("001".."150", "00", "train_605"). Per view: the RGB crop (PNG), its
+box (TXT, one line "x1 y1 x2 y2", XYXY crop pixels, x2/y2 exclusive, "0 0 0 0" when the
+target is fully occluded) and the instance segmentation (uint16 PNG under ``seg/``); per
+scene ``seg/categories.json`` and ``scene.json``. ``scene.json`` is written last, atomically,
+and records the sha256 of every other file of the scene: a scene counts as complete only
+when it exists, matches the requested settings and every recorded file hashes to its
+record, so an interrupted run resumes by redoing just the incomplete scenes. The dataset
+card ``uevavd.json`` and ``manifest.json`` (sha256 and size of every file) come last.
+
+All files are written atomically (temp file in the same folder, then ``os.replace``), PNGs
+with a fixed compression level, so the same (seed, context, size) gives identical bytes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import layout
+from ..grid import N_VIEWS, view_coords
+from ..splits import CLASSIFIER_SCENE, TARGETS, UNOCCLUDED_SCENE, check_context, scene_name
+from .render import _Prep, focal_px, render_view
+from .world import BLOCK_TARGETS, Scene, build_context, build_unoccluded
+
+FORMAT = "uevavd-synthetic"
+VERSION = 1
+_PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as f:
+        f.write(data)
+    os.replace(tmp, path)
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _png(image: np.ndarray, path: Path) -> bytes:
+    ok, buf = cv2.imencode(".png", image, _PNG)
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode {path} as PNG")
+    return buf.tobytes()
+
+
+def _scene_jobs(contexts: Sequence[int], include_unoccluded: bool) -> list[str]:
+    names = [scene_name(c) for c in contexts]
+    if include_unoccluded:
+        names = [UNOCCLUDED_SCENE, CLASSIFIER_SCENE] + names  # the big ones first
+    return names
+
+
+def _scenes_of(name: str, seed: int) -> Iterator[Scene]:
+    if name in (UNOCCLUDED_SCENE, CLASSIFIER_SCENE):
+        for target in TARGETS:
+            yield build_unoccluded(target, seed=seed, scene=name)
+    else:
+        yield build_context(int(name), seed=seed)
+
+
+def _views_in(name: str) -> int:
+    return N_VIEWS * (len(TARGETS) if name in (UNOCCLUDED_SCENE, CLASSIFIER_SCENE) else 1)
+
+
+def scene_complete(folder: Path, *, size: int, seed: int) -> bool:
+    """True when ``folder/scene.json`` exists, was written for (size, seed) and every file it
+    records exists with the recorded sha256."""
+    meta_path = folder / layout.SCENE_META
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError):
+        return False
+    if meta.get("size") != size or meta.get("seed") != seed or not isinstance(meta.get("files"), dict):
+        return False
+    for rel, digest in meta["files"].items():
+        try:
+            if _sha256((folder / rel).read_bytes()) != digest:
+                return False
+        except OSError:
+            return False
+    return True
+
+
+def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
+    """Render and write one scene folder; returns its ``scene.json`` record."""
+    folder = root / name
+    (folder / layout.SEG_DIR).mkdir(parents=True, exist_ok=True)
+    files: dict[str, str] = {}
+    visible: dict[str, float] = {}
+    categories: dict[int, str] = {}
+    first = None
+    for scene in _scenes_of(name, seed):
+        first = first or scene
+        prep = _Prep(scene)
+        categories.update(scene.categories)
+        for v in range(N_VIEWS):
+            x, y, z = view_coords(v)
+            stem = layout.view_stem(x, y, z, scene.target, name)
+            view = render_view(scene, v, size, prep)
+            for rel, data in (
+                (stem + layout.IMAGE_EXT, _png(cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR), folder / stem)),
+                (stem + layout.BOX_EXT, (" ".join(str(int(b)) for b in view.box) + "\n").encode()),
+                (f"{layout.SEG_DIR}/{stem}{layout.IMAGE_EXT}", _png(view.seg, folder / stem)),
+            ):
+                _atomic_write(folder / rel, data)
+                files[rel] = _sha256(data)
+            visible[stem] = round(float(view.visible), 6)
+    cats = {str(k): v for k, v in sorted(categories.items())}
+    data = (json.dumps(cats, indent=1) + "\n").encode()
+    rel = f"{layout.SEG_DIR}/{layout.CATEGORIES}"
+    _atomic_write(folder / rel, data)
+    files[rel] = _sha256(data)
+    unocc = name in (UNOCCLUDED_SCENE, CLASSIFIER_SCENE)
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "scene": name,
+        "context": None if unocc else int(name),
+        "split": name if unocc else first.split,
+        "target": None if unocc else first.target,
+        "targets": list(TARGETS) if unocc else [first.target],
+        "terrain": first.terrain,
+        "size": size,
+        "seed": seed,
+        "focal_px": focal_px(size),
+        "box_format": "x1 y1 x2 y2, XYXY crop pixels, x2/y2 exclusive; 0 0 0 0 = fully occluded",
+        "categories": cats,
+        "sun_direction": [round(float(c), 6) for c in first.sun_dir] if not unocc else None,
+        "visible": visible,
+        "files": files,
+    }
+    _atomic_write(folder / layout.SCENE_META, (json.dumps(meta, indent=1) + "\n").encode())
+    return meta
+
+
+def _job(root: str, name: str, size: int, seed: int) -> tuple[str, int]:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    write_scene(Path(root), name, size=size, seed=seed)
+    return name, _views_in(name)
+
+
+def _check_card(root: Path, size: int, seed: int) -> None:
+    card = root / layout.DATASET_CARD
+    if not card.is_file():
+        return
+    try:
+        meta = json.loads(card.read_text())
+    except ValueError:
+        return  # unreadable card: it is rewritten at the end
+    if meta.get("format") == FORMAT and (meta.get("size"), meta.get("seed")) != (size, seed):
+        raise ValueError(
+            f"{root} holds a synthetic world with size={meta.get('size')}, seed={meta.get('seed')}, "
+            f"not size={size}, seed={seed}: choose another output folder or delete this one"
+        )
+
+
+def write_world(
+    out: Path,
+    *,
+    contexts: Sequence[int],
+    size: int,
+    seed: int,
+    workers: int = 1,
+    include_unoccluded: bool = True,
+    progress: bool = True,
+) -> Path:
+    """Write contexts (ids 1..150), plus scenes "00" and "train_605" when
+    ``include_unoccluded``, at ``size`` x ``size`` px into ``out``; returns ``out``.
+
+    Resumable: scenes already complete and verified are skipped. ``workers`` > 1 renders
+    scenes in that many processes. Writes ``uevavd.json`` and ``manifest.json`` last."""
+    from tqdm.auto import tqdm
+
+    root = Path(out)
+    if size < 16:
+        raise ValueError(f"size={size}: expected a crop size of at least 16 px")
+    if workers < 1:
+        raise ValueError(f"workers={workers}: expected at least 1")
+    contexts = sorted({check_context(c) for c in contexts})
+    root.mkdir(parents=True, exist_ok=True)
+    _check_card(root, size, seed)
+    names = _scene_jobs(contexts, include_unoccluded)
+    todo = [n for n in names if not scene_complete(root / n, size=size, seed=seed)]
+    total = sum(_views_in(n) for n in names)
+    bar = tqdm(total=total, unit="view", desc=f"synth {size}px", disable=not progress)
+    bar.update(total - sum(_views_in(n) for n in todo))
+    if workers == 1 or len(todo) <= 1:
+        for n in todo:
+            bar.update(_job(str(root), n, size, seed)[1])
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = [pool.submit(_job, str(root), n, size, seed) for n in todo]
+            for fut in as_completed(futures):
+                bar.update(fut.result()[1])
+    bar.close()
+    _write_card_and_manifest(root, names, contexts, size, seed, include_unoccluded)
+    return root
+
+
+def _write_card_and_manifest(root: Path, names, contexts, size, seed, include_unoccluded) -> None:
+    card = {
+        "format": FORMAT,
+        "version": VERSION,
+        "generator": "uevavd.data.synthetic",
+        "seed": seed,
+        "size": size,
+        "focal_px": focal_px(size),
+        "contexts": contexts,
+        "scenes": names,
+        "unoccluded": include_unoccluded,
+        "block_targets": list(BLOCK_TARGETS),
+        "box_format": "x1 y1 x2 y2, XYXY crop pixels, x2/y2 exclusive; 0 0 0 0 = fully occluded",
+    }
+    card_bytes = (json.dumps(card, indent=1) + "\n").encode()
+    _atomic_write(root / layout.DATASET_CARD, card_bytes)
+    files: dict[str, dict] = {layout.DATASET_CARD: {"sha256": _sha256(card_bytes), "size": len(card_bytes)}}
+    for n in names:
+        folder = root / n
+        meta_bytes = (folder / layout.SCENE_META).read_bytes()
+        meta = json.loads(meta_bytes)
+        for rel, digest in meta["files"].items():
+            files[f"{n}/{rel}"] = {"sha256": digest, "size": (folder / rel).stat().st_size}
+        files[f"{n}/{layout.SCENE_META}"] = {"sha256": _sha256(meta_bytes), "size": len(meta_bytes)}
+    manifest = {"format": FORMAT, "version": VERSION, "files": dict(sorted(files.items()))}
+    _atomic_write(root / layout.MANIFEST, (json.dumps(manifest, indent=0) + "\n").encode())
