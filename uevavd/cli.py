@@ -11,6 +11,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
     "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
+    "synth": ("uevavd.data.synthetic.cli:add_synth", "generate the synthetic UEVAVD world (resumable)"),
     "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map) on an observation table"),
     "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run beside random, passive and oracle; table + JSON"),
     "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the ResNet18 recognizer on train_605"),
