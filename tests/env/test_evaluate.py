@@ -147,3 +147,14 @@ def test_oracle_bounds_every_policy(table):
         assert (res.ret <= bound + 1e-12).all()
     res = evaluate_policy(table, "train", OraclePolicy(table, cfg), cfg)
     assert res.summary()["recognition_rate"] >= evaluate_policy(table, "train", PassivePolicy()).summary()["recognition_rate"]
+
+
+def test_oracle_q_values_agree_with_values(table):
+    cfg = EnvConfig(t_max=3)
+    ora = oracle_values(table, cfg, with_q=True)
+    q = ora.q[:, 1:].reshape(len(table), cfg.t_max, N_VIEWS, -1)
+    np.testing.assert_allclose(q.max(-1), ora.value[:, 1:])
+    flat = ora.q.reshape(len(table), cfg.t_max + 1, N_VIEWS, -1)
+    chosen = np.take_along_axis(flat, (ora.best_type * cfg.max_range + ora.best_range)[..., None], -1)[..., 0]
+    np.testing.assert_allclose(chosen[:, 1:], ora.value[:, 1:])  # the policy's action attains V
+    assert oracle_values(table, cfg).q is None

@@ -197,8 +197,11 @@ class AODEnv(gym.Env):
     def step(self, action: Any):
         if self._done:
             raise RuntimeError("step() called on a finished episode: call reset() first")
-        a = np.asarray(action)
-        if a.shape != (2,) or not (np.issubdtype(a.dtype, np.integer) or np.all(a == np.round(a))):
+        try:
+            a = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError):
+            a = np.zeros(0)
+        if a.shape != (2,) or not np.all(a == np.round(a)):
             raise ValueError(f"action {action!r}: expected (type, range index) in MultiDiscrete{self.action_space.nvec.tolist()}")
         a_type, a_range = int(a[0]), int(a[1])
         if not self.action_space.contains(np.array([a_type, a_range], dtype=np.int64)):

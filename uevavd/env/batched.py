@@ -272,11 +272,18 @@ class BatchedAODEnv:
             "n_envs": self.n_envs,
             "config": self.config.to_dict(),
             "split": self.split,
+            "scenes": self.tables.scenes.tolist(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore :meth:`state_dict`; refuses a state of another n_envs, split or config."""
-        for key, mine in (("n_envs", self.n_envs), ("split", self.split), ("config", self.config.to_dict())):
+        """Restore :meth:`state_dict`; refuses a state of another n_envs, split, scenes or config."""
+        mine_all = (
+            ("n_envs", self.n_envs),
+            ("split", self.split),
+            ("config", self.config.to_dict()),
+            ("scenes", self.tables.scenes.tolist()),
+        )
+        for key, mine in mine_all:
             if state.get(key) != mine:
                 raise ValueError(f"env state has {key}={state.get(key)!r} but this env has {mine!r}")
         self.generator.set_state(state["rng"])

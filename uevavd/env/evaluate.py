@@ -100,9 +100,9 @@ class EvalResult:
     def per_context(self) -> Any:
         """pandas DataFrame, one row per context (context, target, scene + the summary's columns)."""
         df = self._grouped(self.scene, "scene", int)
-        first = {int(s): i for i, s in reversed(list(enumerate(self.scene)))}
-        df.insert(0, "context", [int(self.context[first[s]]) for s in df["scene"]])
-        df.insert(1, "target", [self._target_name(int(self.target[first[s]])) for s in df["scene"]])
+        _, first = np.unique(self.scene, return_index=True)  # same (sorted) order as the rows
+        df.insert(0, "context", self.context[first].tolist())
+        df.insert(1, "target", [self._target_name(int(k)) for k in self.target[first]])
         return df
 
     def per_target(self) -> Any:

@@ -28,16 +28,19 @@ from .config import EnvConfig, make_config
 @dataclass(frozen=True)
 class OracleTables:
     """``value`` (S, T_max + 1, 605) float64: V(view, k) (k = 0 unused, zeros);
-    ``q`` (S, T_max + 1, 605, 7, A) float64 action values; ``best_type`` / ``best_range``
+    ``q`` (S, T_max + 1, 605, 7, A) float64 action values (None unless asked for:
+    it is 28x the size of ``value``); ``best_type`` / ``best_range``
     (S, T_max + 1, 605) int64: the optimal action with k steps left."""
 
     value: np.ndarray
-    q: np.ndarray
+    q: np.ndarray | None
     best_type: np.ndarray
     best_range: np.ndarray
 
 
-def oracle_values(table: ObservationTable, config: EnvConfig | dict | None = None) -> OracleTables:
+def oracle_values(
+    table: ObservationTable, config: EnvConfig | dict | None = None, *, with_q: bool = False
+) -> OracleTables:
     """Solve the DP for every scene of ``table`` (vectorised over scenes and views)."""
     cfg = make_config(config)
     tr = transitions(cfg.max_range)
@@ -47,7 +50,7 @@ def oracle_values(table: ObservationTable, config: EnvConfig | dict | None = Non
     term = np.where(reco, cfg.xi1, -cfg.xi1).astype(np.float64)  # (S, V)
     cost = cfg.C * np.arange(1, a + 1, dtype=np.float64)  # (A,)
     value = np.zeros((s, cfg.t_max + 1, v))
-    q = np.zeros((s, cfg.t_max + 1, v, 7, a))
+    q = np.zeros((s, cfg.t_max + 1, v, 7, a)) if with_q else None
     best_type = np.zeros((s, cfg.t_max + 1, v), np.int64)
     best_range = np.zeros((s, cfg.t_max + 1, v), np.int64)
     nxt = tr.next_view[:, :STOP, :]  # (V, 6, A)
@@ -56,8 +59,9 @@ def oracle_values(table: ObservationTable, config: EnvConfig | dict | None = Non
             moves = term[:, nxt] - cost  # (S, V, 6, A)
         else:
             moves = -cfg.xi2 - cost + cfg.gamma * value[:, k - 1][:, nxt]
-        q[:, k, :, :STOP, :] = moves
-        q[:, k, :, STOP, :] = term[:, :, None]
+        if q is not None:
+            q[:, k, :, :STOP, :] = moves
+            q[:, k, :, STOP, :] = term[:, :, None]
         flat = moves.reshape(s, v, -1)
         i = flat.argmax(-1)
         best_move = np.take_along_axis(flat, i[..., None], -1)[..., 0]
