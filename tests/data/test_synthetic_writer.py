@@ -1,0 +1,128 @@
+"""The synthetic world's writer: layout, determinism, resume, manifest, CLI."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from uevavd.cli import main
+from uevavd.data import layout
+from uevavd.data.grid import N_VIEWS
+from uevavd.data.synthetic import render_context, write_world
+from uevavd.data.synthetic.cli import parse_contexts
+from uevavd.data.synthetic.writer import scene_complete
+
+SIZE = 16  # the smallest crop: the writer's behaviour does not depend on the size
+
+
+def _tree_bytes(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("world")
+    rc = main(["synth", "--out", str(out), "--contexts", "5", "--size", str(SIZE), "--seed", "3",
+               "--no-unoccluded", "--quiet"])
+    assert rc == 0
+    return out
+
+
+def test_layout_and_annotations(world):
+    folder = world / "005"
+    meta = json.loads((folder / layout.SCENE_META).read_text())
+    assert (meta["scene"], meta["context"], meta["split"], meta["target"], meta["terrain"]) == (
+        "005", 5, "train", "hatchback", "urban")
+    assert (meta["size"], meta["seed"]) == (SIZE, 3)
+    assert len(meta["visible"]) == N_VIEWS
+    stem = layout.view_stem(-50, 40, 80, "hatchback", "005")
+    rgb = cv2.imread(str(folder / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+    assert rgb.shape == (SIZE, SIZE, 3) and rgb.dtype == np.uint8
+    seg = cv2.imread(str(folder / layout.SEG_DIR / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+    assert seg.shape == (SIZE, SIZE) and seg.dtype == np.uint16
+    cats = json.loads((folder / layout.SEG_DIR / layout.CATEGORIES).read_text())
+    target_ids = [int(k) for k, v in cats.items() if v == "target"]
+    assert target_ids == [1]
+    x1, y1, x2, y2 = map(int, (folder / f"{stem}.txt").read_text().split())
+    mask = seg == 1
+    if mask.any():
+        ys, xs = np.nonzero(mask)
+        assert [x1, y1, x2, y2] == [xs.min(), ys.min(), xs.max() + 1, ys.max() + 1]
+        assert meta["visible"][stem] > 0
+    else:
+        assert [x1, y1, x2, y2] == [0, 0, 0, 0] and meta["visible"][stem] == 0
+    assert set(np.unique(seg).tolist()) <= {int(k) for k in cats}
+
+
+def test_manifest_covers_every_file(world):
+    manifest = json.loads((world / layout.MANIFEST).read_text())["files"]
+    on_disk = {k for k in _tree_bytes(world) if k != layout.MANIFEST}
+    assert set(manifest) == on_disk
+    for rel in list(manifest)[:50] + [layout.DATASET_CARD, f"005/{layout.SCENE_META}"]:
+        data = (world / rel).read_bytes()
+        assert manifest[rel] == {"sha256": hashlib.sha256(data).hexdigest(), "size": len(data)}
+    card = json.loads((world / layout.DATASET_CARD).read_text())
+    assert card["contexts"] == [5] and card["size"] == SIZE
+
+
+def test_same_seed_and_context_give_identical_files(world, tmp_path):
+    again = write_world(tmp_path / "again", contexts=[5], size=SIZE, seed=3, include_unoccluded=False,
+                        progress=False)
+    assert _tree_bytes(again) == _tree_bytes(world)
+
+
+def test_render_context_matches_the_written_files(world):
+    views = render_context(5, size=SIZE, seed=3)
+    assert views.rgb.shape == (N_VIEWS, SIZE, SIZE, 3) and views.boxes.dtype == np.int32
+    meta = json.loads((world / "005" / layout.SCENE_META).read_text())
+    assert np.allclose(views.visible, list(meta["visible"].values()), atol=1e-6)
+    assert (views.boxes[views.visible == 0] == 0).all()
+
+
+def test_resume_redoes_only_broken_scenes(world, tmp_path):
+    out = tmp_path / "w"
+    shutil.copytree(world, out)
+    (out / "006").mkdir()
+    shutil.copytree(world / "005", out / "006", dirs_exist_ok=True)  # a scene 006 from another context
+    folder = out / "005"
+    a_file = sorted(folder.glob("*.png"))[0]
+    stamp = a_file.stat().st_mtime_ns
+    victim = sorted(folder.glob("*.png"))[5]
+    original = victim.read_bytes()
+    victim.write_bytes(original[:-7])  # a truncated file, as an interrupted run would leave
+    box_file = sorted(folder.glob("*.txt"))[3]
+    box_file.unlink()
+    assert not scene_complete(folder, size=SIZE, seed=3)
+    assert scene_complete(out / "006", size=SIZE, seed=3)
+    assert not scene_complete(out / "006", size=SIZE + 1, seed=3)
+    assert not scene_complete(out / "006", size=SIZE, seed=4)
+    write_world(out, contexts=[5], size=SIZE, seed=3, include_unoccluded=False, progress=False)
+    assert victim.read_bytes() == original and box_file.is_file()
+    assert scene_complete(folder, size=SIZE, seed=3)
+    assert _tree_bytes(out / "005") == _tree_bytes(world / "005")
+    # a complete scene is skipped, not rewritten
+    stamp = a_file.stat().st_mtime_ns
+    write_world(out, contexts=[5], size=SIZE, seed=3, include_unoccluded=False, progress=False)
+    assert a_file.stat().st_mtime_ns == stamp
+
+
+def test_a_world_with_other_settings_is_refused(world, tmp_path):
+    out = tmp_path / "w"
+    out.mkdir()
+    shutil.copy(world / layout.DATASET_CARD, out / layout.DATASET_CARD)
+    with pytest.raises(ValueError, match="size=16, seed=3"):
+        write_world(out, contexts=[5], size=SIZE, seed=1, include_unoccluded=False, progress=False)
+
+
+def test_parse_contexts():
+    assert parse_contexts("1-4,21,26") == [1, 2, 3, 4, 21, 26]
+    assert parse_contexts(" 7 , 7,8-8") == [7, 8]
+    for bad in ("0", "151", "4-1", "a", ","):
+        with pytest.raises(ValueError):
+            parse_contexts(bad)
