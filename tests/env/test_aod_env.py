@@ -132,7 +132,7 @@ def test_fixed_start_from_config(table):
 def test_bad_input(table, tmp_path):
     env = AODEnv(table, "train")
     env.reset(seed=0)
-    for bad in ([7, 0], [0, 4], [-1, 0], [1, 2, 3]):
+    for bad in ([7, 0], [0, 4], [-1, 0], [1, 2, 3], ["a", "b"], [0.5, 1]):
         with pytest.raises(ValueError, match="action"):
             env.step(np.array(bad))
     with pytest.raises(ValueError, match="outside Discrete"):

@@ -197,16 +197,22 @@ class AODEnv(gym.Env):
     def step(self, action: Any):
         if self._done:
             raise RuntimeError("step() called on a finished episode: call reset() first")
-        try:
-            a = np.asarray(action, dtype=np.float64)
-        except (TypeError, ValueError):
-            a = np.zeros(0)
-        if a.shape != (2,) or not np.all(a == np.round(a)):
-            raise ValueError(f"action {action!r}: expected (type, range index) in MultiDiscrete{self.action_space.nvec.tolist()}")
-        a_type, a_range = int(a[0]), int(a[1])
-        if not self.action_space.contains(np.array([a_type, a_range], dtype=np.int64)):
+        a = np.asarray(action)
+        if a.dtype.kind not in "iu":  # floats equal to integers are accepted, anything else not
+            try:
+                a = np.asarray(action, dtype=np.float64)
+            except (TypeError, ValueError):
+                a = np.zeros(0)
+            if not np.all(a == np.round(a)):
+                a = np.zeros(0)
+        if a.shape != (2,):
             raise ValueError(
-                f"action ({a_type}, {a_range}) is outside MultiDiscrete({self.action_space.nvec.tolist()}): "
+                f"action {action!r}: expected (type, range index) in MultiDiscrete([7, {self.config.max_range}])"
+            )
+        a_type, a_range = int(a[0]), int(a[1])
+        if not (0 <= a_type <= STOP and 0 <= a_range < self.config.max_range):
+            raise ValueError(
+                f"action ({a_type}, {a_range}) is outside MultiDiscrete([7, {self.config.max_range}]): "
                 f"type 0..6 (stop = {STOP}), range index 0..{self.config.max_range - 1}"
             )
         cfg = self.config
