@@ -17,6 +17,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the ResNet18 recognizer on train_605"),
     "prepare": ("uevavd.perception.cli:add_prepare", "build the observation table of a dataset for a method"),
     "validate": ("uevavd.data.validate:add_validate", "check a dataset root: names, annotations, views, images; exit 1 on problems"),
+    "train-sam-small": ("uevavd.perception.sam.cli:add_train_small", "train the small SAM from scratch on a world's ground truth"),
+    "finetune-sam": ("uevavd.perception.sam.cli:add_finetune", "fine-tune a SAM checkpoint's mask decoder on ground-truth target masks"),
 }
 
 

@@ -50,11 +50,11 @@ class CheckpointError(ValueError):
 class SmallConfig:
     """Sizes of the small SAM (all from segment-anything's classes)."""
 
-    img_size: int = 128  #: square input side after ResizeLongestSide + padding, pixels
+    img_size: int = 64  #: square input side after ResizeLongestSide + padding, pixels
     patch_size: int = 8  #: ViT patch side; the embedding is img_size/patch_size square
-    embed_dim: int = 128  #: ViT width
+    embed_dim: int = 96  #: ViT width
     depth: int = 4  #: ViT blocks
-    num_heads: int = 4
+    num_heads: int = 3
     prompt_dim: int = 64  #: prompt/decoder width (SAM: 256)
     decoder_depth: int = 2  #: two-way transformer blocks
     decoder_heads: int = 4

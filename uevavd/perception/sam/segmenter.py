@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from segment_anything import SamPredictor
 
 from ..base import Segmentation
@@ -52,7 +53,11 @@ def images_to_input(images: np.ndarray, predictor: SamPredictor) -> torch.Tensor
     if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
         raise ValueError(f"images: expected (N, H, W, 3) uint8 RGB, got {images.shape} {images.dtype}")
     x = torch.from_numpy(np.ascontiguousarray(images)).to(predictor.device).permute(0, 3, 1, 2).float()
-    return predictor.transform.apply_image_torch(x)
+    # ResizeLongestSide.apply_image_torch of segment-anything 1.0 reads the size from
+    # shape[0], shape[1] (batch, channels) instead of (H, W); use its size rule directly.
+    t = predictor.transform
+    size = t.get_preprocess_shape(images.shape[1], images.shape[2], t.target_length)
+    return F.interpolate(x, size, mode="bilinear", align_corners=False, antialias=True)
 
 
 class SamSegmenter:
