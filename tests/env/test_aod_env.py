@@ -152,8 +152,9 @@ def test_bad_input(table, tmp_path):
             EnvConfig(**kwargs)
     with pytest.raises(EnvConfigError, match="unknown EnvConfig field"):
         AODEnv(table, "train", tmax=3)
-    # NaN in a table on disk is refused at load, naming the file
+    # a table folder works in place of the table; NaN in it is refused at load
     path = table.save(tmp_path / "tbl")
+    assert gym.make("uevavd/AOD-v0", table=str(path), split="hard").reset(seed=0)[1]["context"] in (5, 6)
     feats = np.load(path / "features.npy")
     feats[2, 7, 0] = np.nan
     np.save(path / "features.npy", feats)
