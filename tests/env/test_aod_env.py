@@ -5,6 +5,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 
 import uevavd.env  # noqa: F401  (registers uevavd/AOD-v0)
@@ -169,7 +170,12 @@ def test_sb3_dqn_trains_on_discrete_form(table):
         "MultiInputPolicy", env, learning_starts=100, buffer_size=1000, batch_size=32,
         train_freq=4, target_update_interval=100, policy_kwargs={"net_arch": [32]}, seed=0, device="cpu",
     )
-    model.learn(total_timesteps=500)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny network: threads only contend on a shared machine
+    try:
+        model.learn(total_timesteps=500)
+    finally:
+        torch.set_num_threads(threads)
     obs, _ = env.reset(seed=1)
     action, _ = model.predict(obs, deterministic=True)
     assert env.action_space.contains(int(action))
