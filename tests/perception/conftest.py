@@ -118,8 +118,7 @@ gray_seed = 0
 """
 
 
-@pytest.fixture()
-def method_file(tmp_path) -> Path:
-    p = tmp_path / "tiny.toml"
-    p.write_text(METHOD_TOML.format(decompose="true"))
-    return p
+@pytest.fixture(scope="session")
+def method_toml() -> str:
+    """A method TOML template with a ``{decompose}`` field."""
+    return METHOD_TOML

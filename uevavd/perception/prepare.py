@@ -22,6 +22,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -185,23 +186,30 @@ def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_
     }
 
 
-def prepare_table(
+@dataclass
+class Plan:
+    """Everything a table build needs, and its key (see :func:`plan_table`)."""
+
+    spec: MethodSpec
+    data_root: Path
+    manifest: Any
+    scenes: list[tuple[str, list]]
+    segmenter: Any
+    encoder: Any
+    classifier: Any
+    gray_seed: int
+    parts: dict[str, Any]
+    key: str
+
+
+def plan_table(
     data_root: str | os.PathLike[str],
     spec_or_method: MethodSpec | str | os.PathLike[str],
     *,
     classifier_path: str | os.PathLike[str] | None = None,
     overrides: Mapping[str, Any] | None = None,
-    out_dir: str | os.PathLike[str] | None = None,
-    workers: int = 2,
-    progress: bool = True,
-) -> Path:
-    """Build (or find) the observation table; returns its folder ``<out_dir>/<key>``.
-
-    ``out_dir`` defaults to :func:`uevavd.paths.tables_dir`. A finished table with the same
-    key is reused; an interrupted build resumes from its finished scenes.
-    """
-    from tqdm.auto import tqdm
-
+) -> Plan:
+    """Read the dataset, build the components and compute the table key (no images decoded)."""
     from ..data.reader import read_dataset
 
     data_root = Path(data_root).expanduser().resolve()
@@ -223,7 +231,32 @@ def prepare_table(
         "encoder": encoder.identity(),
         "classifier": classifier.identity(),
     }
-    key = table_key(parts)
+    return Plan(spec, data_root, manifest, scenes, segmenter, encoder, classifier, gray_seed, parts,
+                table_key(parts))
+
+
+def prepare_table(
+    data_root: str | os.PathLike[str],
+    spec_or_method: MethodSpec | str | os.PathLike[str],
+    *,
+    classifier_path: str | os.PathLike[str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    out_dir: str | os.PathLike[str] | None = None,
+    workers: int = 2,
+    progress: bool = True,
+) -> Path:
+    """Build (or find) the observation table; returns its folder ``<out_dir>/<key>``.
+
+    ``out_dir`` defaults to :func:`uevavd.paths.tables_dir`. A finished table with the same
+    key is reused; an interrupted build resumes from its finished scenes.
+    """
+    from tqdm.auto import tqdm
+
+    p = plan_table(data_root, spec_or_method, classifier_path=classifier_path, overrides=overrides)
+    spec, data_root, manifest, scenes = p.spec, p.data_root, p.manifest, p.scenes
+    segmenter, encoder, classifier, gray_seed = p.segmenter, p.encoder, p.classifier, p.gray_seed
+    parts, key = p.parts, p.key
+    decomposing = segmenter is not None
     out_dir = Path(out_dir).expanduser() if out_dir is not None else tables_dir()
     final = out_dir / key
     if final.is_dir():

@@ -1,0 +1,75 @@
+"""The recognition classifier: training on the tiny world, its file, its report, its CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from uevavd.cli import main
+from uevavd.data.reader import read_dataset
+from uevavd.data.splits import TARGETS
+from uevavd.perception.classifier import (
+    build_resnet18_classifier,
+    default_classifier_path,
+    load_classifier,
+    read_classifier_file,
+)
+from uevavd.perception.encoders import build_resnet18
+from uevavd.perception.images import Decoder
+from uevavd.perception.weights import WeightsError
+
+
+def test_classifier_learns_and_reports(tiny_classifier, tiny_world):
+    sd, meta = read_classifier_file(tiny_classifier)
+    assert meta["classes"] == list(TARGETS) and meta["arch"] == "resnet18" and meta["input_size"] == [16, 16]
+    assert len(meta["data_hash"]) == 16 and meta["val_views"]
+    # held-out *viewpoints*: none of them was trained on, and the held-out accuracy is well above chance (0.2)
+    assert meta["train"]["val_accuracy"] >= 0.8
+    clf = load_classifier(tiny_classifier, device="cpu")
+    recs = [r for r in read_dataset(tiny_world).records if r.scene == "train_605" and r.view in meta["val_views"]]
+    with Decoder(2) as dec:
+        p = clf.predict_proba(dec.images([r.image for r in recs]))
+    assert p.dtype == np.float32 and np.allclose(p.sum(1), 1, atol=1e-5)
+    assert (p.argmax(1) == [TARGETS.index(r.target) for r in recs]).mean() >= 0.8
+    report = tiny_classifier.with_suffix(".md").read_text()
+    assert "held-out clean accuracy" in report and "visible fraction" in report
+    assert tiny_classifier.with_suffix(".png").stat().st_size > 1000
+
+
+def test_default_location_and_missing_classifier(tiny_world, tiny_classifier):
+    default = default_classifier_path(tiny_world)
+    assert default.name == read_classifier_file(tiny_classifier)[1]["data_hash"] + ".safetensors"
+    with pytest.raises(WeightsError, match="uevavd train-classifier"):
+        build_resnet18_classifier(data=str(tiny_world))
+
+
+def test_encoder_from_classifier_backbone(tiny_classifier, tmp_path):
+    enc = build_resnet18(weights="classifier", classifier=str(tiny_classifier), device="cpu")
+    images = np.random.default_rng(0).integers(0, 256, (2, 16, 16, 3), dtype=np.uint8)
+    f = enc.encode(images)
+    assert f.shape == (2, 512) and np.isfinite(f).all()
+    assert enc.identity() != build_resnet18(weights="random", device="cpu").identity()
+    with pytest.raises(WeightsError, match="classifier=PATH"):
+        build_resnet18(weights="classifier")
+    notclf = tmp_path / "plain.safetensors"
+    from safetensors.torch import save_file
+
+    save_file({"x": __import__("torch").zeros(1)}, str(notclf))
+    with pytest.raises(WeightsError, match="not written by `uevavd train-classifier`"):
+        load_classifier(notclf)
+
+
+def test_cli_train_classifier_then_prepare(tiny_world, tmp_path, method_toml, capsys):
+    out = tmp_path / "c.safetensors"
+    rc = main(["train-classifier", str(tiny_world), "--out", str(out), "--epochs", "1", "--max-views", "10",
+               "--batch-size", "32", "--threads", "1"])
+    assert rc == 0 and out.is_file() and str(out) in capsys.readouterr().out
+    assert json.loads(json.dumps(read_classifier_file(out)[1]))["train"]["settings"]["max_views"] == 10
+    method = tmp_path / "m.toml"
+    method.write_text(method_toml.format(decompose="false"))
+    rc = main(["prepare", str(tiny_world), "--method", str(method), "--classifier", str(out),
+               "--out", str(tmp_path / "tables"), "--set", "perception.encoder.seed=2", "--threads", "1"])
+    table_dir = capsys.readouterr().out.strip().splitlines()[-1]
+    assert rc == 0 and (tmp_path / "tables" / table_dir.rsplit("/", 1)[-1] / "meta.json").is_file()

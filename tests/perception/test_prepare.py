@@ -1,0 +1,150 @@
+"""`uevavd prepare`: table contents, keys, resume after interruption, refusals."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import uevavd.perception.prepare as prep
+from uevavd.data.grid import N_VIEWS
+from uevavd.perception.table import ObservationTable, TableError
+
+
+@pytest.fixture(scope="module")
+def built(tiny_world, tiny_classifier, tmp_path_factory, method_toml):
+    d = tmp_path_factory.mktemp("tables")
+    method = d / "tiny.toml"
+    method.write_text(method_toml.format(decompose="true"))
+    path = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=d / "out",
+                              progress=False)
+    return method, path
+
+
+def test_table_contents(built, tiny_world):
+    method, path = built
+    t = ObservationTable.load(path, expect_key=path.name)
+    assert t.scenes == ("001", "031") and t.splits == ("train", "train")
+    assert t.targets.tolist() == [0, 1] and t.contexts.tolist() == [1, 31]
+    assert t.features.shape == (2, N_VIEWS, 512) and t.features.dtype == np.float16
+    assert isinstance(t.features, np.memmap)
+    assert t.probs.dtype == np.float32 and np.allclose(t.probs.sum(-1), 1, atol=1e-3)
+    # boxes normalised by the 16 px crop; fully occluded views all zero; visibility from scene.json
+    vis = json.loads((tiny_world / "001" / "scene.json").read_text())["visible"]
+    assert np.isclose(t.visible[0, 0], vis["x-50_y-50_z060_hatchback_001"])
+    assert (t.boxes[t.visible == 0] == 0).all() and t.boxes.max() <= 1
+    assert t.meta["config"]["key_parts"]["encoder"].startswith("encoder:resnet18:random")
+    assert not (path.parent / f"{path.name}.partial").exists()
+    # the classifier recognises the fully visible views and fails the hidden ones
+    assert t.argmax_correct()[t.visible > 0.9].mean() > 0.9
+
+
+def test_rerun_reuses_the_table(built, tiny_world, tiny_classifier, monkeypatch):
+    method, path = built
+    monkeypatch.setattr(prep, "_compute_scene", lambda *a, **k: pytest.fail("recomputed a finished table"))
+    again = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=path.parent,
+                               progress=False)
+    assert again == path
+
+
+def test_key_changes_with_every_input(built, tiny_world, tiny_classifier, tmp_path):
+    method, path = built
+
+    def key(**over):
+        return prep.plan_table(tiny_world, method, classifier_path=tiny_classifier, overrides=over or None).key
+
+    base = key()
+    assert base == path.name
+    variants = [
+        key(**{"perception.gray_seed": 1}),
+        key(**{"perception.decompose": False}),
+        key(**{"perception.encoder.seed": 1}),
+        key(**{"perception.segmenter.name": "none"}),
+    ]
+    other_clf = tmp_path / "other.safetensors"
+    from safetensors.torch import load_file, save_file
+
+    sd = load_file(str(tiny_classifier))
+    sd["fc.bias"] = sd["fc.bias"] + 0.1
+    from safetensors import safe_open
+
+    with safe_open(str(tiny_classifier), "pt") as fh:
+        save_file(sd, str(other_clf), metadata=fh.metadata())
+    variants.append(prep.plan_table(tiny_world, method, classifier_path=other_clf).key)
+    assert len({base, *variants}) == len(variants) + 1
+    # the dataset: one image rewritten (same bytes, new mtime) changes the key
+    img = next((tiny_world / "031").glob("*.png"))
+    st = img.stat()
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    try:
+        assert key() != base
+    finally:
+        os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert key() == base
+
+
+def test_resume_after_interruption(built, tiny_world, tiny_classifier, tmp_path, monkeypatch):
+    method, path = built
+    out = tmp_path / "out"
+    real = prep._compute_scene
+    calls = []
+
+    def dies_on_second(scene, *a, **k):
+        calls.append(scene)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(scene, *a, **k)
+
+    monkeypatch.setattr(prep, "_compute_scene", dies_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    partial = out / f"{path.name}.partial"
+    assert (partial / "001.npz").is_file() and not (out / path.name).exists()
+    assert not list(partial.glob(".*tmp"))  # no half-written shard left behind
+    with pytest.raises(TableError):
+        ObservationTable.load(partial)
+    calls.clear()
+    monkeypatch.setattr(prep, "_compute_scene", lambda scene, *a, **k: calls.append(scene) or real(scene, *a, **k))
+    done = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    assert calls == ["031"]
+    a, b = ObservationTable.load(done), ObservationTable.load(path)
+    for name in ("features", "probs", "boxes"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_corrupt_shard_is_recomputed(built, tiny_world, tiny_classifier, tmp_path, monkeypatch):
+    method, path = built
+    out = tmp_path / "out"
+    partial = out / f"{path.name}.partial"
+    partial.mkdir(parents=True)
+    shutil.copy(path / "meta.json", partial / "001.npz")  # garbage where a shard should be
+    done = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    np.testing.assert_array_equal(ObservationTable.load(done).features, ObservationTable.load(path).features)
+
+
+def test_table_refusals(built, tmp_path):
+    method, path = built
+    with pytest.raises(TableError, match="key"):
+        ObservationTable.load(path, expect_key="0" * 20)
+    copy = tmp_path / "old"
+    shutil.copytree(path, copy)
+    meta = json.loads((copy / "meta.json").read_text())
+    meta["schema_version"] = 0
+    (copy / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(TableError, match="schema version"):
+        ObservationTable.load(copy)
+    t = ObservationTable.load(path, mmap=False)
+    f = np.array(t.features)
+    f[1, 3, 0] = np.inf
+    with pytest.raises(TableError, match="NaN or inf"):
+        ObservationTable.from_arrays(f, t.probs, t.boxes, scenes=t.scenes, targets=t.targets, splits=t.splits)
+
+
+def test_decompose_without_segmenter_is_refused(tiny_world, tiny_classifier, tmp_path, method_toml):
+    m = tmp_path / "m.toml"
+    m.write_text(method_toml.format(decompose="true").replace('segmenter = { name = "gt" }\n', ""))
+    with pytest.raises(ValueError, match="needs a perception.segmenter"):
+        prep.plan_table(tiny_world, m, classifier_path=tiny_classifier)
