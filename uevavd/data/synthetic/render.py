@@ -82,7 +82,8 @@ class _Prep:
         p = scene.prims
         self.p = dict(p)
         self.planes64 = p["h_planes"]
-        self.p["h_planes"] = p["h_planes"].astype(np.float32)
+        for key in ("h_planes", "h_rgb", "h_par", "e_rgb"):
+            self.p[key] = p[key].astype(np.float32)
         p = self.p
         inst = p["h_inst"]
         starts = np.nonzero(np.r_[True, inst[1:] != inst[:-1]])[0] if len(inst) else np.zeros(0, np.int64)
@@ -182,8 +183,11 @@ def _pixel_dirs(size: int, basis: np.ndarray) -> np.ndarray:
     return (focal_px(size) * f)[None, None] + c[None, :, None] * right + (-c)[:, None, None] * up
 
 
-def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None) -> View:
-    """Render one viewpoint (grid index 0..604) of ``scene`` at ``size`` x ``size`` px."""
+def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *, cull: bool = True) -> View:
+    """Render one viewpoint (grid index 0..604) of ``scene`` at ``size`` x ``size`` px.
+
+    ``cull=False`` casts every primitive over the whole frame (the slow reference the
+    benchmark compares against; the images are identical)."""
     prep = prep or _Prep(scene)
     p = prep.p
     origin = view_coords(view)
@@ -195,7 +199,11 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None) -
     kind = np.zeros((size, size), np.int8)  # 0 ground, 1 hull, 2 ellipsoid
     pid = np.zeros((size, size), np.int64)
     ttar = np.full((size, size), _INF, np.float32)
-    for g, (y0, y1, x0, x1) in enumerate(prep.group_rects(origin, basis, size, fpx)):
+    g_rects = prep.group_rects(origin, basis, size, fpx)
+    e_rects = _rects(prep.e_corners, origin, basis, size, fpx)
+    if not cull:
+        g_rects[:], e_rects[:] = (0, size, 0, size), (0, size, 0, size)
+    for g, (y0, y1, x0, x1) in enumerate(g_rects):
         if y0 >= y1 or x0 >= x1:
             continue
         a, b = prep.g_start[g], prep.g_end[g]
@@ -216,7 +224,7 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None) -
         np.copyto(tbest[y0:y1, x0:x1], t, where=better)
         kind[y0:y1, x0:x1][better] = 1
         pid[y0:y1, x0:x1][better] = a + part[better]
-    for i, (y0, y1, x0, x1) in enumerate(_rects(prep.e_corners, origin, basis, size, fpx)):
+    for i, (y0, y1, x0, x1) in enumerate(e_rects):
         if y0 >= y1 or x0 >= x1:
             continue
         t = _ellipsoid_t(origin, dirs[y0:y1, x0:x1], p["e_centre"][i], p["e_radii"][i])
@@ -252,7 +260,7 @@ class _ShadowMap:
     projected vertices overlap the tile. Tiles are computed the first time a view needs them
     and reused by every later view."""
 
-    TILE = 96
+    TILE = 128
 
     def __init__(self, prep: _Prep, sun: np.ndarray, cell: float):
         p = prep.p
@@ -302,20 +310,16 @@ class _ShadowMap:
         iu = np.floor(q[:, 0] / self.cell).astype(np.int64)
         iv = np.floor(q[:, 1] / self.cell).astype(np.int64)
         tu, tv = iu // self.TILE, iv // self.TILE
-        key = tu * 1_000_003 + tv
-        depth = np.empty(len(pts), np.float32)
-        uniq, inv = np.unique(key, return_inverse=True)
-        if len(uniq) == 1:
-            groups = [np.arange(len(pts))]
-        else:
-            order = np.argsort(inv, kind="stable")
-            groups = np.split(order, np.cumsum(np.bincount(inv))[:-1])
-        for idx in groups:
-            k = (int(tu[idx[0]]), int(tv[idx[0]]))
-            tile = self.tiles.get(k)
-            if tile is None:
-                tile = self.tiles[k] = self._tile(*k)
-            depth[idx] = tile[iv[idx] - k[1] * self.TILE, iu[idx] - k[0] * self.TILE]
+        t = self.TILE
+        u_lo, u_hi, v_lo, v_hi = int(tu.min()), int(tu.max()), int(tv.min()), int(tv.max())
+        atlas = np.empty(((v_hi - v_lo + 1) * t, (u_hi - u_lo + 1) * t), np.float32)
+        for a in range(u_lo, u_hi + 1):
+            for b in range(v_lo, v_hi + 1):
+                tile = self.tiles.get((a, b))
+                if tile is None:
+                    tile = self.tiles[(a, b)] = self._tile(a, b)
+                atlas[(b - v_lo) * t:(b - v_lo + 1) * t, (a - u_lo) * t:(a - u_lo + 1) * t] = tile
+        depth = atlas[iv - v_lo * t, iu - u_lo * t]
         slope = np.sqrt(np.maximum(1.0 - lam * lam, 0.0)) / np.maximum(lam, 0.2)
         return q[:, 2] < depth - (0.04 + bias + 1.5 * self.cell * slope)
 
@@ -339,8 +343,8 @@ def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) 
     bias = np.zeros(len(pts), np.float32)  # canopies: bumpy normals on a smooth ellipsoid
     if len(h):
         hp = pid[h]
-        hpl = prep.planes64[hp]
-        normal[h] = hpl[np.arange(len(h)), _entry_plane(hpl, origin, dirs[h].astype(np.float64)), :3]
+        hpl = p["h_planes"][hp]
+        normal[h] = hpl[np.arange(len(h)), _entry_plane(hpl, origin.astype(np.float32), dirs[h]), :3]
         c = p["h_rgb"][hp]
         mat = p["h_mat"][hp]
         par = p["h_par"][hp]
@@ -370,8 +374,11 @@ def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) 
     if lit.any():
         sh = prep.shadow_map(sun, size).shadowed(pts[lit], lam[lit], bias[lit])
         lam[np.nonzero(lit)[0][sh]] = 0.0
-    light = scene.ambient_rgb[None] * (0.65 + 0.35 * normal[:, 2:3]) + scene.sun_rgb[None] * lam[:, None]
-    return np.clip(col * (light * 255.0).astype(np.float32) + 0.5, 0, 255).astype(np.uint8)
+    amb, sun_rgb = (scene.ambient_rgb * 255.0).astype(np.float32), (scene.sun_rgb * 255.0).astype(np.float32)
+    light = amb * (0.65 + 0.35 * normal[:, 2:3]) + sun_rgb * lam[:, None]
+    out = col * light
+    out += 0.5
+    return np.clip(out, 0, 255, out=out).astype(np.uint8)
 
 
 def _facade(pts, normal, wall, par) -> np.ndarray:
