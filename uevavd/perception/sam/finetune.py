@@ -27,7 +27,7 @@ from .evaluate import evaluate
 from .model import LoadedSam, file_sha256, load_sam, save_decoder
 from .segmenter import SamSegmenter
 from .train_small import write_json
-from .training import TrainArgs, train_loop
+from .training import TrainArgs, loss_summary, train_loop
 
 
 def cached_embeddings(seg: SamSegmenter, views: GTViews, base_sha: str, *, cache: Path | None = None,
@@ -102,7 +102,7 @@ def finetune(
             "n_train_views": len(train), "train_seconds_this_run": round(time.perf_counter() - t0, 1)}
     save_decoder(out_path, model, base, **meta)
     report.update(meta, checkpoint=str(out_path), sha256=file_sha256(out_path),
-                  loss_first_50=float(np.nanmean(losses[:50])), loss_last_50=float(np.nanmean(losses[-50:])))
+                  **loss_summary(losses))
     if heldout is not None and len(heldout):
         tuned = SamSegmenter(LoadedSam(model, base.model_type, out_path, report["sha256"], meta), device=device)
         report["heldout_after"] = evaluate(tuned, heldout, progress=True)

@@ -22,7 +22,7 @@ from .data import GTViews
 from .evaluate import evaluate
 from .model import LoadedSam, SmallConfig, build_model, default_small_path, file_sha256, save_full
 from .segmenter import SamSegmenter, images_to_input
-from .training import TrainArgs, train_loop
+from .training import TrainArgs, loss_summary, train_loop
 
 
 def write_json(path: Path, obj) -> None:
@@ -68,7 +68,7 @@ def train_small(
             "torch_threads": torch.get_num_threads()}
     save_full(out_path, model, "small", config, **meta)
     report = {"checkpoint": str(out_path), "sha256": file_sha256(out_path), **meta,
-              "loss_first_50": float(np.nanmean(losses[:50])), "loss_last_50": float(np.nanmean(losses[-50:]))}
+              **loss_summary(losses)}
     if heldout is not None and len(heldout):
         seg = SamSegmenter(LoadedSam(model, "small", out_path, report["sha256"], meta), device="cpu")
         report["heldout"] = evaluate(seg, heldout, progress=progress_eval)

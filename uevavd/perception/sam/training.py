@@ -133,6 +133,14 @@ def view_loss(model, predictor: SamPredictor, feats: torch.Tensor, pr: ViewPromp
     return torch.stack(parts).mean()
 
 
+def loss_summary(losses: list[float]) -> dict[str, float]:
+    """Mean loss over the first and the last tenth of the steps (at least one step each)."""
+    w = max(1, len(losses) // 10)
+    if not losses:
+        return {}
+    return {"loss_first": float(np.nanmean(losses[:w])), "loss_last": float(np.nanmean(losses[-w:]))}
+
+
 def lr_at(step: int, args: TrainArgs) -> float:
     if step < args.warmup:
         return args.lr * (step + 1) / args.warmup
@@ -205,7 +213,7 @@ def train_loop(
         loss.backward()
         torch.nn.utils.clip_grad_norm_(trainable.parameters(), 1.0)
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
         bar.set_postfix(loss=f"{np.nanmean(losses[-20:]):.3f}")
         if (step + 1) % args.save_every == 0 and step + 1 < args.steps:
             _atomic_torch_save({"key": key, "step": step + 1, "model": trainable.state_dict(),
