@@ -33,10 +33,17 @@ def test_interrupted_and_resumed_run_equals_straight_run(table, tmp_path):
     assert train(spec, table, out=tmp_path / "b", **kw) == resumed
     with pytest.raises(RunDirError, match="seed"):
         train(spec, table, out=tmp_path / "b", **{**kw, "seed": 4})
-    policy = load_policy(resumed)
     from uevavd.env.evaluate import evaluate_policy
+    from uevavd.policy.agent import GreedyPolicy
 
-    assert len(evaluate_policy(table, "hard", policy)) == 2 * 605
+    policy = load_policy(resumed)
+    assert policy.needs_features  # an in-memory table has no folder to read features from
+    plain = evaluate_policy(table, "hard", policy)
+    assert len(plain) == 2 * 605
+    # projecting every (scene, view) once gives the same actions as encoding per step
+    fast = GreedyPolicy(policy.net, features=torch.from_numpy(table.features))
+    assert not fast.needs_features
+    assert (evaluate_policy(table, "hard", fast).trajectories == plain.trajectories).all()
 
 
 def test_checkpoint_of_another_method_is_refused(table, tmp_path):

@@ -94,33 +94,63 @@ class GreedyPolicy:
     """A Q network acting greedily over allowed actions (optionally epsilon-greedy).
 
     ``act(obs)`` takes the environment's batched obs dict ("features" (N, D) f32, "box"
-    (N, 4), "mask" (N, 7, A) bool, "t" (N,)) and returns (a_type, a_range), (N,) int64.
-    A recurrent network's memory restarts wherever ``obs["t"] == 0``.
+    (N, 4), "mask" (N, 7, A) bool, "t" (N,), "scene" (N,) table index, "view" (N,)) and
+    returns (a_type, a_range), (N,) int64. A recurrent network's memory restarts wherever
+    ``obs["t"] == 0``.
+
+    With ``features`` (the whole table's (S, 605, D) features) and a built-in estimator,
+    the policy projects every (scene, view) once on the first ``reset`` and reads those
+    projections by ``obs["scene"], obs["view"]``; it then sets ``needs_features = False``
+    so the evaluator skips gathering (N, D) features every step (several times faster on
+    exhaustive evaluations, same actions).
     """
 
     def __init__(self, net: QNetwork, *, device: torch.device | str = "cpu", epsilon: float = 0.0,
-                 seed: int = 0) -> None:
+                 seed: int = 0, features: torch.Tensor | None = None) -> None:
         self.net = net.to(device).eval()
         self.device = torch.device(device)
         self.epsilon = epsilon
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(seed)
         self.hidden = self.net.initial_hidden(0, self.device)
+        est = net.estimator
+        self._features = features if features is not None and hasattr(est, "step_encoded") else None
+        self._proj: torch.Tensor | None = None
+        self.needs_features = self._features is None
+
+    @torch.no_grad()
+    def _projections(self) -> torch.Tensor:
+        if self._proj is None:
+            f = self._features
+            enc = self.net.estimator.encoder
+            flat = f.reshape(-1, f.shape[-1])
+            chunks = [enc.project(flat[i:i + 8192].to(self.device).float()) for i in range(0, len(flat), 8192)]
+            self._proj = torch.cat(chunks).reshape(f.shape[0], f.shape[1], -1)
+        return self._proj
 
     def reset(self, n: int) -> None:
         self.hidden = self.net.initial_hidden(n, self.device)
+        if self._features is not None:
+            self._projections()
 
     @torch.no_grad()
     def act(self, obs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        feats = torch.as_tensor(obs["features"], device=self.device, dtype=torch.float32)
         boxes = torch.as_tensor(obs["box"], device=self.device, dtype=torch.float32)
         mask = torch.as_tensor(obs["mask"], device=self.device).bool()
         t = torch.as_tensor(obs["t"], device=self.device)
-        n = feats.shape[0]
+        n = boxes.shape[0]
         if self.hidden.shape[0] != n:
             self.reset(n)
         hidden = self.hidden * (t != 0)[:, None].to(self.hidden.dtype)
-        q, self.hidden = self.net.step(feats, boxes, hidden)
+        if self._features is not None:
+            est = self.net.estimator
+            img = self._projections()[torch.as_tensor(obs["scene"], device=self.device),
+                                      torch.as_tensor(obs["view"], device=self.device)]
+            s, self.hidden = est.step_encoded(est.encoder.combine(img, boxes), hidden)
+            q = self.net.head(s)
+        else:
+            feats = torch.as_tensor(obs["features"], device=self.device, dtype=torch.float32)
+            q, self.hidden = self.net.step(feats, boxes, hidden)
         a_type, a_range = self.net.head.greedy(q, mask)
         if self.epsilon > 0:
             explore = torch.rand(n, generator=self.generator, device=self.device) < self.epsilon
@@ -130,8 +160,11 @@ class GreedyPolicy:
         return a_type, a_range
 
 
-def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "checkpoint.pt") -> GreedyPolicy:
-    """The greedy policy of a training run directory (its latest checkpoint)."""
+def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "checkpoint.pt",
+                with_table: bool = True) -> GreedyPolicy:
+    """The greedy policy of a training run directory (its latest checkpoint). With
+    ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
+    its actions are the same either way."""
     from .checkpoint import load_checkpoint
     from .trainer import resolve_spec
 
@@ -146,4 +179,19 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "che
     net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
     state = load_checkpoint(run_dir / weights, expect=settings)
     net.load_state_dict(state["net"])
-    return GreedyPolicy(net, device=device)
+    return GreedyPolicy(net, device=device, features=table_features(settings) if with_table else None)
+
+
+def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
+    """The run's table features (S, 605, D) float16 (memory-mapped), or None if not on disk."""
+    import numpy as np
+
+    from ..perception.table import ObservationTable
+
+    path = settings.get("table_path")
+    if not path or not Path(path).is_dir():
+        return None
+    table = ObservationTable.load(path)
+    if table.key != settings.get("table_key"):
+        return None
+    return torch.from_numpy(np.ascontiguousarray(table.features))

@@ -20,13 +20,13 @@ class TrainConfig:
     """Episodes per gradient update; each is unrolled over its (T_max) decisions."""
     buffer_episodes: int = 50_000
     """Replay capacity in whole episodes (oldest overwritten first)."""
-    n_envs: int = 128
+    n_envs: int = 256
     """Episodes run in parallel by the batched environment."""
-    learning_starts: int = 2_000
+    learning_starts: int = 5_000
     """Episodes collected with the exploration policy before the first update."""
-    updates_per_step: float = 0.25
+    updates_per_step: float = 0.5
     """Gradient updates per batched environment step (fractions accumulate)."""
-    target_update: int = 250
+    target_update: int = 100
     """Gradient updates between copies of the online network into the target network."""
     eps_start: float = 1.0
     """Initial epsilon of the epsilon-greedy exploration."""
@@ -44,11 +44,11 @@ class TrainConfig:
     """Discount of the TD target (paper: 0.9; the environment's gamma is used for returns)."""
     grad_clip: float = 10.0
     """Clip the global gradient norm to this (0 disables)."""
-    epoch_episodes: int = 10_000
+    epoch_episodes: int = 25_000
     """Training episodes per epoch; the policy is evaluated after every epoch."""
     eval_splits: tuple[str, ...] = ("train", "hard")
     """Splits (or aliases) evaluated after every epoch."""
-    eval_contexts: int = 0
+    eval_contexts: int = 10
     """Contexts per split in the per-epoch evaluations, evenly spaced (0 = all; each is
     evaluated from all 605 start views). ``uevavd evaluate`` always uses all."""
     checkpoint_every: int = 1
@@ -58,7 +58,7 @@ class TrainConfig:
     seed: int = 0
     """Seeds network init, exploration, replay sampling and the environment."""
     threads: int = 0
-    """torch CPU threads (0 leaves torch's default)."""
+    """torch CPU threads (0 leaves torch's default; 1 is fastest on a CPU shared with other jobs)."""
     loss: Literal["huber", "mse"] = "huber"
     """TD loss (Huber is the usual choice for DQN)."""
 

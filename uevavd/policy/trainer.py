@@ -113,13 +113,14 @@ class _Evaluator:
             if cfg.eval_contexts and cfg.eval_contexts < len(ctx):
                 ctx = ctx[np.linspace(0, len(ctx) - 1, cfg.eval_contexts).round().astype(int)]
             self.tensors[split] = EnvTensors(table, split, env_cfg, device=device, contexts=ctx,
-                                             features_dtype=torch.float16)
+                                             with_features=False)
         self.device = device
+        self.features = torch.from_numpy(np.ascontiguousarray(table.features)).to(device)
 
     def __call__(self, net: Any) -> dict[str, dict[str, Any]]:
         from ..env.evaluate import evaluate_policy
 
-        out = {split: evaluate_policy(tb, split, GreedyPolicy(net, device=self.device)).summary()
+        out = {split: evaluate_policy(tb, split, GreedyPolicy(net, device=self.device, features=self.features)).summary()
                for split, tb in self.tensors.items()}
         net.train()
         return out

@@ -37,12 +37,21 @@ class ObservationEncoder(nn.Module):
         return self.image_dim + self.box_dim
 
     def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        return self.combine(self.project(features), boxes)
+
+    def project(self, features: torch.Tensor) -> torch.Tensor:
+        """ReLU(W_img f + b): (..., D) -> (..., image_dim); a pure function of the view, so
+        evaluation can compute it once per (scene, view) and gather it per step."""
         if features.shape[-1] != self.feature_dim:
             raise ValueError(
                 f"features have {features.shape[-1]} channels but the encoder was built for "
                 f"{self.feature_dim}; build the state estimator with feature_dim={features.shape[-1]}"
             )
-        return torch.cat([torch.relu(self.image(features)), torch.relu(self.box(boxes))], dim=-1)
+        return torch.relu(self.image(features))
+
+    def combine(self, image: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        """[projected image, ReLU(W_box b + c)] -> g_t (..., image_dim + box_dim)."""
+        return torch.cat([image, torch.relu(self.box(boxes))], dim=-1)
 
 
 @runtime_checkable
@@ -66,3 +75,7 @@ class StateEstimator(Protocol):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One decision: (N, D), (N, 4), (N, H) -> s_t (N, state_dim), new hidden (N, H)."""
         ...
+
+    # Optional (the built-ins have it): ``step_encoded(g, hidden)`` - like ``step`` from an
+    # already encoded g_t (N, input_dim), and an ``encoder`` (:class:`ObservationEncoder`).
+    # Evaluation then projects each (scene, view) once instead of once per visit.

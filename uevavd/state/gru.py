@@ -35,8 +35,10 @@ class GRUState(nn.Module):
     def step(
         self, features: torch.Tensor, boxes: torch.Tensor, hidden: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        g = self.encoder(features, boxes)[:, None]
-        h, _ = self.gru(g, hidden[None].contiguous())
+        return self.step_encoded(self.encoder(features, boxes), hidden)
+
+    def step_encoded(self, g: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h, _ = self.gru(g[:, None], hidden[None].contiguous())
         h = h[:, 0]
         return torch.relu(self.out(h)), h
 

@@ -30,7 +30,10 @@ class SingleViewState(nn.Module):
     def step(
         self, features: torch.Tensor, boxes: torch.Tensor, hidden: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.forward(features, boxes), hidden
+        return self.step_encoded(self.encoder(features, boxes), hidden)
+
+    def step_encoded(self, g: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return torch.relu(self.mlp(g)), hidden
 
 
 def build_single_view(
