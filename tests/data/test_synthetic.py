@@ -3,15 +3,23 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
 
 from uevavd.data.grid import NZ, view_coords, view_index
 from uevavd.data.splits import TARGETS
-from uevavd.data.synthetic import build_context, build_unoccluded, render_view
+from uevavd.data.synthetic import build_context, render_view
+from uevavd.data.synthetic import build_unoccluded as _build_unoccluded
 from uevavd.data.synthetic.geometry import M_FACADE, Primitives, box
 from uevavd.data.synthetic.world import TARGET_ID
+
+
+@functools.lru_cache(maxsize=8)
+def build_unoccluded(target, seed):
+    """Scenes are not modified by rendering; building the ground maps once saves time."""
+    return _build_unoccluded(target, seed=seed)
 
 
 def _with_building(scene, centre, size_xy, height):

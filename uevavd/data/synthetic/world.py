@@ -76,14 +76,19 @@ def _light(rng: np.random.Generator, elev_deg: tuple[float, float]):
     return sun, sun_rgb, amb
 
 
-def _add_tree(prims: Primitives, ids: _Ids, rng: np.random.Generator, x: float, y: float, scale: float = 1.0):
-    inst = ids.new("tree")
+def _add_tree(prims: Primitives, ids: _Ids, rng: np.random.Generator, x: float, y: float, scale: float = 1.0,
+              clear_origin: float | None = None):
+    """A trunk and an ellipsoid canopy; with ``clear_origin`` the tree is dropped when its
+    canopy would come within that distance of covering the target's centre."""
     r = rng.uniform(2.0, 4.0) * scale
     zc = rng.uniform(4.5, 8.5) * scale
     rz = r * rng.uniform(0.7, 1.0)
+    green = np.array([0.20, 0.36, 0.12]) * rng.uniform(0.75, 1.2) + rng.uniform(-0.03, 0.03, 3)
+    if clear_origin is not None and np.hypot(x, y) < r + clear_origin:
+        return r
+    inst = ids.new("tree")
     trunk_top = max(zc - 0.5 * rz, 1.5)
     prims.add_hull(box((x, y), 0.4, 0.4, 0.0, trunk_top), M_BARK, inst, (0.30, 0.22, 0.15))
-    green = np.array([0.20, 0.36, 0.12]) * rng.uniform(0.75, 1.2) + rng.uniform(-0.03, 0.03, 3)
     prims.add_ellipsoid((x, y, zc), (r, r, rz), M_CANOPY, inst, np.clip(green, 0, 1))
     return r
 
@@ -133,6 +138,14 @@ def _urban(prims: Primitives, ids: _Ids, rng, target: str, ground_first: int):
     ]
     footprints: list[tuple[float, float, float, float]] = []
     p_tree = rng.uniform(0.3, 0.9)
+    # the target stands next to a building: an anchor on the near side spanning y = 0
+    a_front = rng.uniform(10.0, 24.0)
+    a_y0 = -rng.uniform(3.0, a_front - 3.0)
+    a_lx0 = near_edge - rng.uniform(0.0, 2.0)
+    a_depth = rng.uniform(8.0, 20.0)
+    _add_building(prims, ids, rng, mx * (a_lx0 - a_depth / 2), a_y0 + a_front / 2, a_depth, a_front,
+                  rng.uniform(12.0, 30.0))
+    anchor = (a_y0 - 1.0, a_y0 + a_front + 1.0)
     # building rows on both sides of the street, y from -70 to 70
     for side, edge in ((-1.0, near_edge), (1.0, far_edge)):
         y = -70.0 + rng.uniform(0, 10)
@@ -141,13 +154,11 @@ def _urban(prims: Primitives, ids: _Ids, rng, target: str, ground_first: int):
             gap = rng.uniform(0.0, 5.0) if rng.random() > 0.2 else rng.uniform(8.0, 16.0)
             y0, y1 = y, y + front
             y = y1 + gap
-            if y1 > cross_lo and y0 < cross_hi:
+            if (y1 > cross_lo and y0 < cross_hi) or (side < 0 and y1 > anchor[0] and y0 < anchor[1]):
                 continue
             depth = rng.uniform(8.0, 22.0)
             setback = rng.uniform(0.0, 3.0) if rng.random() > 0.25 else rng.uniform(3.0, 8.0)
             height = 5.0 + 35.0 * rng.beta(1.6, 2.4)
-            if side < 0 and y0 < 3.0 and y1 > -3.0:  # the target stands next to a building
-                height = max(height, rng.uniform(8.0, 25.0))
             if rng.random() < 0.12 and not (y0 < 3.0 and y1 > -3.0):
                 # a small park instead of a building
                 for _ in range(rng.integers(2, 6)):
@@ -164,14 +175,15 @@ def _urban(prims: Primitives, ids: _Ids, rng, target: str, ground_first: int):
         y = -60.0 + rng.uniform(0, 8)
         while y < 60.0:
             if not (cross_lo - 1 < y < cross_hi + 1) and rng.random() < p_tree:
-                _add_tree(prims, ids, rng, mx * (x_local + rng.uniform(-0.3, 0.3)), y)
+                # canopies may overhang the target's ends, never its centre
+                _add_tree(prims, ids, rng, mx * (x_local + rng.uniform(-0.3, 0.3)), y, clear_origin=0.5)
             y += rng.uniform(6.0, 11.0)
     # parked cars in both parking lanes
     half_t = vehicle_length(target) / 2
     names = sorted(MODELS)
     for lane_x, yaw in ((0.0, np.pi / 2), (road_w - 2 * curb, -np.pi / 2)):
         for direction in (1.0, -1.0):
-            y = half_t if lane_x == 0.0 else -rng.uniform(0, 4)
+            y = direction * half_t if lane_x == 0.0 else -44.0 + rng.uniform(0, 4)
             while abs(y) < 45.0:
                 name = names[rng.integers(len(names))]
                 length = vehicle_length(name)
