@@ -26,7 +26,7 @@ def main() -> None:
     ap.add_argument("--table", type=Path, default=None)
     ap.add_argument("--episodes", type=int, default=20_000)
     ap.add_argument("--epoch-episodes", type=int, default=10_000)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest on a shared CPU)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--methods", default="map,memo_map,ibe_map")
     ap.add_argument("--sb3-seconds", type=float, default=None, help="default: IBE-MAP's wall time")

@@ -20,11 +20,11 @@ class TrainConfig:
     """Episodes per gradient update; each is unrolled over its (T_max) decisions."""
     buffer_episodes: int = 50_000
     """Replay capacity in whole episodes (oldest overwritten first)."""
-    n_envs: int = 256
+    n_envs: int = 64
     """Episodes run in parallel by the batched environment."""
-    learning_starts: int = 5_000
+    learning_starts: int = 2_000
     """Episodes collected with the exploration policy before the first update."""
-    updates_per_step: float = 0.5
+    updates_per_step: float = 1.0
     """Gradient updates per batched environment step (fractions accumulate)."""
     target_update: int = 100
     """Gradient updates between copies of the online network into the target network."""
