@@ -194,4 +194,4 @@ def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
     table = ObservationTable.load(path)
     if table.key != settings.get("table_key"):
         return None
-    return torch.from_numpy(np.ascontiguousarray(table.features))
+    return torch.from_numpy(np.array(table.features))

@@ -115,7 +115,7 @@ class _Evaluator:
             self.tensors[split] = EnvTensors(table, split, env_cfg, device=device, contexts=ctx,
                                              with_features=False)
         self.device = device
-        self.features = torch.from_numpy(np.ascontiguousarray(table.features)).to(device)
+        self.features = torch.from_numpy(np.array(table.features)).to(device)
 
     def __call__(self, net: Any) -> dict[str, dict[str, Any]]:
         from ..env.evaluate import evaluate_policy
