@@ -87,24 +87,32 @@ def _one_thread():
 
 @pytest.fixture(scope="session")
 def tiny_world(tmp_path_factory) -> Path:
-    return write_tiny_world(tmp_path_factory.mktemp("tiny-world"))
+    """Two context scenes (1: hatchback, 31: pickup), 605 views each, with segmentation."""
+    return write_tiny_world(tmp_path_factory.mktemp("tiny-world"), contexts=(1, 31), train605=False)
 
 
 @pytest.fixture(scope="session")
-def tiny_classifier(tiny_world, tmp_path_factory) -> Path:
-    """A classifier trained briefly on 60 viewpoints of the tiny world (a few seconds)."""
+def world_605(tmp_path_factory) -> Path:
+    """One context scene plus ``train_605`` (the five classes, unoccluded)."""
+    return write_tiny_world(tmp_path_factory.mktemp("world-605"), contexts=(1,), train605=True)
+
+
+@pytest.fixture(scope="session")
+def tiny_classifier(world_605, tmp_path_factory) -> Path:
+    """A classifier trained by the CLI on 40 viewpoints of ``world_605`` (a few seconds)."""
     import torch
 
-    from uevavd.perception.train import TrainSettings, train_classifier
+    from uevavd.cli import main
 
     out = tmp_path_factory.mktemp("clf") / "tiny.safetensors"
     before = torch.get_num_threads()
-    torch.set_num_threads(1)
     try:
-        return train_classifier(tiny_world, out, progress=False, report_views=300,
-                                settings=TrainSettings(epochs=3, batch_size=32, lr=3e-3, max_views=40))
+        rc = main(["train-classifier", str(world_605), "--out", str(out), "--epochs", "3", "--max-views", "40",
+                   "--batch-size", "32", "--lr", "3e-3", "--threads", "1"])
     finally:
         torch.set_num_threads(before)
+    assert rc == 0
+    return out
 
 
 METHOD_TOML = """

@@ -63,3 +63,23 @@ def test_bad_shapes_are_named(scene):
         decompose(image, target, [segs[0], segs[1][:5]], seed=0)
     with pytest.raises(ValueError, match="uint8"):
         decompose(image.astype(np.float32), target, segs, seed=0)
+
+
+def test_ground_truth_fast_path_matches_the_definition():
+    from uevavd.perception.segmenters import build_gt
+
+    rng = np.random.default_rng(0)
+    gt = build_gt()
+    for trial in range(12):
+        maps = rng.integers(0, 8, (2, 20, 24)).astype(np.uint16)
+        if trial % 3 == 0:
+            maps[maps == 0] = 5  # nothing uncovered
+        if trial % 4 == 0:
+            maps[maps == 1] = 2  # target fully hidden
+        images = rng.integers(0, 256, (2, 20, 24, 3), dtype=np.uint8)
+        cats = [{0: "none", 1: "target", 2: "building", 3: "tree", 4: "road", 5: "ground", 6: "vehicle",
+                 7: "tree"}] * 2
+        segs = gt.segment(images, np.zeros((2, 4), np.int64), instance_maps=maps, categories=cats)
+        fast = gt.decompose_views(images, maps, cats, [trial, trial + 100])
+        for i, s in enumerate(segs):
+            np.testing.assert_array_equal(fast[i], decompose(images[i], s.target, s.segments, seed=trial + 100 * i))

@@ -137,7 +137,7 @@ class ResNetClassifier:
 def load_classifier(path: str | os.PathLike[str], *, device: str = "auto", batch_size: int = 256) -> ResNetClassifier:
     sd, meta = read_classifier_file(path)
     arch = meta["arch"]
-    model = make_resnet(arch, num_classes=len(meta["classes"]))
+    model = make_resnet(arch, num_classes=len(meta["classes"]), empty=True)
     load_strict(model, sd, arch=arch, source=str(path))
     return ResNetClassifier(model, arch=arch, classes=tuple(meta["classes"]), mean=meta["mean"], std=meta["std"],
                             weights_hash=state_dict_hash(sd), device=device, batch_size=batch_size, meta=meta)

@@ -74,15 +74,16 @@ def load_backbone(arch: str, weights: str, *, seed: int = 0, classifier: str | N
         sd, meta = read_classifier_file(path)
         if meta.get("arch") != arch:
             raise WeightsError(f"{path}: a {meta.get('arch')} classifier cannot give a {arch} backbone")
-        model = make_resnet(arch, num_classes=len(meta["classes"]), seed=seed)
+        model = make_resnet(arch, num_classes=len(meta["classes"]), empty=True)
         load_strict(model, sd, arch=arch, source=str(path))
         return model, "classifier", state_dict_hash(sd)
     path = imagenet_path(arch) if kind == "imagenet" else arg
     sd = load_state_dict_file(path)
     num_classes = sd["fc.weight"].shape[0] if "fc.weight" in sd else 1000
-    model = make_resnet(arch, num_classes=num_classes, seed=seed)
-    if "fc.weight" not in sd:  # a bare backbone: take ours for the (discarded) fc
-        sd = {**{k: v for k, v in model.state_dict().items() if k.startswith("fc.")}, **sd}
+    model = make_resnet(arch, num_classes=num_classes, empty=True)
+    if "fc.weight" not in sd:  # a bare backbone: a placeholder for the (discarded) fc
+        fc = {k: torch.zeros(v.shape) for k, v in model.state_dict().items() if k.startswith("fc.")}
+        sd = {**fc, **sd}
     load_strict(model, sd, arch=arch, source=str(path))
     return model, kind, state_dict_hash({k: v for k, v in sd.items() if not k.startswith("fc.")})
 

@@ -106,6 +106,10 @@ def build_components(spec: MethodSpec, data_root: Path, classifier_path: str | N
         builder = manager.registry.builder(section.split(".")[1], name)
         return {k: v for k, v in extra.items() if k not in kwargs and _accepts(builder, k)}
 
+    for section in ("perception.encoder", "perception.classifier"):
+        if not spec.get(section):
+            raise ValueError(f"method {spec.name!r} ({spec.source}) names no {section}; a table needs both an "
+                             "encoder and a classifier, e.g. encoder = { name = \"resnet50\" }")
     decomposing = bool(spec.get("perception.decompose", False))
     segmenter = spec.build("perception.segmenter") if decomposing and spec.get("perception.segmenter") else None
     if decomposing and segmenter is None:
@@ -156,22 +160,27 @@ def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.nd
     return arrays
 
 
-def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, need_seg: bool):
+def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, segmenter, gray_seed: int):
+    """Decode a scene (in worker threads); segmenters with a data-only fast path
+    (``decompose_views``, e.g. ``gt``) also pre-decompose here, off the model's thread."""
     images = decoder.images([r.image for r in recs])
-    maps = cats = None
-    if need_seg:
+    maps = cats = decomposed = None
+    if segmenter is not None and getattr(segmenter, "needs_ground_truth", False):
         if any(r.seg is None for r in recs):
             raise ValueError(f"scene {scene}: the segmenter needs ground-truth segmentation, which it lacks")
         maps = decoder.instance_maps([r.seg for r in recs])
         cats = [manifest.categories(scene) or {}] * len(recs)
-    return images, maps, cats
+        if hasattr(segmenter, "decompose_views"):
+            seeds = [view_seed(gray_seed, scene, r.view, r.target) for r in recs]
+            decomposed = segmenter.decompose_views(images, maps, cats, seeds)
+    return images, decomposed, maps, cats
 
 
 def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw):
-    images, maps, cats = loaded
+    images, decomposed, maps, cats = loaded
     boxes_px = np.array([r.box for r in recs], np.float32).reshape(-1, 4)
-    enc_in = images
-    if segmenter is not None:
+    enc_in = images if decomposed is None else decomposed
+    if segmenter is not None and decomposed is None:
         segs = segmenter.segment(images, boxes_px.astype(np.int64), instance_maps=maps, categories=cats)
         enc_in = np.stack([
             decompose(img, s.target, s.segments, seed=view_seed(gray_seed, scene, r.view, r.target))
@@ -256,7 +265,6 @@ def prepare_table(
     spec, data_root, manifest, scenes = p.spec, p.data_root, p.manifest, p.scenes
     segmenter, encoder, classifier, gray_seed = p.segmenter, p.encoder, p.classifier, p.gray_seed
     parts, key = p.parts, p.key
-    decomposing = segmenter is not None
     out_dir = Path(out_dir).expanduser() if out_dir is not None else tables_dir()
     final = out_dir / key
     if final.is_dir():
@@ -278,14 +286,13 @@ def prepare_table(
             todo.append((scene, recs))
         else:
             shards[scene] = done
-    need_seg = decomposing and bool(getattr(segmenter, "needs_ground_truth", False))
     bar = tqdm(total=len(scenes) * N_VIEWS, initial=len(shards) * N_VIEWS, desc=f"prepare {key[:8]}",
                unit="view", disable=not progress)
     with Decoder(workers) as dec:
-        nxt = dec.submit(_load_scene, dec, manifest, *todo[0], need_seg) if todo else None
+        nxt = dec.submit(_load_scene, dec, manifest, *todo[0], segmenter, gray_seed) if todo else None
         for i, (scene, recs) in enumerate(todo):
             loaded = nxt.result()
-            nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], need_seg) if i + 1 < len(todo) else None
+            nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], segmenter, gray_seed) if i + 1 < len(todo) else None
             arrays = _compute_scene(scene, recs, loaded, segmenter=segmenter, encoder=encoder,
                                     classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size)
             _write_shard(partial / f"{scene}.npz", arrays)

@@ -61,6 +61,17 @@ class GroundTruthSegmenter:
             out.append(Segmentation(target, segs))
         return out
 
+    def decompose_views(self, images: np.ndarray, instance_maps: np.ndarray,
+                        categories: Sequence[Mapping[int, str]], seeds: Sequence[int]) -> np.ndarray:
+        """Fast path of segment + :func:`~uevavd.perception.decompose.decompose` (identical
+        output): (N, H, W, 3) uint8 pre-decomposed views, one table lookup per view."""
+        from .decompose import decompose_instances
+
+        out = np.empty_like(images)
+        for i, (img, m, cats, seed) in enumerate(zip(images, instance_maps, categories, seeds, strict=True)):
+            out[i] = decompose_instances(img, m, [k for k, c in cats.items() if c == "target"], seed=seed)
+        return out
+
     def identity(self) -> str:
         return f"segmenter:gt:v{GT_VERSION}"
 

@@ -142,9 +142,12 @@ def detect_arch(sd: Mapping[str, torch.Tensor]) -> str:
 
 
 def load_strict(model: torch.nn.Module, sd: Mapping[str, torch.Tensor], *, arch: str, source: str) -> None:
-    """``model.load_state_dict(sd, strict=True)`` with an error that names both architectures."""
+    """``model.load_state_dict(sd, strict=True)`` with an error that names both architectures.
+    A model built on the meta device (``make_resnet(..., empty=True)``) takes the tensors as
+    they are (no initialisation wasted)."""
+    assign = any(p.is_meta for p in model.parameters())
     try:
-        model.load_state_dict(sd, strict=True)
+        model.load_state_dict(sd, strict=True, assign=assign)
     except RuntimeError as exc:
         found = detect_arch(sd)
         first = str(exc).splitlines()[1:3]
@@ -163,13 +166,17 @@ def state_dict_hash(sd: Mapping[str, torch.Tensor]) -> str:
     return h.hexdigest()[:16]
 
 
-def make_resnet(arch: str, *, num_classes: int = 1000, seed: int = 0) -> torch.nn.Module:
+def make_resnet(arch: str, *, num_classes: int = 1000, seed: int = 0, empty: bool = False) -> torch.nn.Module:
     """A torchvision ResNet with torchvision's own initialisation drawn from ``seed``
-    (the global RNG state is left untouched)."""
+    (the global RNG state is left untouched); ``empty=True`` builds it on the meta device,
+    to be filled by :func:`load_strict`."""
     import torchvision.models as tvm
 
     if arch not in IMAGENET_FILES:
         raise WeightsError(f"unknown architecture {arch!r}: expected one of {sorted(IMAGENET_FILES)}")
+    if empty:
+        with torch.device("meta"):
+            return getattr(tvm, arch)(weights=None, num_classes=num_classes)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(seed))
         return getattr(tvm, arch)(weights=None, num_classes=num_classes)
