@@ -116,6 +116,7 @@ def histogram(vis: dict[int, np.ndarray], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
     bins = np.linspace(0, 1, 21)
     for split in SPLITS:

@@ -136,3 +136,30 @@ def test_view_coords_match_camera_positions():
     # a view from the east sees the target's east side: the target's centroid column stays centred,
     # and the camera's position is the grid position
     assert view_coords(view_index(10, 5, 0)).tolist() == [50.0, 0.0, 60.0]
+
+
+def _occlusion(v: np.ndarray) -> tuple[float, float, float]:
+    return float(np.mean(v >= 0.9)), float(np.mean(v < 0.5)), float(v.mean())
+
+
+def test_a_training_context_has_clear_and_occluded_views():
+    from uevavd.data.synthetic import render_context
+
+    vis = render_context(2, size=24, seed=0).visible
+    clear, hidden, _ = _occlusion(vis)
+    assert clear >= 0.1 and hidden >= 0.1
+    assert (vis == 0).any(), "fully occluded views must occur"
+
+
+@pytest.mark.slow
+def test_occlusion_properties_over_the_quick_world():
+    from uevavd.data.splits import split_of, subset
+    from uevavd.data.synthetic import render_context
+
+    means = {"train": [], "hard": []}
+    for c in subset({"train": 4, "hard": 1}):
+        clear, hidden, mean = _occlusion(render_context(c, size=24, seed=0).visible)
+        if split_of(c) == "train":
+            assert clear >= 0.1 and hidden >= 0.1, f"context {c}: {clear:.0%} clear, {hidden:.0%} hidden"
+        means[split_of(c)].append(mean)
+    assert np.mean(means["hard"]) < np.mean(means["train"])

@@ -32,6 +32,8 @@ from .render import _Prep, focal_px, render_view
 from .world import BLOCK_TARGETS, Scene, build_context, build_unoccluded
 
 FORMAT = "uevavd-synthetic"
+#: Generator version: bump it whenever the world or the renderer changes what they write,
+#: so that resumed or cached worlds written by an older generator are redone.
 VERSION = 1
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
@@ -74,13 +76,15 @@ def _views_in(name: str) -> int:
 
 
 def scene_complete(folder: Path, *, size: int, seed: int) -> bool:
-    """True when ``folder/scene.json`` exists, was written for (size, seed) and every file it
-    records exists with the recorded sha256."""
+    """True when ``folder/scene.json`` exists, was written by this generator version for
+    (size, seed) and every file it records exists with the recorded sha256."""
     meta_path = folder / layout.SCENE_META
     try:
         meta = json.loads(meta_path.read_text())
     except (OSError, ValueError):
         return False
+    if (meta.get("format"), meta.get("version")) != (FORMAT, VERSION):
+        return False  # written by another version of the generator: redo it
     if meta.get("size") != size or meta.get("seed") != seed or not isinstance(meta.get("files"), dict):
         return False
     for rel, digest in meta["files"].items():
