@@ -110,6 +110,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=2, help="stand-in context scenes (605 views each)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--repeats", type=int, default=1, help="bare-forward repeats (best is kept)")
     ap.add_argument("--config", action="append", default=None, metavar="ARCH:SIZE",
                     help="encoder and image size (repeatable; default resnet18:128 and resnet50:256)")
     ap.add_argument("--decompose", action="store_true", help="also pre-decompose (gt segmenter)")
@@ -140,7 +141,7 @@ def main(argv=None) -> int:
             recs = [r for r in manifest.records if r.context is not None]
             with Decoder(args.workers) as dec:
                 images = dec.images([r.image for r in recs])
-            both, alone = bare_forward(arch, images, args.device, args.batch, clf_path)
+            both, alone = bare_forward(arch, images, args.device, args.batch, clf_path, args.repeats)
             del images
             method = work / f"{arch}.toml"
             method.write_text(METHOD.format(arch=arch, device=args.device, batch=args.batch,

@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TrainSettings:
-    epochs: int = 6
+    epochs: int = 4
     batch_size: int = 64
     lr: float = 2e-3
     weight_decay: float = 1e-4
@@ -44,7 +44,8 @@ class TrainSettings:
     seed: int = 0
     shift: float = 0.06  #: max shift, fraction of the image size
     scale: float = 0.08  #: max relative zoom in or out
-    jitter: float = 0.25  #: max relative change of brightness / contrast / saturation
+    jitter: float = 0.25  #: max relative change of contrast / saturation
+    brightness: tuple[float, float] = (0.45, 1.25)  #: brightness factor range (scenes in shadow are darker)
     max_views: int | None = None  #: use only this many viewpoints (seeded sample) for train + val
 
     def check(self) -> None:
@@ -102,7 +103,7 @@ def augment(x: torch.Tensor, s: TrainSettings, gen: torch.Generator) -> torch.Te
     x = gray + (x - gray) * u(1 - j, 1 + j)  # saturation
     mean = x.mean(dim=(1, 2, 3), keepdim=True)
     x = mean + (x - mean) * u(1 - j, 1 + j)  # contrast
-    x = (x * u(1 - j, 1 + j)).clamp(0, 1)  # brightness
+    x = (x * u(*s.brightness)).clamp(0, 1)  # brightness
     zoom = u(1 - s.scale, 1 + s.scale).view(n)
     theta = torch.zeros(n, 2, 3)
     theta[:, 0, 0] = theta[:, 1, 1] = 1.0 / zoom
