@@ -27,6 +27,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -69,8 +70,8 @@ class BoxAnnotation:
 
 def is_table_name(name: str) -> bool:
     """Whether a file name is a per-scene annotation table (e.g. ``annotations.csv``)."""
-    p = Path(name)
-    return p.stem.lower() in TABLE_STEMS and p.suffix.lower() in TABLE_EXTS
+    stem, ext = os.path.splitext(os.path.basename(str(name)))
+    return ext.lower() in TABLE_EXTS and stem.lower() in TABLE_STEMS
 
 
 def _to_int(value, where: str) -> int:
@@ -159,14 +160,23 @@ def parse_voc_xml(text: str, where: str = "annotation") -> BoxAnnotation:
     return BoxAnnotation(_box_from_values(values, where), name.strip() if name else None)
 
 
-def read_box_file(path: Path) -> BoxAnnotation:
+def read_box_file(path: str | Path) -> BoxAnnotation:
     """Read a per-image annotation file (``.txt``, ``.json`` or ``.xml``)."""
     where = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8-sig")
+        with open(where, encoding="utf-8-sig") as f:
+            text = f.read()
     except (OSError, UnicodeDecodeError) as e:
         raise AnnotationError(f"{where}: cannot read ({e})") from None
-    ext = Path(path).suffix.lower()
+    ext = os.path.splitext(where)[1].lower()
+    if ext == ".txt":
+        parts = text.split()
+        if len(parts) == 4:  # the common "x1 y1 x2 y2" of integers, without the general parser
+            try:
+                x1, y1, x2, y2 = (int(p) for p in parts)
+                return BoxAnnotation((x1, y1, x2, y2))
+            except ValueError:
+                pass
     if ext == ".json":
         try:
             obj = json.loads(text)
