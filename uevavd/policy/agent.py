@@ -99,7 +99,7 @@ class GreedyPolicy:
     ``obs["t"] == 0``.
 
     With ``features`` (the whole table's (S, 605, D) features) and a built-in estimator,
-    the policy projects every (scene, view) once on the first ``reset`` and reads those
+    the policy projects every view of a scene once, when the scene is first seen, and reads those
     projections by ``obs["scene"], obs["view"]``; it then sets ``needs_features = False``
     so the evaluator skips gathering (N, D) features every step (several times faster on
     exhaustive evaluations, same actions).
@@ -119,19 +119,22 @@ class GreedyPolicy:
         self.needs_features = self._features is None
 
     @torch.no_grad()
-    def _projections(self) -> torch.Tensor:
+    def _projections(self, scenes: torch.Tensor) -> torch.Tensor:
+        """(S, 605, image_dim) projections, computed for each scene the first time it is seen."""
+        f = self._features
+        enc = self.net.estimator.encoder
         if self._proj is None:
-            f = self._features
-            enc = self.net.estimator.encoder
-            flat = f.reshape(-1, f.shape[-1])
-            chunks = [enc.project(flat[i:i + 8192].to(self.device).float()) for i in range(0, len(flat), 8192)]
-            self._proj = torch.cat(chunks).reshape(f.shape[0], f.shape[1], -1)
+            self._proj = torch.zeros(f.shape[0], f.shape[1], enc.image_dim, device=self.device)
+            self._have = torch.zeros(f.shape[0], dtype=torch.bool)
+        todo = [int(i) for i in torch.unique(scenes).cpu() if not self._have[int(i)]]
+        for i in range(0, len(todo), 8):
+            idx = torch.tensor(todo[i:i + 8])
+            self._proj[idx.to(self.device)] = enc.project(f[idx].to(self.device).float())
+            self._have[idx] = True
         return self._proj
 
     def reset(self, n: int) -> None:
         self.hidden = self.net.initial_hidden(n, self.device)
-        if self._features is not None:
-            self._projections()
 
     @torch.no_grad()
     def act(self, obs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -144,8 +147,8 @@ class GreedyPolicy:
         hidden = self.hidden * (t != 0)[:, None].to(self.hidden.dtype)
         if self._features is not None:
             est = self.net.estimator
-            img = self._projections()[torch.as_tensor(obs["scene"], device=self.device),
-                                      torch.as_tensor(obs["view"], device=self.device)]
+            scene = torch.as_tensor(obs["scene"], device=self.device)
+            img = self._projections(scene)[scene, torch.as_tensor(obs["view"], device=self.device)]
             s, self.hidden = est.step_encoded(est.encoder.combine(img, boxes), hidden)
             q = self.net.head(s)
         else:
