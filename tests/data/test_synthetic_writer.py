@@ -126,3 +126,9 @@ def test_parse_contexts():
     for bad in ("0", "151", "4-1", "a", ","):
         with pytest.raises(ValueError):
             parse_contexts(bad)
+
+
+def test_cli_reports_bad_input(tmp_path, capsys):
+    assert main(["synth", "--out", str(tmp_path / "w"), "--contexts", "0-3", "--quiet"]) == 2
+    assert "context id 0 is out of range" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -49,14 +50,18 @@ def _run(args: argparse.Namespace) -> int:
     from ..splits import subset
     from .writer import write_world
 
-    world = load_preset(args.preset).get("world", {})
-    contexts = parse_contexts(args.contexts) if args.contexts else list(subset(world["per_block"]))
-    size = int(args.size or world["size"])
-    seed = int(world.get("seed", 0) if args.seed is None else args.seed)
-    t0 = time.perf_counter()
-    out = write_world(
-        args.out, contexts=contexts, size=size, seed=seed, workers=args.workers,
-        include_unoccluded=not args.no_unoccluded, progress=not args.quiet,
-    )
+    try:
+        world = load_preset(args.preset).get("world", {})
+        contexts = parse_contexts(args.contexts) if args.contexts else list(subset(world["per_block"]))
+        size = int(args.size or world["size"])
+        seed = int(world.get("seed", 0) if args.seed is None else args.seed)
+        t0 = time.perf_counter()
+        out = write_world(
+            args.out, contexts=contexts, size=size, seed=seed, workers=args.workers,
+            include_unoccluded=not args.no_unoccluded, progress=not args.quiet,
+        )
+    except (ValueError, FileNotFoundError) as err:
+        print(f"uevavd synth: {err}", file=sys.stderr)
+        return 2
     print(f"wrote {len(contexts)} contexts at {size} px (seed {seed}) to {out} in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -155,13 +155,10 @@ def _hull_t(origin_term: np.ndarray, den: np.ndarray, axis: int) -> np.ndarray:
     return np.where((tn <= tf) & (tn > 1e-6), tn, _INF)
 
 
-def _entry_plane(planes: np.ndarray, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """(N,) index of the plane through which rays (origin (3,), dirs (N, 3)) enter hulls
-    (planes (N, K, 4), one hull per ray)."""
-    den = np.einsum("nkc,nc->nk", planes[..., :3], dirs)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (planes[..., 3] - planes[..., :3] @ origin) / den
-    return np.where(den < 0, t, -_INF).argmax(-1)
+def _entry_plane(planes: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(N,) index of the face each hit point lies on: the plane of its hull (planes (N, K, 4))
+    with the largest ``n . p - d`` (zero on the face, negative for the others)."""
+    return (np.einsum("nkc,nc->nk", planes[..., :3], pts) - planes[..., 3]).argmax(-1)
 
 
 def _ellipsoid_t(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -344,7 +341,7 @@ def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) 
     if len(h):
         hp = pid[h]
         hpl = p["h_planes"][hp]
-        normal[h] = hpl[np.arange(len(h)), _entry_plane(hpl, origin.astype(np.float32), dirs[h]), :3]
+        normal[h] = hpl[np.arange(len(h)), _entry_plane(hpl, pts[h]), :3]
         c = p["h_rgb"][hp]
         mat = p["h_mat"][hp]
         par = p["h_par"][hp]
@@ -370,10 +367,7 @@ def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) 
         bias[e] = 0.6
     sun = scene.sun_dir
     lam = np.clip(normal @ sun.astype(np.float32), 0.0, 1.0)
-    lit = lam > 0
-    if lit.any():
-        sh = prep.shadow_map(sun, size).shadowed(pts[lit], lam[lit], bias[lit])
-        lam[np.nonzero(lit)[0][sh]] = 0.0
+    lam[prep.shadow_map(sun, size).shadowed(pts, lam, bias)] = 0.0
     amb, sun_rgb = (scene.ambient_rgb * 255.0).astype(np.float32), (scene.sun_rgb * 255.0).astype(np.float32)
     light = amb * (0.65 + 0.35 * normal[:, 2:3]) + sun_rgb * lam[:, None]
     out = col * light

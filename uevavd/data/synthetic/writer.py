@@ -100,6 +100,8 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
     """Render and write one scene folder; returns its ``scene.json`` record."""
     folder = root / name
     (folder / layout.SEG_DIR).mkdir(parents=True, exist_ok=True)
+    for stale in [*folder.glob(".*.tmp*"), *(folder / layout.SEG_DIR).glob(".*.tmp*")]:
+        stale.unlink(missing_ok=True)  # left by an interrupted run
     files: dict[str, str] = {}
     visible: dict[str, float] = {}
     categories: dict[int, str] = {}
