@@ -34,7 +34,7 @@ from .world import BLOCK_TARGETS, Scene, build_context, build_unoccluded
 FORMAT = "uevavd-synthetic"
 #: Generator version: bump it whenever the world or the renderer changes what they write,
 #: so that resumed or cached worlds written by an older generator are redone.
-VERSION = 1
+VERSION = 2
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
