@@ -94,3 +94,20 @@ def test_train_sam_small_command(tiny_world, tmp_path, capsys):
     loaded = seg.loaded
     assert loaded.model_type == "small" and loaded.meta["config"]["img_size"] == 32
     assert loaded.meta["data_hash"] and loaded.meta["train"]["steps"] == 3
+
+
+@pytest.mark.slow
+def test_ibe_map_table_with_the_sam_segmenter(tiny_world, tiny_classifier, base, tmp_path, method_toml):
+    """`prepare` builds a pre-decomposed observation table with `sam` like any segmenter."""
+    from uevavd.data.grid import N_VIEWS
+    from uevavd.perception.prepare import prepare_table
+    from uevavd.perception.table import ObservationTable
+
+    method = tmp_path / "tiny_sam.toml"
+    method.write_text(method_toml.format(decompose="true").replace(
+        '{ name = "gt" }', f'{{ name = "sam", checkpoint = "{base}", ring_points = 4, batch_size = 64 }}'))
+    path = prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=tmp_path / "t",
+                         progress=False)
+    t = ObservationTable.load(path, expect_key=path.name)
+    assert t.features.shape == (2, N_VIEWS, 512)
+    assert t.meta["config"]["key_parts"]["segmenter"].startswith("sam:small:")
