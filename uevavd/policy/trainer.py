@@ -266,6 +266,9 @@ def train(
             loop["episodes"] += k
             recent.extend(info["final_return"][idx].tolist())
             bar.update(k)
+            if progress and (loop["env_steps"] // n) % 50 == 0:
+                bar.set_postfix(ret=f"{np.mean(recent):.3f}", eps=f"{cfg.epsilon(loop['episodes']):.2f}",
+                                loss=f"{loss_val:.4f}", refresh=False)
 
         # learn
         if len(replay) >= cfg.learning_starts:
