@@ -90,6 +90,9 @@ class _Prep:
         self.g_start = starts
         self.g_end = np.r_[starts[1:], len(inst)].astype(np.int64)
         self.g_target = inst[starts] == TARGET_ID if len(inst) else np.zeros(0, bool)
+        # real planes come first in every hull; padding planes (0 . p <= 1) are skipped
+        n_real = (np.abs(p["h_planes"][..., :3]).sum(-1) > 0).sum(-1) if len(inst) else np.zeros(0, np.int64)
+        self.g_k = [int(n_real[a:b].max()) for a, b in zip(starts, self.g_end, strict=True)]
         hv = p["h_verts"]
         self.g_c = np.array([hv[a:b].reshape(-1, 3).mean(0) for a, b in zip(starts, self.g_end, strict=True)]).reshape(-1, 3)
         self.g_r = np.array(
@@ -204,7 +207,7 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
         if y0 >= y1 or x0 >= x1:
             continue
         a, b = prep.g_start[g], prep.g_end[g]
-        pl = p["h_planes"][a:b]  # (P, K, 4)
+        pl = p["h_planes"][a:b, :prep.g_k[g]]  # (P, K, 4)
         d = dirs[y0:y1, x0:x1]
         hh, ww = y1 - y0, x1 - x0
         den = (pl[..., :3].reshape(-1, 3) @ d.reshape(-1, 3).T).reshape(b - a, -1, hh * ww)
