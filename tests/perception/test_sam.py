@@ -198,3 +198,17 @@ def test_gpu_saved_checkpoint_loads_on_cpu(tmp_path):
     state, _ = read_checkpoint(tmp_path / "gpu.pth")
     assert all(t.device.type == "cpu" for t in state.values())
     assert load_sam(tmp_path / "gpu.pth").model_type == "small"
+
+
+def test_published_sizes_match_segment_anything_builders():
+    """Our vit_b has exactly the keys and shapes of segment-anything's own builder, so an
+    official checkpoint loads strictly; its shapes are recognised as vit_b."""
+    from segment_anything import sam_model_registry
+
+    from uevavd.perception.sam.model import infer_model_type
+
+    torch.manual_seed(0)
+    ours = {k: v.shape for k, v in build_model("vit_b").state_dict().items()}
+    ref = sam_model_registry["vit_b"]().state_dict()
+    assert ours == {k: v.shape for k, v in ref.items()}
+    assert infer_model_type(ref) == "vit_b"
