@@ -159,55 +159,62 @@ def variant_root(tmp_path_factory) -> tuple[Path, dict]:
 
 @pytest.fixture(scope="session")
 def broken_root(tmp_path_factory) -> tuple[Path, dict]:
-    """(root, defects): one defect per scene; defects[kind] = the path the message must name."""
+    """(root, defects): scene 001 holds one of most defects (each on its own view), 002 a
+    second target, 003 images of another size; defects[kind] = what the message must name."""
     root = tmp_path_factory.mktemp("broken")
-    defects: dict[str, Path] = {}
+    d = root / "001"
+    files = write_scene(d, target="sedan", token="001")
+    defects: dict[str, Path | str] = {}
 
-    def stem_of(v, target, token):
-        x, y, z = (int(c) for c in view_coords(v))
-        return view_stem(x, y, z, target, token)
+    def image(v):
+        return d / files[v][0]
 
-    files = {tok: write_scene(root / tok, target="sedan", token=tok) for tok in
-             ("001", "002", "003", "004", "005", "006", "007", "008", "009")}
-    # 001: a missing view (image and annotation gone)
-    (root / "001" / files["001"][17][0]).unlink()
-    (root / "001" / (stem_of(17, "sedan", "001") + ".txt")).unlink()
-    defects["missing_views"] = stem_of(17, "sedan", "001")
-    # 002: a truncated PNG (header intact, so only decoding finds it)
-    png = root / "002" / files["002"][5][0]
-    png.write_bytes(png.read_bytes()[:40])
-    defects["truncated_image"] = png
-    # 003: a box outside the 8x8 image; 004: an inverted box
-    (root / "003" / (stem_of(10, "sedan", "003") + ".txt")).write_text("2 2 9 7\n")
-    defects["box_outside"] = root / "003" / files["003"][10][0]
-    (root / "004" / (stem_of(11, "sedan", "004") + ".txt")).write_text("5 2 3 6\n")
-    defects["box_inverted"] = root / "004" / files["004"][11][0]
-    # 005: an unparseable name and an unknown target
-    bad = root / "005" / "x-50_y+40_sedan_005.png"
-    bad.write_bytes(encoded())
-    defects["unparseable_name"] = bad
-    truck = root / "005" / "x-50_y+40_z080_truck_005.png"
-    truck.write_bytes(encoded())
-    defects["unknown_target"] = truck
-    # 006: an unparseable annotation and a missing one
-    ann = root / "006" / (stem_of(12, "sedan", "006") + ".txt")
-    ann.write_text("twelve 3 4\n")
-    defects["unparseable_annotation"] = ann
-    (root / "006" / (stem_of(13, "sedan", "006") + ".txt")).unlink()
-    defects["missing_annotation"] = root / "006" / files["006"][13][0]
-    # 007: a second target in a context scene
-    write_scene(root / "007", target="suv", token="007", views=[0])
-    defects["two_targets"] = root / "007"
-    # 008: coordinates off the grid
-    off = root / "008" / "x-55_y+40_z080_sedan_008.png"
-    off.write_bytes(encoded())
-    (root / "008" / "x-55_y+40_z080_sedan_008.txt").write_text("1 1 3 3\n")
-    defects["off_grid"] = off
-    # 009: a duplicate view (the same view again as .jpg)
-    dup = root / "009" / (stem_of(3, "sedan", "009") + ".jpg")
-    dup.write_bytes(encoded(".jpg"))
-    defects["duplicate_view"] = dup
-    # 010: images of another size (16x16, boxes still valid)
-    write_scene(root / "010", target="sedan", token="010", size=16)
-    defects["mixed_sizes"] = root / "010"
+    def ann(v):
+        return d / (Path(files[v][0]).stem + ".txt")
+
+    # a missing view (image and annotation gone): named by its expected stem
+    image(17).unlink()
+    ann(17).unlink()
+    defects["missing_views"] = Path(files[17][0]).stem
+    # a truncated PNG (header intact, so only decoding finds it)
+    image(5).write_bytes(image(5).read_bytes()[:40])
+    defects["truncated_image"] = image(5)
+    # a box outside the 8x8 image; an inverted box
+    ann(10).write_text("2 2 9 7\n")
+    defects["box_outside"] = image(10)
+    ann(11).write_text("5 2 3 6\n")
+    defects["box_inverted"] = image(11)
+    # an unparseable name and an unknown target
+    defects["unparseable_name"] = d / "x-50_y+40_sedan_001.png"
+    defects["unknown_target"] = d / "x-50_y+40_z080_truck_001.png"
+    for path in (defects["unparseable_name"], defects["unknown_target"]):
+        path.write_bytes(encoded())
+    # an unparseable annotation and a missing one
+    ann(12).write_text("twelve 3 4\n")
+    defects["unparseable_annotation"] = ann(12)
+    ann(13).unlink()
+    defects["missing_annotation"] = image(13)
+    # coordinates off the grid
+    defects["off_grid"] = d / "x-55_y+40_z080_sedan_001.png"
+    defects["off_grid"].write_bytes(encoded())
+    (d / "x-55_y+40_z080_sedan_001.txt").write_text("1 1 3 3\n")
+    # a duplicate view (the same view again as .jpg)
+    defects["duplicate_view"] = image(3).with_suffix(".jpg")
+    defects["duplicate_view"].write_bytes(encoded(".jpg"))
+    # a second target in a context scene
+    write_scene(root / "002", target="sedan", token="002")
+    write_scene(root / "002", target="suv", token="002", views=[0])
+    defects["two_targets"] = root / "002"
+    # images of another size (16x16, boxes still valid)
+    write_scene(root / "003", target="sedan", token="003", size=16)
+    defects["mixed_sizes"] = root / "003"
     return root, defects
+
+
+@pytest.fixture(scope="session")
+def synthetic_root(tmp_path_factory) -> Path:
+    """One hard-test context (26) of the synthetic world at 16 px, written by its writer."""
+    synthetic = pytest.importorskip("uevavd.data.synthetic")
+    out = tmp_path_factory.mktemp("synthetic")
+    synthetic.write_world(out, contexts=[26], size=16, seed=1, include_unoccluded=False, progress=False)
+    return out

@@ -36,9 +36,9 @@ def test_truncated_png_named(broken_root):
     text = "\n".join(str(p) for p in report.problems)
     for kind, where in defects.items():
         assert str(where) in text, kind
-    # Size is judged per decoded file: each 16x16 image of scene 010 is named.
+    # Size is judged per decoded file: each 16x16 image of scene 003 is named.
     mixed = [p for p in report.problems if p.kind == "mixed_sizes"]
-    assert len(mixed) == N_VIEWS and all(p.path.parent == root / "010" for p in mixed)
+    assert len(mixed) == N_VIEWS and all(p.path.parent == root / "003" for p in mixed)
 
 
 def test_check_image_bytes():
@@ -90,3 +90,23 @@ def test_cli_clean_and_broken(variant_root, broken_root, capsys, tmp_path):
     out = capsys.readouterr().out
     assert "more (use --verbose)" not in out and "truncated_image" not in out
     assert main(["validate", str(tmp_path / "absent")]) == 1
+
+
+def test_synthetic_world_validates_and_hashes(synthetic_root, tmp_path):
+    import shutil
+
+    report = validate(synthetic_root, progress=False)
+    assert report.ok, report.format()
+    listed = json.loads((synthetic_root / "manifest.json").read_text())["files"]
+    assert report.hashed == len(listed) and report.decoded == 2 * N_VIEWS
+    assert report.summary()["splits"]["hard"] == {"contexts": 1, "views": N_VIEWS}
+    # A changed byte inside one PNG's pixel data: caught by the hash, named by path.
+    root = tmp_path / "copy"
+    shutil.copytree(synthetic_root, root)
+    victim = sorted((root / "026").glob("*.png"))[7]
+    data = bytearray(victim.read_bytes())
+    data[60] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    problems = validate(root, progress=False).problems
+    assert victim in {p.path for p in problems if p.kind == "hash_mismatch"}
+    assert all(p.path == victim for p in problems)

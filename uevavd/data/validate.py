@@ -80,7 +80,8 @@ class ValidationReport:
         lines = [
             f"root        {s['root']}",
             f"image size  {h} x {w} (H x W)",
-            f"records     {s['records']} views in {len(scenes)} scene(s): {len(ctx)} context(s)"
+            f"records     {s['records']} views",
+            f"scenes      {len(scenes)}: {len(ctx)} context(s) {_ranges(self.manifest.contexts()) or '-'}"
             + "".join(f", {n!r}" for n in scenes if n not in ctx),
             "targets     (contexts each owns)",
         ]
