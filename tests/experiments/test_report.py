@@ -129,6 +129,20 @@ def test_claims_cannot_tell_when_intervals_overlap_or_one_seed():
     assert c.verdict == CANNOT_TELL and "fewer than two seeds" in c.evidence
 
 
+def test_curves_align_seeds_evaluated_at_different_episode_counts():
+    from uevavd.experiments.figures import smoothed_curves
+
+    df = make_results({"map": (0.5, 0.1)})
+    df = df[df["method"] == "map"].copy()
+    df.loc[df["seed"] == 1, "episodes"] += 7  # batched training ends epochs a few episodes apart
+    data = smoothed_curves(df, window=2)
+    xs = data.groupby("seed")["episodes"].apply(lambda e: sorted(set(e)))
+    assert xs[0] == xs[1] == [p + 3.5 for p in POINTS]
+    first = data[(data["seed"] == 0) & (data["split"] == "hard")].sort_values("episodes")["return"].to_numpy()
+    raw = df[(df["seed"] == 0) & (df["split"] == "hard")]["return"].to_numpy()
+    assert first[1] == pytest.approx((raw[0] + raw[1]) / 2)  # trailing 2-point mean
+
+
 def test_interrupted_run_uses_its_last_point():
     df = make_results({"map": (0.5, 0.1)})
     df = df[~((df["seed"] == 1) & (df["episodes"] == POINTS[-1]))]  # seed 1 stopped early, no final row

@@ -49,14 +49,25 @@ def _save(fig, path: Path) -> Path:
 
 def smoothed_curves(curves: pd.DataFrame, window: int) -> pd.DataFrame:
     """Each (method, seed, split) curve sorted by episodes with every metric of
-    :data:`CURVE_METRICS` replaced by its trailing ``window``-point sliding mean."""
+    :data:`CURVE_METRICS` replaced by its trailing ``window``-point sliding mean; the
+    k-th evaluation point of each seed is placed at the mean episode count of the k-th
+    points over seeds (``eval_point`` = k, ``episodes_raw`` = the seed's own count)."""
     out = []
     for _, g in curves.groupby(["method", "seed", "split"], sort=False):
         g = g.sort_values("episodes").copy()
+        g["eval_point"] = np.arange(len(g))
         for col, _ in CURVE_METRICS:
             g[col] = smooth(g[col].to_numpy(), window)
         out.append(g)
-    return pd.concat(out, ignore_index=True) if out else curves.iloc[0:0]
+    if not out:
+        return curves.iloc[0:0]
+    data = pd.concat(out, ignore_index=True)
+    # Seeds evaluate at slightly different episode counts (episodes finish in batches), and
+    # seaborn aggregates over seeds only at equal x: put the k-th evaluation point of every
+    # seed at the mean episode count of the k-th points.
+    data["episodes_raw"] = data["episodes"]
+    data["episodes"] = data.groupby(["method", "split", "eval_point"])["episodes_raw"].transform("mean")
+    return data
 
 
 def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, window: int) -> Path:

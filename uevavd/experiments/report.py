@@ -121,7 +121,11 @@ def summary_table(final: pd.DataFrame) -> pd.DataFrame:
 def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame, notes: list[str]) -> list[str]:
     out = ["## Setup", ""]
     meta = meta or {}
-    methods = meta.get("methods") or learned(results["method"].unique())
+    methods = learned(results["method"].unique())
+    absent = [m for m in (meta.get("methods") or []) if m not in methods]
+    if absent:
+        notes.append(f"ablation.json lists {', '.join(label(m) for m in absent)} but results.csv has no rows for "
+                     "them (the run was interrupted or is still going).")
     # ablation.json may list the seeds or give their number; the results say which ran
     seeds = sorted(results.loc[~is_baseline(results), "seed"].unique().tolist())
     if isinstance(meta.get("seeds"), list) and meta["seeds"]:
@@ -195,7 +199,7 @@ def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, ou
     if curves.empty:
         return out + ["No learning-curve rows in the default setting.", ""]
     points = int(curves.groupby(["method", "seed", "split"])["episodes"].nunique().min())
-    w = int(window) if window is not None else max(1, min(5, points // 4))
+    w = int(window) if window is not None else max(1, min(5, points // 3))
     base = final[is_baseline(final) & (final["setting"] == setting)]
     plot_curves(curves, base, out_dir / "fig9_curves.png", window=w)
     out += [f"Return, recognition rate and movement distance against training episodes on the training and "
@@ -289,7 +293,7 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     ``dir/ablation.json``; return the path of ``report.md``.
 
     ``window``: sliding-window length (evaluation points) of the curve smoothing;
-    default ``min(5, points // 4)`` (at least 1).
+    default ``min(5, points // 3)`` (at least 1).
     """
     ablation_dir = Path(dir)
     if not ablation_dir.is_dir():
@@ -326,7 +330,7 @@ def add_report(parser: argparse.ArgumentParser):
     """``uevavd report DIR``: (re)write DIR/report/report.md from the ablation's files."""
     parser.add_argument("dir", type=Path, metavar="DIR", help="ablation directory holding results.csv")
     parser.add_argument("--window", type=int, default=None,
-                        help="sliding-window length (evaluation points) for the curves; default min(5, points/4)")
+                        help="sliding-window length (evaluation points) for the curves; default min(5, points/3)")
 
     def handler(args: argparse.Namespace) -> int:
         path = write_report(args.dir, window=args.window)
