@@ -24,6 +24,7 @@ from pathlib import Path
 
 from .annotations import (
     ANNOTATION_EXTS,
+    TABLE_STEMS,
     AnnotationError,
     BoxAnnotation,
     is_table_name,
@@ -58,6 +59,8 @@ __all__ = [
 #: Sub-folders of a scene that may hold the per-image annotation files.
 ANNOTATION_DIRS: tuple[str, ...] = ("annotations", "annotation", "labels", "boxes", "bboxes", "gt")
 _MAX_LISTED = 12
+# Stems of annotation-extension files that are not per-image boxes (tables, metadata).
+_NOT_PER_IMAGE = frozenset({*TABLE_STEMS, SCENE_META.rpartition(".")[0], CATEGORIES.rpartition(".")[0]})
 
 # Canonical names (layout.view_stem) take a fast path; everything else goes to naming.
 _CANONICAL = re.compile(r"^x([+-]\d{2,3})_y([+-]\d{2,3})_z(\d{3})_([a-z]+)_(\d{2,3}|train_605)$")
@@ -201,7 +204,7 @@ def _read_visible(scene_dir: Path, problems: list[Problem]) -> dict[str, float]:
 def _load_tables(scene_dir: Path, files: list[str], problems: list[Problem]) -> dict[str, BoxAnnotation]:
     merged: dict[str, BoxAnnotation] = {}
     for name in files:
-        if not is_table_name(name):
+        if name.partition(".")[0].lower() not in TABLE_STEMS or not is_table_name(name):
             continue
         path = scene_dir / name
         try:
@@ -232,15 +235,15 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
     for sub in ("", *ANNOTATION_DIRS):
         d = os.path.join(base, sub) if sub else base
         for name in files if not sub else _list_files(Path(d)):
-            stem, ext = os.path.splitext(name)
-            ext = ext.lower()
-            if ext in ANNOTATION_EXTS and name not in (SCENE_META, CATEGORIES) and not is_table_name(name):
+            stem, _, ext = name.rpartition(".")
+            ext = "." + ext.lower()
+            if ext in ANNOTATION_EXTS and stem.lower() not in _NOT_PER_IMAGE:
                 rank = ANNOTATION_EXTS.index(ext)
                 prev = ann_files.get(stem)
                 if prev is None or rank < prev[0]:
                     ann_files[stem] = (rank, os.path.join(d, name))
     table = _load_tables(scene_dir, files, problems)
-    seg_names = {os.path.splitext(n)[0]: n for n in _list_files(scene_dir / SEG_DIR) if n.lower().endswith(".png")}
+    seg_names = {n.rpartition(".")[0]: n for n in _list_files(scene_dir / SEG_DIR) if n.lower().endswith(".png")}
     visible = _read_visible(scene_dir, problems)
     images = [n for n in files if is_image_name(n)]
     size = None
@@ -255,7 +258,7 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
     seg_dir = scene_dir / SEG_DIR
     for name in images:
         path = scene_dir / name
-        stem = os.path.splitext(name)[0]
+        stem = name.rpartition(".")[0]
         try:
             xyz, target, token = _parse_name(stem)
         except UnknownTargetError as e:
