@@ -218,3 +218,10 @@ def synthetic_root(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("synthetic")
     synthetic.write_world(out, contexts=[26], size=16, seed=1, include_unoccluded=False, progress=False)
     return out
+
+
+@pytest.fixture(name="encoded")
+def encoded_fixture():
+    """:func:`encoded` for tests (importing ``conftest`` by name is ambiguous: each test
+    folder has one)."""
+    return encoded

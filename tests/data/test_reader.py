@@ -225,9 +225,7 @@ def test_scene_mismatch_and_unknown_folder(tmp_path, write_scene_fn):
         read_dataset(tmp_path / "nowhere")
 
 
-def test_image_size_from_header(tmp_path):
-    from conftest import encoded
-
+def test_image_size_from_header(tmp_path, encoded):
     for ext in (".png", ".jpg"):
         f = tmp_path / f"a{ext}"
         f.write_bytes(encoded(ext, 16))

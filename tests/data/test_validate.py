@@ -41,9 +41,7 @@ def test_truncated_png_named(broken_root):
     assert len(mixed) == N_VIEWS and all(p.path.parent == root / "003" for p in mixed)
 
 
-def test_check_image_bytes():
-    from conftest import encoded
-
+def test_check_image_bytes(encoded):
     png, jpg = encoded(".png"), encoded(".jpg")
     assert check_image_bytes(png, None) == ((8, 8), None)
     assert check_image_bytes(jpg, None) == ((8, 8), None)
