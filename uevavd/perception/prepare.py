@@ -114,7 +114,10 @@ def build_components(spec: MethodSpec, data_root: Path, classifier_path: str | N
     segmenter = spec.build("perception.segmenter") if decomposing and spec.get("perception.segmenter") else None
     if decomposing and segmenter is None:
         raise ValueError(f"method {spec.name!r}: perception.decompose = true needs a perception.segmenter")
-    encoder = spec.build("perception.encoder", **runtime("perception.encoder", {"data": str(data_root)}))
+    enc_extra: dict[str, Any] = {"data": str(data_root)}
+    if classifier_path is not None:
+        enc_extra["classifier"] = str(classifier_path)  # weights="classifier" takes this recognizer's backbone
+    encoder = spec.build("perception.encoder", **runtime("perception.encoder", enc_extra))
     extra = {"data": str(data_root)}
     if classifier_path is not None:
         extra["path"] = str(classifier_path)
