@@ -96,7 +96,7 @@ def _claim_a(final: pd.DataFrame, setting: str) -> Claim:
             continue
         d = difference(e, passive)
         parts.append((sign_verdict(d, +1),
-                      f"{label(m)} {e.fmt()} (n={e.n}) minus passive {passive.mean:.3f} = {_ci(d)}"))
+                      f"{label(m)} {e.fmt()} minus passive {passive.mean:.3f} = {_ci(d)}"))
     return Claim("a", CLAIM_TEXT["a"], *_combine(parts))
 
 

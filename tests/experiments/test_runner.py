@@ -1,0 +1,224 @@
+"""The ablation runner end to end on the 16 px test world: a few hundred episodes per run.
+
+One module-scoped ablation (MAP and IBE-MAP, one seed) is shared by the tests below; one of
+its runs is interrupted by hand before the ablation starts, so the ablation must finish it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from uevavd.experiments.runner import (
+    RESULT_COLUMNS,
+    AblationError,
+    is_done,
+    make_plan,
+    parse_sweeps,
+    plan_jobs,
+    run_ablation,
+    stage_classifier,
+    stage_tables,
+    stage_world,
+    write_meta,
+)
+from uevavd.testing.worlds import write_tiny_world
+
+TINY_PRESET = """
+name = "tiny"
+description = "a few hundred episodes per run on the 16 px test world"
+
+[overrides]
+"perception.encoder.name" = "resnet18"
+"perception.encoder.weights" = "classifier"
+"train.episodes" = 200
+"train.epoch_episodes" = 100
+"train.n_envs" = 16
+"train.learning_starts" = 50
+"train.eval_splits" = ["train", "hard"]
+
+[classifier]
+epochs = 2
+max_views = 40
+batch_size = 32
+
+[ablation]
+methods = ["map", "ibe_map"]
+seeds = 1
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("ablation")
+    preset = root / "tiny.toml"
+    preset.write_text(TINY_PRESET)
+    # contexts 1 (train) and 26 (hard) of the hatchback block, 31 / 56 of the pickup block
+    world = write_tiny_world(root / "world", contexts=(1, 26, 31, 56), train605=True)
+    return {"root": root, "preset": preset, "world": world}
+
+
+def _plan(tiny, out: str, **kw):
+    return make_plan(preset=str(tiny["preset"]), out=tiny["root"] / out, data=tiny["world"], workers=1, **kw)
+
+
+@pytest.fixture(scope="module")
+def ablation(tiny) -> dict:
+    """Interrupt one run after its first epoch, then run the whole ablation."""
+    from uevavd.config import load_method
+    from uevavd.policy.trainer import train
+
+    plan = _plan(tiny, "out")
+    data = stage_world(plan, print)
+    tables = stage_tables(plan, data, stage_classifier(plan, data, print), print)
+    plan.out.mkdir(parents=True)
+    write_meta(plan, data, "training")  # as an ablation killed during training leaves it
+    jobs = plan_jobs(plan, tables)
+    interrupted = next(j for j in jobs if j.method == "ibe_map")
+    train(load_method(interrupted.spec_path), Path(interrupted.table), out=Path(interrupted.out), seed=0,
+          device="cpu", progress=False, max_epochs=1)
+    assert not is_done(interrupted)
+    partial_epochs = len(Path(interrupted.out, "evals.jsonl").read_text().splitlines())
+
+    lines: list[str] = []
+    plan = _plan(tiny, "out")
+    results = run_ablation(plan, log=lines.append)
+    return {"plan": plan, "results": results, "log": lines, "interrupted": interrupted,
+            "partial_epochs": partial_epochs, "jobs": jobs}
+
+
+def test_results_are_tidy_and_complete(ablation):
+    df = pd.read_csv(ablation["results"])
+    assert list(df.columns) == RESULT_COLUMNS
+    assert set(df["method"]) == {"map", "ibe_map", "random", "passive", "oracle"}
+    assert set(df["split"]) == {"train", "hard"}
+    for method in ("map", "ibe_map"):
+        rows = df[df["method"] == method]
+        # two evaluation points (epochs end at the first batch past 100 and 200 episodes) x two
+        # splits, the last ones final
+        points = sorted(rows["episodes"].unique())
+        assert len(points) == 2 and 100 <= points[0] < 200 <= points[1] < 250
+        assert rows[rows["final"]]["episodes"].eq(points[1]).all() and rows["final"].sum() == 2
+    assert df[["return", "accuracy", "recognition", "path_m"]].notna().all().all()
+
+
+def test_oracle_bounds_every_policy_and_passive_never_moves(ablation):
+    df = pd.read_csv(ablation["results"])
+    final = df[df["final"]]
+    for split in ("train", "hard"):
+        s = final[final["split"] == split].set_index("method")
+        assert (s.drop(index="oracle")["return"] <= s.loc["oracle", "return"] + 1e-9).all()
+        assert s.loc["passive", "path_m"] == 0.0 and s.loc["passive", "steps"] == 1.0
+
+
+def test_interrupted_run_was_finished_not_restarted(ablation):
+    job = ablation["interrupted"]
+    assert is_done(job)
+    evals = [json.loads(x) for x in Path(job.out, "evals.jsonl").read_text().splitlines()]
+    assert ablation["partial_epochs"] == 2  # one epoch x two splits before the interruption
+    points = [e["episodes"] for e in evals if e["split"] == "train"]
+    assert len(points) == 2 and points[0] < 200 <= points[1]
+    assert any("2 runs, 0 finished already, 2 to run" in x for x in ablation["log"])
+
+
+def test_report_and_trajectories(ablation):
+    out = ablation["plan"].out
+    report = (out / "report" / "report.md").read_text()
+    for section in ("## Results at the final evaluation point", "## Generalisation gap", "## Learning curves",
+                    "## Observation sequences", "## Claims checked", "| MAP |", "| IBE-MAP |", "| Oracle |"):
+        assert section in report
+    assert (out / "report" / "fig9_curves.png").stat().st_size > 0
+    meta = json.loads((out / "ablation.json").read_text())
+    assert meta["status"] == "done" and set(meta["stages"]) >= {"classifier", "tables", "training"}
+    traj = json.loads((out / "trajectories.json").read_text())
+    methods = {t["method"] for t in traj}
+    assert methods == {"map", "ibe_map", "random", "oracle"}
+    starts = {t["start_view"] for t in traj}
+    assert len(starts) == 1 and all(t["views"][0] == t["start_view"] for t in traj)
+
+
+def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny):
+    before = pd.read_csv(ablation["results"])
+    mtimes = {j.out: Path(j.out, "done.json").stat().st_mtime_ns for j in ablation["jobs"]}
+    lines: list[str] = []
+    results = run_ablation(_plan(tiny, "out"), log=lines.append)
+    assert any("2 runs, 2 finished already, 0 to run" in x for x in lines)
+    assert any("reusing classifier" in x for x in lines)
+    assert {j.out: Path(j.out, "done.json").stat().st_mtime_ns for j in ablation["jobs"]} == mtimes
+    pd.testing.assert_frame_equal(pd.read_csv(results), before)
+
+
+def test_other_configuration_in_the_same_directory_is_refused(ablation, tiny):
+    with pytest.raises(AblationError, match="another configuration"):
+        run_ablation(_plan(tiny, "out", episodes=500), log=lambda *_: None)
+
+
+def test_sweep_adds_settings_with_their_reward_constants(tiny):
+    plan = _plan(tiny, "sweep", sweeps=parse_sweeps(["thre=0.2,0.6", "C=0"]), sweep_methods=["ibe_map"])
+    names = dict(plan.settings("ibe_map"))
+    assert list(names) == ["default", "thre=0.6", "C=0"]  # thre=0.2 is the default, run once
+    assert names["thre=0.6"] == {"thre": 0.6, "C": 0.02} and names["C=0"] == {"thre": 0.2, "C": 0.0}
+    assert [n for n, _ in plan.settings("map")] == ["default"]
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"methods": ["map", "mapp"]}, r"unknown method 'mapp': known methods are \["),
+        ({"seeds": 0}, "at least 1"),
+        ({"sweep_methods": ["memo_map"]}, "not among --methods"),
+        ({"backend": "slurm"}, "expected 'local' or 'ray'"),
+    ],
+)
+def test_bad_arguments_are_refused(tiny, kwargs, message):
+    with pytest.raises(AblationError, match=message):
+        _plan(tiny, "bad", **kwargs)
+
+
+def test_bad_presets_and_sweeps_are_refused(tmp_path):
+    with pytest.raises(AblationError, match=r"unknown preset 'quik'.*quick"):
+        make_plan(preset="quik", out=tmp_path / "a")
+    with pytest.raises(AblationError, match=r"--sweep 'gamma=0.5'.*\['C', 'thre'\]"):
+        parse_sweeps(["gamma=0.5"])
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "bad"\n[world]\nseed = 0\nsize = 16\nper_block = { train = 1 }\n'
+                   '[overrides]\n"train.episode" = 10\n')
+    with pytest.raises(AblationError, match="episodes"):  # the close match is suggested
+        make_plan(preset=str(bad), out=tmp_path / "b", methods=["map"])
+    bad.write_text('name = "bad"\n[classifier]\nepoch = 2\n')
+    with pytest.raises(AblationError, match=r"\[classifier\].*epochs"):
+        make_plan(preset=str(bad), out=tmp_path / "c", methods=["map"], data=tmp_path)
+
+
+def test_non_empty_foreign_directory_is_refused(tiny, tmp_path):
+    (tmp_path / "notes.txt").write_text("mine")
+    plan = make_plan(preset=str(tiny["preset"]), out=tmp_path, data=tiny["world"])
+    with pytest.raises(AblationError, match="holds no ablation.json"):
+        run_ablation(plan, log=lambda *_: None)
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+def test_ray_backend_gives_the_local_results(ablation, tiny):
+    """Same jobs as Ray tasks on a local 2-CPU instance: identical evaluations."""
+    ray = pytest.importorskip("ray")
+    import dataclasses
+
+    from uevavd.experiments.backends import run_jobs
+
+    local = [j for j in ablation["jobs"] if j.method == "map"]
+    moved = [dataclasses.replace(j, out=str(tiny["root"] / "ray" / Path(j.out).name)) for j in local]
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        run_jobs(moved, backend="ray", workers=1, log=lambda *_: None)
+    finally:
+        ray.shutdown()
+    for a, b in zip(local, moved, strict=True):
+        ea = [json.loads(x) for x in Path(a.out, "evals.jsonl").read_text().splitlines()]
+        eb = [json.loads(x) for x in Path(b.out, "evals.jsonl").read_text().splitlines()]
+        keys = ("episodes", "split", "mean_return", "accuracy", "path_m", "stop_rate")
+        assert [[e[k] for k in keys] for e in ea] == [[e[k] for k in keys] for e in eb]
+        assert is_done(b) and not math.isnan(eb[-1]["mean_return"])

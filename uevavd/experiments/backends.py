@@ -1,0 +1,85 @@
+"""Where training runs execute: local worker processes, or Ray tasks.
+
+Both call :func:`uevavd.experiments.runner.run_job`, which resumes a run from its last
+checkpoint, so a retried Ray task (or a rerun after a kill) continues where it stopped.
+Each job gets ``cores // parallel`` torch threads on both backends, so the same seeds
+give the same results whichever backend ran them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Sequence
+
+from .runner import Job, run_job
+
+
+def _threads(workers: int) -> int:
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def run_jobs(jobs: Sequence[Job], *, backend: str = "local", workers: int = 1, log: Callable = print,
+             ray_address: str | None = None, gpus_per_job: float = 0.0) -> list[str]:
+    if not jobs:
+        return []
+    workers = max(1, min(workers, len(jobs)))
+    jobs = [dataclasses.replace(j, threads=_threads(workers)) for j in jobs]
+    if backend == "ray":
+        return run_ray(jobs, workers=workers, log=log, address=ray_address, gpus_per_job=gpus_per_job)
+    return run_local(jobs, workers=workers, log=log)
+
+
+def run_local(jobs: Sequence[Job], *, workers: int, log: Callable) -> list[str]:
+    from tqdm import tqdm
+
+    done: list[str] = []
+    bar = tqdm(total=len(jobs), desc="runs", unit="run")
+    try:
+        if workers == 1:
+            for job in jobs:
+                done.append(run_job(job))
+                bar.update()
+            return done
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # spawn: a fresh interpreter per worker (torch and forked thread pools do not mix)
+        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+            futures = {pool.submit(run_job, job): job for job in jobs}
+            for fut in as_completed(futures):
+                done.append(fut.result())  # a failed run raises here, naming its key below
+                bar.update()
+        return done
+    finally:
+        bar.close()
+
+
+def run_ray(jobs: Sequence[Job], *, workers: int, log: Callable, address: str | None = None,
+            gpus_per_job: float = 0.0, max_retries: int = 3) -> list[str]:
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--backend ray needs Ray: pip install 'uevavd[ray]'") from None
+    started = False
+    if not ray.is_initialized():
+        ray.init(address=address, num_cpus=None if address else max(workers, 1),
+                 include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+        started = True
+    try:
+        task = ray.remote(num_cpus=1, num_gpus=gpus_per_job, max_retries=max_retries,
+                          retry_exceptions=True)(run_job)
+        refs = [task.remote(job) for job in jobs]
+        from tqdm import tqdm
+
+        done: list[str] = []
+        with tqdm(total=len(refs), desc="runs (ray)", unit="run") as bar:
+            pending = list(refs)
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                done.append(ray.get(ready[0]))
+                bar.update()
+        return done
+    finally:
+        if started:
+            ray.shutdown()

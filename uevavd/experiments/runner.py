@@ -1,0 +1,494 @@
+"""The ablation runner: world -> classifier -> observation tables -> training -> results.
+
+Every stage reuses what exists: the world and the classifier are cached by their
+settings, tables by the hash of everything that produced them, runs by (method spec,
+seed); a killed ablation resumes where it stopped. Results go to one tidy file,
+``DIR/results.csv`` (a row per method x seed x setting x evaluation point x split),
+rebuilt from the run directories at the end, plus ``DIR/report/``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import ConfigError, load_method
+from ..presets import load_preset
+from .io import atomic_write_text, write_csv
+
+#: The paper's default reward settings; sweeps vary one of them.
+DEFAULT_SETTING = {"thre": 0.2, "C": 0.02}
+SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
+RESULT_COLUMNS = [
+    "method", "seed", "setting", "thre", "C", "episodes", "final", "split", "return", "accuracy",
+    "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
+]
+BASELINES = ("random", "passive", "oracle")
+PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
+
+
+class AblationError(ValueError):
+    """Bad ablation input; the message names the value and what is accepted."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training run: a method at one setting and seed."""
+
+    method: str
+    setting: str
+    seed: int
+    spec_path: str  #: resolved method spec (TOML), written by the driver
+    table: str  #: observation table folder
+    out: str  #: run directory
+    threads: int = 1
+    device: str = "cpu"
+
+    @property
+    def key(self) -> str:
+        return f"{self.method}/{self.setting}/seed{self.seed}"
+
+
+@dataclass
+class Plan:
+    """What an ablation will run, resolved from preset + command line."""
+
+    preset: dict[str, Any]
+    methods: list[str]
+    seeds: list[int]
+    sweeps: dict[str, list[float]]
+    sweep_methods: list[str]
+    out: Path
+    data: Path | None = None
+    workers: int = 1
+    backend: str = "local"
+    device: str = "cpu"
+    episodes: int | None = None
+    stages: dict[str, float] = field(default_factory=dict)
+
+    def settings(self, method: str) -> list[tuple[str, dict[str, float]]]:
+        """(name, {thre, C}) of each setting this method runs: "default" plus its sweeps."""
+        out = [("default", dict(DEFAULT_SETTING))]
+        if method in self.sweep_methods:
+            for key, values in self.sweeps.items():
+                for v in values:
+                    s = dict(DEFAULT_SETTING, **{key: float(v)})
+                    if s != DEFAULT_SETTING:
+                        out.append((f"{key}={v:g}", s))
+        return out
+
+    def all_settings(self) -> list[tuple[str, dict[str, float]]]:
+        seen: dict[str, dict[str, float]] = {}
+        for m in self.methods:
+            for name, s in self.settings(m):
+                seen.setdefault(name, s)
+        return list(seen.items())
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What makes two ablations comparable: the preset's content and the data source."""
+        preset = {k: v for k, v in self.preset.items() if k not in ("ablation", "description")}
+        return {"preset": preset, "data": str(self.data) if self.data else None, "episodes": self.episodes}
+
+
+def parse_sweeps(items: Sequence[str] | None) -> dict[str, list[float]]:
+    """``["thre=0.2,0.4", "C=0,0.02"]`` -> ``{"thre": [0.2, 0.4], "C": [0.0, 0.02]}``."""
+    sweeps: dict[str, list[float]] = {}
+    for item in items or []:
+        key, sep, values = item.partition("=")
+        key = key.strip()
+        if not sep or key not in SWEEPABLE:
+            raise AblationError(
+                f"--sweep {item!r}: expected KEY=V1,V2,... with KEY one of {sorted(SWEEPABLE)}"
+            )
+        try:
+            sweeps[key] = [float(v) for v in values.split(",") if v.strip()]
+        except ValueError:
+            raise AblationError(f"--sweep {item!r}: values must be numbers separated by commas") from None
+        if not sweeps[key]:
+            raise AblationError(f"--sweep {item!r}: no values")
+    return sweeps
+
+
+def make_plan(
+    *,
+    preset: str,
+    out: str | os.PathLike[str],
+    methods: Sequence[str] | None = None,
+    seeds: int | None = None,
+    sweeps: dict[str, list[float]] | None = None,
+    sweep_methods: Sequence[str] | None = None,
+    data: str | os.PathLike[str] | None = None,
+    workers: int | None = None,
+    backend: str = "local",
+    device: str = "cpu",
+    episodes: int | None = None,
+) -> Plan:
+    from ..config import known_methods
+
+    try:
+        cfg = load_preset(preset)
+    except (ValueError, OSError) as exc:  # unknown name (lists the known ones), missing or bad TOML
+        raise AblationError(f"--preset: {exc}") from None
+    unknown_sections = sorted(set(cfg) - PRESET_SECTIONS)
+    if unknown_sections:
+        raise AblationError(f"preset {preset!r}: unknown section(s) {unknown_sections}; "
+                            f"accepted: {sorted(PRESET_SECTIONS)}")
+    if data is None and "world" not in cfg:
+        raise AblationError(f"preset {preset!r} has no [world] section: pass --data DATASET_ROOT")
+    abl = cfg.get("ablation", {})
+    methods = list(methods or abl.get("methods", ["map", "memo_map", "ibe_map"]))
+    known = known_methods()
+    for m in methods:
+        if m not in known:
+            raise AblationError(f"unknown method {m!r}: known methods are {known} (see `uevavd plugins`)")
+    n_seeds = int(seeds if seeds is not None else abl.get("seeds", 1))
+    if n_seeds < 1:
+        raise AblationError(f"--seeds {n_seeds}: expected at least 1")
+    sweeps = dict(sweeps if sweeps is not None else {k: list(v) for k, v in abl.get("sweeps", {}).items()})
+    for key in sweeps:
+        if key not in SWEEPABLE:
+            raise AblationError(f"sweep over {key!r}: accepted keys are {sorted(SWEEPABLE)}")
+    sweep_methods = list(sweep_methods or abl.get("sweep_methods", [methods[-1]]))
+    unknown = [m for m in sweep_methods if m not in methods]
+    if unknown:
+        raise AblationError(f"--sweep-methods {unknown} are not among --methods {methods}")
+    if backend not in ("local", "ray"):
+        raise AblationError(f"--backend {backend!r}: expected 'local' or 'ray'")
+    from ..perception.train import TrainSettings
+
+    try:
+        TrainSettings(**cfg.get("classifier", {})).check()
+    except (TypeError, ValueError) as exc:
+        raise AblationError(f"preset {preset!r} [classifier]: {exc} (accepted keys: "
+                            f"{sorted(TrainSettings.__dataclass_fields__)})") from None
+    for m in methods:
+        try:
+            load_method(m, overrides=dict(cfg.get("overrides", {})))
+        except ConfigError as exc:
+            raise AblationError(f"preset {preset!r} [overrides] for method {m!r}: {exc}") from None
+    return Plan(
+        preset=cfg,
+        methods=methods,
+        seeds=list(range(n_seeds)),
+        sweeps=sweeps,
+        sweep_methods=sweep_methods,
+        out=Path(out).resolve(),
+        data=Path(data).resolve() if data else None,
+        workers=int(workers or min(os.cpu_count() or 1, 2)),
+        backend=backend,
+        device=device,
+        episodes=episodes,
+    )
+
+
+# -- stages ---------------------------------------------------------------------------------
+class _Stage:
+    def __init__(self, plan: Plan, name: str, log):
+        self.plan, self.name, self.log = plan, name, log
+
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+        self.log(f"[{self.name}] ...")
+        return self
+
+    def __exit__(self, *exc):
+        dt = time.perf_counter() - self.t0
+        self.plan.stages[self.name] = self.plan.stages.get(self.name, 0.0) + dt
+        if exc[0] is None:
+            self.log(f"[{self.name}] done in {dt:.1f} s")
+
+
+def _digest(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def stage_world(plan: Plan, log) -> Path:
+    """The dataset root: ``--data`` as given, else the preset's synthetic world (cached)."""
+    if plan.data is not None:
+        from ..data.reader import read_dataset
+
+        read_dataset(plan.data)  # fails early, naming the files it cannot parse
+        return plan.data
+    from ..data.splits import subset
+    from ..data.synthetic import write_world
+    from ..paths import cache_dir
+
+    world = plan.preset["world"]
+    contexts = list(subset(world["per_block"]))
+    root = cache_dir() / "worlds" / f"{plan.preset.get('name', 'world')}-{_digest(world)}"
+    write_world(root, contexts=contexts, size=int(world["size"]), seed=int(world["seed"]),
+                workers=plan.workers, progress=True)
+    return root
+
+
+def stage_classifier(plan: Plan, data: Path, log) -> Path:
+    """The recognizer, cached by (hash of the dataset's train_605 images, training settings):
+    a regenerated world under the same path never reuses an old classifier."""
+    from ..data.reader import read_dataset
+    from ..perception.classifier import classifiers_dir, data_hash, train_records
+    from ..perception.train import TrainSettings, train_classifier
+
+    settings = TrainSettings(**plan.preset.get("classifier", {}))
+    digest = data_hash(train_records(read_dataset(data)))
+    path = classifiers_dir() / f"{digest}-{_digest(settings.__dict__)}.safetensors"
+    if path.is_file():
+        log(f"  reusing classifier {path}")
+        return path
+    return train_classifier(data, path, settings=settings, workers=plan.workers, progress=True)
+
+
+def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
+    over = dict(plan.preset.get("overrides", {}))
+    over.update({SWEEPABLE[k]: v for k, v in setting.items()})
+    if plan.episodes is not None:
+        over["train.episodes"] = int(plan.episodes)
+    return over
+
+
+def stage_tables(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
+    """One table per distinct perception config among the methods (MAP and Memo-MAP share)."""
+    from ..perception.prepare import prepare_table
+
+    tables: dict[str, Path] = {}
+    by_perception: dict[str, Path] = {}
+    for m in plan.methods:
+        spec = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING))
+        key = _digest(spec.to_dict().get("perception", {}))
+        if key not in by_perception:
+            by_perception[key] = prepare_table(data, spec, classifier_path=classifier, workers=plan.workers,
+                                               progress=True)
+        tables[m] = by_perception[key]
+        log(f"  {m}: table {tables[m]}")
+    return tables
+
+
+def plan_jobs(plan: Plan, tables: dict[str, Path]) -> list[Job]:
+    jobs = []
+    for m in plan.methods:
+        for setting_name, setting in plan.settings(m):
+            spec = load_method(m, overrides=method_overrides(plan, m, setting))
+            spec_path = plan.out / "specs" / f"{m}-{setting_name}.toml"
+            if not spec_path.is_file() or load_method(spec_path).hash != spec.hash:
+                spec.save(spec_path)
+            for seed in plan.seeds:
+                out = plan.out / "runs" / m / setting_name / f"seed{seed}"
+                jobs.append(Job(m, setting_name, seed, str(spec_path), str(tables[m]), str(out),
+                                device=plan.device))
+    return jobs
+
+
+def run_job(job: Job) -> str:
+    """Train (or resume, or skip a finished) run. Runs in a worker process or Ray task."""
+    import torch
+
+    from ..policy.trainer import train
+
+    torch.set_num_threads(max(1, job.threads))
+    spec = load_method(job.spec_path)
+    train(spec, Path(job.table), out=Path(job.out), seed=job.seed, device=job.device, progress=False)
+    return job.key
+
+
+def is_done(job: Job) -> bool:
+    return (Path(job.out) / "done.json").is_file()
+
+
+# -- results --------------------------------------------------------------------------------
+def _metric_row(summary: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "return": summary["mean_return"],
+        "accuracy": summary["accuracy"],
+        "recognition": summary["recognition_rate"],
+        "path_m": summary["path_m"],
+        "path_steps": summary["path_steps"],
+        "stop_rate": summary["stop_rate"],
+        "steps": summary["steps_per_episode"],
+    }
+
+
+def run_rows(job: Job, setting: dict[str, float]) -> list[dict[str, Any]]:
+    """Rows of one run from its ``evals.jsonl`` (one JSON object per epoch x split)."""
+    path = Path(job.out) / "evals.jsonl"
+    rows = []
+    if not path.is_file():
+        return rows
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    last = max((r["episodes"] for r in records), default=None)
+    for r in records:
+        rows.append({
+            "method": job.method, "seed": job.seed, "setting": job.setting, **setting,
+            "episodes": int(r["episodes"]), "final": r["episodes"] == last and is_done(job),
+            "split": r["split"], **_metric_row(r), "wall_s": float(r.get("wall_s", float("nan"))),
+        })
+    return rows
+
+
+def baseline_rows(plan: Plan, table: Path, splits: Sequence[str], log) -> list[dict[str, Any]]:
+    """Random (one per seed), passive and oracle under every setting, on every split."""
+    from ..env.baselines import PassivePolicy, RandomPolicy
+    from ..env.config import EnvConfig
+    from ..env.evaluate import evaluate_policy
+    from ..env.oracle import OraclePolicy
+    from ..perception.table import ObservationTable
+
+    cache = plan.out / "baselines.json"
+    done = json.loads(cache.read_text()) if cache.is_file() else {}
+    tbl = ObservationTable.load(table)
+    rows = []
+    for setting_name, setting in plan.all_settings():
+        config = EnvConfig(thre=setting["thre"], C=setting["C"])
+        for split in splits:
+            policies = [("passive", 0, PassivePolicy()), ("oracle", 0, OraclePolicy(tbl, config))]
+            policies += [("random", s, RandomPolicy(seed=s)) for s in plan.seeds]
+            for name, seed, policy in policies:
+                key = f"{setting_name}|{split}|{name}|{seed}"
+                if key not in done:
+                    done[key] = evaluate_policy(tbl, split, policy, config).summary()
+                rows.append({
+                    "method": name, "seed": seed, "setting": setting_name, **setting, "episodes": -1,
+                    "final": True, "split": split, **_metric_row(done[key]), "wall_s": 0.0,
+                })
+    atomic_write_text(cache, json.dumps(done, indent=1))
+    return rows
+
+
+def pick_trajectory_start(table_path: Path, config) -> tuple[int, int]:
+    """A hard-test (scene index, start view) where the passive view fails and the oracle
+    succeeds: the kind of start Fig. 8 shows. Deterministic."""
+    from ..perception.table import ObservationTable
+
+    tbl = ObservationTable.load(table_path)
+    correct = tbl.correct(config.thre)
+    for s in tbl.scene_indices("hard"):
+        vis = np.nan_to_num(tbl.visible[s], nan=1.0)
+        candidates = np.flatnonzero(~correct[s])
+        if len(candidates) and correct[s].any():
+            return int(s), int(candidates[np.argmin(vis[candidates])])
+    s = int(tbl.scene_indices("hard")[0]) if len(tbl.scene_indices("hard")) else 0
+    return s, 0
+
+
+def trajectory_rows(plan: Plan, jobs: list[Job], tables: dict[str, Path]) -> list[dict[str, Any]]:
+    """The greedy episode of each final default-setting policy (seed 0), random and oracle,
+    from the same hard-test start."""
+    from ..env.baselines import RandomPolicy
+    from ..env.config import EnvConfig
+    from ..env.evaluate import evaluate_policy
+    from ..env.oracle import OraclePolicy
+    from ..perception.table import ObservationTable
+    from ..policy.agent import load_policy
+
+    config = EnvConfig()
+    first = tables[plan.methods[0]]
+    scene, start = pick_trajectory_start(first, config)
+    out = []
+
+    def one(name: str, seed: int, policy, table_path: Path) -> None:
+        tbl = ObservationTable.load(table_path)
+        context = int(tbl.contexts[scene])
+        res = evaluate_policy(tbl, "hard", policy, config, contexts=[context])
+        i = int(np.flatnonzero(res.start_view == start)[0])
+        views = [int(v) for v in res.trajectories[i] if v >= 0]
+        out.append({
+            "method": name, "seed": seed, "setting": "default", "scene": tbl.scenes[scene],
+            "context": context, "split": "hard", "start_view": start, "views": views,
+            "recognized": bool(res.recognized[i]), "correct": bool(res.correct[i]), "return": float(res.ret[i]),
+        })
+
+    for job in jobs:
+        if job.setting == "default" and job.seed == 0 and is_done(job):
+            one(job.method, 0, load_policy(job.out), Path(job.table))
+    tbl = ObservationTable.load(first)
+    one("random", 0, RandomPolicy(seed=0), first)
+    one("oracle", 0, OraclePolicy(tbl, config), first)
+    return out
+
+
+# -- the driver -----------------------------------------------------------------------------
+def check_out_dir(plan: Plan) -> None:
+    """Refuse a results directory written by another configuration."""
+    meta = plan.out / "ablation.json"
+    if not meta.is_file():
+        if plan.out.exists() and any(plan.out.iterdir()):
+            raise AblationError(
+                f"--out {plan.out} exists, is not empty and holds no ablation.json: choose a new directory"
+            )
+        return
+    old = json.loads(meta.read_text()).get("fingerprint")
+    new = json.loads(json.dumps(plan.fingerprint(), default=str))
+    if old != new:
+        diff = sorted(k for k in set(old or {}) | set(new) if (old or {}).get(k) != new.get(k))
+        raise AblationError(
+            f"--out {plan.out} holds an ablation of another configuration (differs in {diff}); "
+            "use a new --out directory"
+        )
+
+
+def write_meta(plan: Plan, data: Path | None, status: str) -> None:
+    meta = {
+        "preset": plan.preset.get("name"),
+        "fingerprint": plan.fingerprint(),
+        "methods": plan.methods,
+        "seeds": len(plan.seeds),
+        "sweeps": plan.sweeps,
+        "sweep_methods": plan.sweep_methods,
+        "backend": plan.backend,
+        "data_root": str(data) if data else None,
+        "stages": {k: round(v, 2) for k, v in plan.stages.items()},
+        "status": status,
+    }
+    atomic_write_text(plan.out / "ablation.json", json.dumps(meta, indent=1, default=str))
+
+
+def run_ablation(plan: Plan, *, log=print) -> Path:
+    """Run (or resume) the whole ablation; returns the results file."""
+    from .backends import run_jobs
+
+    check_out_dir(plan)
+    plan.out.mkdir(parents=True, exist_ok=True)
+    write_meta(plan, None, "running")
+    with _Stage(plan, "world", log):
+        data = stage_world(plan, log)
+    with _Stage(plan, "classifier", log):
+        classifier = stage_classifier(plan, data, log)
+    with _Stage(plan, "tables", log):
+        tables = stage_tables(plan, data, classifier, log)
+    write_meta(plan, data, "training")
+    jobs = plan_jobs(plan, tables)
+    with _Stage(plan, "training", log):
+        todo = [j for j in jobs if not is_done(j)]
+        log(f"  {len(jobs)} runs, {len(jobs) - len(todo)} finished already, {len(todo)} to run "
+            f"on the {plan.backend} backend with {plan.workers} worker(s)")
+        run_jobs(todo, backend=plan.backend, workers=plan.workers, log=log)
+    with _Stage(plan, "evaluation", log):
+        rows = []
+        for job in jobs:
+            setting = dict(plan.settings(job.method))[job.setting]
+            rows += run_rows(job, setting)
+        splits = sorted({r["split"] for r in rows}) or ["train", "hard"]
+        rows += baseline_rows(plan, tables[plan.methods[0]], splits, log)
+        results = write_csv(plan.out / "results.csv", rows, RESULT_COLUMNS)
+        traj = trajectory_rows(plan, jobs, tables)
+        atomic_write_text(plan.out / "trajectories.json", json.dumps(traj, indent=1))
+    write_meta(plan, data, "reporting")
+    with _Stage(plan, "report", log):
+        from .report import write_report
+
+        write_meta(plan, data, "done")
+        report = write_report(plan.out)
+        log(f"  report: {report}")
+    write_meta(plan, data, "done")
+    return results
+
+
+__all__ = [
+    "AblationError", "ConfigError", "Job", "Plan", "make_plan", "parse_sweeps", "run_ablation", "run_job",
+]
