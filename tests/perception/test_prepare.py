@@ -154,3 +154,28 @@ def test_decompose_without_segmenter_is_refused(tiny_world, tiny_classifier, tmp
     m.write_text(method_toml.format(decompose="true").replace('segmenter = { name = "gt" }\n', ""))
     with pytest.raises(ValueError, match="needs a perception.segmenter"):
         prep.plan_table(tiny_world, m, classifier_path=tiny_classifier)
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
+def test_ray_backend_builds_the_same_table(world_605, tiny_classifier, tmp_path):
+    """Scenes sharded over Ray tasks (a local 2-CPU instance) give the local build's table."""
+    ray = pytest.importorskip("ray")
+    from uevavd.perception.prepare import prepare_table, prepare_table_ray
+    from uevavd.perception.table import ObservationTable
+    from uevavd.testing.worlds import write_tiny_world
+
+    world = write_tiny_world(tmp_path / "w", contexts=(1, 26, 31), train605=False)
+    method = dict(classifier_path=tiny_classifier,
+                  overrides={"perception.encoder.name": "resnet18", "perception.encoder.weights": "random"})
+    local = prepare_table(world, "ibe_map", out_dir=tmp_path / "local", workers=1, progress=False, **method)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = prepare_table_ray(world, "ibe_map", out_dir=tmp_path / "ray", shards=2, progress=False, **method)
+    finally:
+        ray.shutdown()
+    assert remote.name == local.name  # the same key
+    a, b = ObservationTable.load(local), ObservationTable.load(remote)
+    assert list(a.scenes) == list(b.scenes) == ["001", "026", "031"]
+    for name in ("features", "probs", "boxes"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert not (tmp_path / "ray" / f"{remote.name}.partial").exists()

@@ -255,14 +255,16 @@ def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict
 
 def stage_tables(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
     """One table per distinct perception config among the methods (MAP and Memo-MAP share)."""
-    from ..perception.prepare import prepare_table
+    from ..perception.prepare import prepare_table, prepare_table_ray
 
     tables: dict[str, Path] = {}
     by_perception: dict[str, Path] = {}
     for m in plan.methods:
         spec = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING))
         key = _digest(spec.to_dict().get("perception", {}))
-        if key not in by_perception:
+        if key not in by_perception and plan.backend == "ray":
+            by_perception[key] = prepare_table_ray(data, spec, classifier_path=classifier, progress=True)
+        elif key not in by_perception:
             by_perception[key] = prepare_table(data, spec, classifier_path=classifier, workers=plan.workers,
                                                progress=True)
         tables[m] = by_perception[key]

@@ -58,6 +58,11 @@ def add_prepare(p: argparse.ArgumentParser):
     p.add_argument("--out", default=None, help="tables folder (default: <cache>/tables)")
     p.add_argument("--workers", type=int, default=2, help="image decoding threads")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help="local: this process; ray: scenes sharded over Ray tasks (a local Ray instance, "
+                        "or the cluster at RAY_ADDRESS; workers must share --out)")
+    p.add_argument("--shards", type=int, default=None,
+                   help="Ray tasks to split the scenes into (default: the cluster's CPUs)")
 
     def run(args) -> int:
         from ..config import parse_override
@@ -70,8 +75,14 @@ def add_prepare(p: argparse.ArgumentParser):
 
         _logging()
         overrides = dict(parse_override(s) for s in args.overrides)
-        path = prepare_table(args.data, args.method, classifier_path=args.classifier, overrides=overrides or None,
-                             out_dir=args.out, workers=args.workers)
+        if args.backend == "ray":
+            from .prepare import prepare_table_ray
+
+            path = prepare_table_ray(args.data, args.method, classifier_path=args.classifier,
+                                     overrides=overrides or None, out_dir=args.out, shards=args.shards)
+        else:
+            path = prepare_table(args.data, args.method, classifier_path=args.classifier,
+                                 overrides=overrides or None, out_dir=args.out, workers=args.workers)
         print(path)
         return 0
 

@@ -21,7 +21,7 @@ import logging
 import os
 import shutil
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -256,11 +256,17 @@ def prepare_table(
     out_dir: str | os.PathLike[str] | None = None,
     workers: int = 2,
     progress: bool = True,
+    only_scenes: Sequence[str] | None = None,
+    assemble: bool = True,
 ) -> Path:
     """Build (or find) the observation table; returns its folder ``<out_dir>/<key>``.
 
     ``out_dir`` defaults to :func:`uevavd.paths.tables_dir`. A finished table with the same
     key is reused; an interrupted build resumes from its finished scenes.
+
+    ``only_scenes`` computes the shards of those scenes only and ``assemble=False`` stops
+    before the table is put together (returning the ``<key>.partial`` folder): this is how
+    :func:`prepare_table_ray` spreads the scenes over workers that share ``out_dir``.
     """
     from tqdm.auto import tqdm
 
@@ -286,7 +292,8 @@ def prepare_table(
     for scene, recs in scenes:
         done = _read_shard(partial / f"{scene}.npz", encoder.feature_dim, k)
         if done is None:
-            todo.append((scene, recs))
+            if only_scenes is None or scene in only_scenes:
+                todo.append((scene, recs))
         else:
             shards[scene] = done
     bar = tqdm(total=len(scenes) * N_VIEWS, initial=len(shards) * N_VIEWS, desc=f"prepare {key[:8]}",
@@ -302,6 +309,8 @@ def prepare_table(
             shards[scene] = arrays
             bar.update(N_VIEWS)
     bar.close()
+    if not assemble:
+        return partial
     names = [s for s, _ in scenes]
     stack = {a: np.stack([shards[s][a] for s in names]) for a in SHARD_ARRAYS}
     config = {
@@ -322,3 +331,83 @@ def prepare_table(
     table.save(final)
     shutil.rmtree(partial, ignore_errors=True)
     return final
+
+
+def _prepare_shards(data_root: str, spec_path: str, classifier_path: str | None, out_dir: str,
+                    scenes: list[str], threads: int) -> list[str]:
+    """A Ray task: the shards of ``scenes``, written into the shared ``<key>.partial`` folder."""
+    import torch
+
+    torch.set_num_threads(max(1, threads))
+    prepare_table(data_root, spec_path, classifier_path=classifier_path, out_dir=out_dir, workers=1,
+                  progress=False, only_scenes=scenes, assemble=False)
+    return scenes
+
+
+def prepare_table_ray(
+    data_root: str | os.PathLike[str],
+    spec_or_method: MethodSpec | str | os.PathLike[str],
+    *,
+    classifier_path: str | os.PathLike[str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    out_dir: str | os.PathLike[str] | None = None,
+    shards: int | None = None,
+    cpus_per_task: float = 1.0,
+    gpus_per_task: float = 0.0,
+    address: str | None = None,
+    progress: bool = True,
+) -> Path:
+    """:func:`prepare_table` with the image -> shard work spread over Ray tasks.
+
+    The scenes still missing are split into ``shards`` groups (default: the cluster's CPUs
+    divided by ``cpus_per_task``); each task builds the perception components itself and
+    writes its scenes' shards into ``<out_dir>/<key>.partial``, which every worker must
+    reach (a shared file system on a cluster). The driver then assembles the table exactly
+    as the local build does, so both give the same table under the same key. A failed task
+    is retried; scenes already written are not recomputed.
+    """
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--backend ray needs Ray: pip install 'uevavd[ray]'") from None
+    from tqdm.auto import tqdm
+
+    p = plan_table(data_root, spec_or_method, classifier_path=classifier_path, overrides=overrides)
+    out_dir = Path(out_dir).expanduser().resolve() if out_dir is not None else tables_dir()
+    final = out_dir / p.key
+    if final.is_dir():
+        try:
+            ObservationTable.load(final, expect_key=p.key)
+            return final
+        except TableError:
+            pass
+    partial = out_dir / f"{p.key}.partial"
+    partial.mkdir(parents=True, exist_ok=True)
+    spec_path = partial / "method.toml"  # the resolved spec, so every task builds the same components
+    p.spec.save(spec_path)
+    k = len(TARGETS)
+    todo = [s for s, _ in p.scenes if _read_shard(partial / f"{s}.npz", p.encoder.feature_dim, k) is None]
+    del p  # the driver's models are not needed while the tasks run
+    if todo:
+        started = not ray.is_initialized()
+        if started:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
+        try:
+            cpus = float(ray.cluster_resources().get("CPU", 1.0))
+            n = max(1, min(len(todo), shards or int(cpus // max(cpus_per_task, 1e-9)) or 1))
+            groups = [todo[i::n] for i in range(n)]
+            task = ray.remote(num_cpus=cpus_per_task, num_gpus=gpus_per_task, max_retries=3,
+                              retry_exceptions=True)(_prepare_shards)
+            refs = [task.remote(str(Path(data_root).expanduser().resolve()), str(spec_path),
+                                None if classifier_path is None else str(classifier_path), str(out_dir), g,
+                                max(1, int(cpus_per_task))) for g in groups]
+            with tqdm(total=len(todo) * N_VIEWS, desc="prepare (ray)", unit="view", disable=not progress) as bar:
+                pending = list(refs)
+                while pending:
+                    ready, pending = ray.wait(pending, num_returns=1)
+                    bar.update(len(ray.get(ready[0])) * N_VIEWS)
+        finally:
+            if started:
+                ray.shutdown()
+    return prepare_table(data_root, spec_path, classifier_path=classifier_path, out_dir=out_dir,
+                         workers=1, progress=False)
