@@ -222,3 +222,25 @@ def test_ray_backend_gives_the_local_results(ablation, tiny):
         keys = ("episodes", "split", "mean_return", "accuracy", "path_m", "stop_rate")
         assert [[e[k] for k in keys] for e in ea] == [[e[k] for k in keys] for e in eb]
         assert is_done(b) and not math.isnan(eb[-1]["mean_return"])
+
+
+def test_full_disk_surfaces_and_keeps_earlier_results(ablation, tiny, monkeypatch):
+    """The disk fills while results.csv is rewritten: the error reaches the caller, the
+    previous results.csv is intact and no temp file is left behind."""
+    import errno
+    import os
+
+    results = ablation["results"]
+    before = results.read_bytes()
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        if ".results.csv." in os.readlink(f"/proc/self/fd/{fd}"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    with pytest.raises(OSError, match="No space left"):
+        run_ablation(_plan(tiny, "out"), log=lambda *_: None)
+    assert results.read_bytes() == before
+    assert not list(results.parent.glob(".results.csv.*"))

@@ -30,6 +30,8 @@ def add_ablate(parser: argparse.ArgumentParser):
     parser.add_argument("--episodes", type=int, default=None, help="training episodes per run (default: the preset's)")
     parser.add_argument("--backend", choices=("local", "ray"), default="local",
                         help="local processes, or Ray tasks (a local Ray instance, or RAY_ADDRESS)")
+    parser.add_argument("--gpus-per-run", type=float, default=0.0,
+                        help="Ray: GPUs each run reserves, fractional to share one (e.g. 0.25 with --device cuda)")
     parser.add_argument("--data", default=None, help="a UEVAVD-layout dataset root (default: the preset's synthetic world)")
     parser.add_argument("--out", required=True, help="results directory (resumes if it holds this ablation)")
     _common(parser)
@@ -43,7 +45,8 @@ def run_ablate(args: argparse.Namespace) -> int:
         plan = make_plan(preset=args.preset, out=args.out, methods=args.methods, seeds=args.seeds,
                          sweeps=parse_sweeps(args.sweep) if args.sweep else None,
                          sweep_methods=args.sweep_methods, data=args.data, workers=args.workers,
-                         backend=args.backend, device=args.device, episodes=args.episodes)
+                         backend=args.backend, device=args.device, episodes=args.episodes,
+                         gpus_per_run=args.gpus_per_run)
         results = run_ablation(plan)
     except AblationError as exc:
         print(f"uevavd ablate: error: {exc}", file=sys.stderr)

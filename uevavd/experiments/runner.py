@@ -72,6 +72,7 @@ class Plan:
     backend: str = "local"
     device: str = "cpu"
     episodes: int | None = None
+    gpus_per_run: float = 0.0
     stages: dict[str, float] = field(default_factory=dict)
 
     def settings(self, method: str) -> list[tuple[str, dict[str, float]]]:
@@ -130,6 +131,7 @@ def make_plan(
     backend: str = "local",
     device: str = "cpu",
     episodes: int | None = None,
+    gpus_per_run: float = 0.0,
 ) -> Plan:
     from ..config import known_methods
 
@@ -160,6 +162,8 @@ def make_plan(
     unknown = [m for m in sweep_methods if m not in methods]
     if unknown:
         raise AblationError(f"--sweep-methods {unknown} are not among --methods {methods}")
+    if not 0.0 <= float(gpus_per_run) <= 8.0:
+        raise AblationError(f"--gpus-per-run {gpus_per_run}: expected a share of a GPU, e.g. 0.25 or 1")
     if backend not in ("local", "ray"):
         raise AblationError(f"--backend {backend!r}: expected 'local' or 'ray'")
     from ..perception.train import TrainSettings
@@ -186,6 +190,7 @@ def make_plan(
         backend=backend,
         device=device,
         episodes=episodes,
+        gpus_per_run=float(gpus_per_run),
     )
 
 
@@ -469,7 +474,7 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
         todo = [j for j in jobs if not is_done(j)]
         log(f"  {len(jobs)} runs, {len(jobs) - len(todo)} finished already, {len(todo)} to run "
             f"on the {plan.backend} backend with {plan.workers} worker(s)")
-        run_jobs(todo, backend=plan.backend, workers=plan.workers, log=log)
+        run_jobs(todo, backend=plan.backend, workers=plan.workers, log=log, gpus_per_job=plan.gpus_per_run)
     with _Stage(plan, "evaluation", log):
         rows = []
         for job in jobs:
