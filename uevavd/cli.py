@@ -9,19 +9,19 @@ import sys
 
 #: name -> ("module:function" that adds its arguments and returns the handler, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
-    "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
-    "synth": ("uevavd.data.synthetic.cli:add_synth", "generate the synthetic UEVAVD world (resumable)"),
-    "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map) on an observation table"),
-    "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run beside random, passive and oracle; table + JSON"),
     "demo": ("uevavd.experiments.cli:add_demo", "the quick preset end to end on the synthetic world"),
     "ablate": ("uevavd.experiments.cli:add_ablate", "compare methods over seeds and reward sweeps; writes results and a report"),
     "report": ("uevavd.experiments.report:add_report", "(re)write DIR/report/report.md, figures and claims from an ablation's files"),
+    "synth": ("uevavd.data.synthetic.cli:add_synth", "generate the synthetic UEVAVD world (resumable)"),
+    "validate": ("uevavd.data.validate:add_validate", "check a dataset root: names, annotations, views, images; exit 1 on problems"),
     "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the ResNet18 recognizer on train_605"),
     "prepare": ("uevavd.perception.cli:add_prepare", "build the observation table of a dataset for a method"),
-    "validate": ("uevavd.data.validate:add_validate", "check a dataset root: names, annotations, views, images; exit 1 on problems"),
+    "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map) on an observation table"),
+    "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run beside random, passive and oracle; table + JSON"),
     "train-sam-small": ("uevavd.perception.sam.cli:add_train_small", "train the small SAM from scratch on a world's ground truth"),
     "finetune-sam": ("uevavd.perception.sam.cli:add_finetune", "fine-tune a SAM checkpoint's mask decoder on ground-truth target masks"),
+    "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
+    "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
 }
 
 

@@ -244,3 +244,13 @@ def test_full_disk_surfaces_and_keeps_earlier_results(ablation, tiny, monkeypatc
         run_ablation(_plan(tiny, "out"), log=lambda *_: None)
     assert results.read_bytes() == before
     assert not list(results.parent.glob(".results.csv.*"))
+
+
+def test_unknown_preset_keys_are_refused(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "bad"\n[ablation]\nseed = 3\n')
+    with pytest.raises(AblationError, match=r"\[ablation\]: unknown key\(s\) \['seed'\].*'seeds'"):
+        make_plan(preset=str(bad), out=tmp_path / "a", data=tmp_path)
+    bad.write_text('name = "bad"\n[worlds]\nsize = 3\n')
+    with pytest.raises(AblationError, match=r"unknown section\(s\) \['worlds'\]"):
+        make_plan(preset=str(bad), out=tmp_path / "a", data=tmp_path)

@@ -61,6 +61,7 @@ def run_ray(jobs: Sequence[Job], *, workers: int, log: Callable, address: str | 
         import ray
     except ImportError:
         raise RuntimeError("--backend ray needs Ray: pip install 'uevavd[ray]'") from None
+    address = address or os.environ.get("RAY_ADDRESS") or None
     started = False
     if not ray.is_initialized():
         ray.init(address=address, num_cpus=None if address else max(workers, 1),

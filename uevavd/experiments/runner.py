@@ -33,6 +33,8 @@ RESULT_COLUMNS = [
 ]
 BASELINES = ("random", "passive", "oracle")
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
+SECTION_KEYS = {"world": {"seed", "size", "per_block"},
+                "ablation": {"methods", "seeds", "sweeps", "sweep_methods"}}
 
 
 class AblationError(ValueError):
@@ -143,6 +145,10 @@ def make_plan(
     if unknown_sections:
         raise AblationError(f"preset {preset!r}: unknown section(s) {unknown_sections}; "
                             f"accepted: {sorted(PRESET_SECTIONS)}")
+    for section, keys in SECTION_KEYS.items():
+        extra = sorted(set(cfg.get(section, {})) - keys)
+        if extra:
+            raise AblationError(f"preset {preset!r} [{section}]: unknown key(s) {extra}; accepted: {sorted(keys)}")
     if data is None and "world" not in cfg:
         raise AblationError(f"preset {preset!r} has no [world] section: pass --data DATASET_ROOT")
     abl = cfg.get("ablation", {})
