@@ -40,6 +40,14 @@ class TableLookup:
         s = self.local[scene][:, None].expand_as(views)
         return self.features[s, views].float(), self.boxes[s, views], self.mask[views]
 
+    def gather_rows(self, scene: torch.Tensor, views: torch.Tensor, seen: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Like :meth:`gather`, but features and boxes only where ``seen`` (B, L) bool, as
+        (N, D) / (N, 4) rows in ``seen.nonzero()`` order; mask (B, L, 7, A) for all."""
+        flat = (self.local[scene][:, None] * self.features.shape[1] + views)[seen]
+        f = self.features.reshape(-1, self.features.shape[-1]).index_select(0, flat).float()
+        return f, self.boxes.reshape(-1, 4).index_select(0, flat), self.mask[views]
+
 
 def random_actions(mask: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """Uniform allowed type, then uniform allowed range for it: (N, 7, A) -> (N,), (N,)."""
@@ -63,14 +71,17 @@ class Learner:
 
     def update(self, batch: EpisodeBatch, lookup: TableLookup) -> tuple[float, torch.Tensor]:
         """One gradient step. Returns (loss, per-episode mean |TD error| (B,))."""
-        feats, boxes, mask = lookup.gather(batch.scene, batch.views)  # (B, T+1, ...)
         head = self.net.head
-        # One unroll over o_0..o_T from the episode start serves Q(s_t, .) and, shifted by
-        # one, the online argmax at s_{t+1} (double DQN); the target net unrolls the same.
-        q_all = self.net(feats, boxes)
+        # Only the observations an episode really had (o_0..o_L, L = its decisions) are
+        # encoded: padding is neither computed nor gathered (see episode_q). One unroll over
+        # o_0..o_L from the episode start serves Q(s_t, .) and, shifted by one, the online
+        # argmax at s_{t+1} (double DQN); the target net evaluates the same observations.
+        seen = observed(batch)  # (B, T+1)
+        feats, boxes, mask = lookup.gather_rows(batch.scene, batch.views, seen)
+        q_all = episode_q(self.net, feats, boxes, seen)
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
-            q_next_target = tuple(q[:, 1:] for q in self.target(feats, boxes))
+            q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, boxes, seen, skip_first=True))
             boot = head.bootstrap(q_next_online, q_next_target, mask[:, 1:])  # (B, T, K)
             y = T.td_target(batch.reward, batch.done, boot, self.gamma)
         q_taken = head.taken(tuple(q[:, :-1] for q in q_all), batch.a_type, batch.a_range)  # (B, T, K)
@@ -88,6 +99,46 @@ class Learner:
         self.updates += 1
         td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
         return float(loss.detach()), td
+
+
+def observed(batch: EpisodeBatch) -> torch.Tensor:
+    """(B, T+1) bool: observation t belongs to the episode (t <= its number of decisions)."""
+    length = batch.valid.sum(1)
+    return torch.arange(batch.views.shape[1], device=length.device)[None] <= length[:, None]
+
+
+def episode_q(net: QNetwork, feats: torch.Tensor, boxes: torch.Tensor, seen: torch.Tensor,
+              *, skip_first: bool = False) -> tuple[torch.Tensor, ...]:
+    """Q-values (B, T+1, n) per branch of padded episodes, computed only where ``seen``
+    (B, T+1) (zeros elsewhere). ``feats`` (N, D) / ``boxes`` (N, 4) hold the seen rows in
+    ``seen.nonzero()`` order. A memoryless estimator reads just those rows (and, with
+    ``skip_first``, not o_0); a recurrent one is unrolled from the episode start, over
+    packed sequences when it offers ``forward_packed`` (else over the padded batch)."""
+    est = net.estimator
+    b, t1 = seen.shape
+    if not est.recurrent:
+        rows = seen
+        if skip_first:
+            rows = seen.clone()
+            rows[:, 0] = False
+            keep = rows[seen]
+            feats, boxes = feats[keep], boxes[keep]
+        s = est(feats[:, None], boxes[:, None])[:, 0]
+    elif hasattr(est, "forward_packed"):
+        rows = seen
+        s = est.forward_packed(feats, boxes, seen)
+    else:
+        rows = seen
+        pf = feats.new_zeros(b, t1, feats.shape[-1])
+        pb = boxes.new_zeros(b, t1, 4)
+        pf[seen], pb[seen] = feats, boxes
+        s = est(pf, pb)[seen]
+    out = []
+    for q in net.head(s):
+        full = q.new_zeros(b, t1, q.shape[-1])
+        full[rows] = q
+        out.append(full)
+    return tuple(out)
 
 
 class GreedyPolicy:

@@ -29,6 +29,22 @@ class GRUState(nn.Module):
         h, _ = self.gru(self.encoder(features, boxes))
         return torch.relu(self.out(h))
 
+    def forward_packed(self, features: torch.Tensor, boxes: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        """s_t of the observations episodes really had: ``seen`` (B, T) bool, True on a
+        prefix of each row (o_0..o_L); ``features`` (N, D) / ``boxes`` (N, 4) those rows in
+        ``seen.nonzero()`` order -> (N, state_dim), same order. Equals ``forward`` on the
+        padded batch at the seen positions, without computing the padding."""
+        from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
+
+        b, t = seen.shape
+        g = self.encoder(features, boxes)
+        padded = g.new_zeros(b, t, g.shape[-1])
+        padded[seen] = g
+        lengths = seen.sum(1).cpu()
+        packed = pack_padded_sequence(padded, lengths, batch_first=True, enforce_sorted=False)
+        h, _ = pad_packed_sequence(self.gru(packed)[0], batch_first=True, total_length=t)
+        return torch.relu(self.out(h[seen]))
+
     def initial_hidden(self, n: int, device: torch.device | str = "cpu") -> torch.Tensor:
         return torch.zeros(n, self.hidden_dim, device=device)
 
