@@ -81,7 +81,8 @@ def main() -> int:
             rows["oracle (ibe table)"] = score(table, OraclePolicy(table, cfg))
         print(f"trained {method} in {wall:.0f} s ({args.episodes / wall:.0f} episodes/s): {run}")
 
-    print(f"\nmean return on the training contexts ({args.episodes} training episodes, seed {args.seed})")
+    print(f"\nmean return on the training contexts ({args.episodes} training episodes, seed {args.seed}"
+          f"{', overrides ' + ' '.join(args.set) if args.set else ''})")
     gap = rows["oracle"] - rows["passive"]
     ok = True
     for name, value in rows.items():
