@@ -163,3 +163,62 @@ def test_occlusion_properties_over_the_quick_world():
             assert clear >= 0.1 and hidden >= 0.1, f"context {c}: {clear:.0%} clear, {hidden:.0%} hidden"
         means[split_of(c)].append(mean)
     assert np.mean(means["hard"]) < np.mean(means["train"])
+
+
+def test_train_605_stages_cover_the_grid_and_both_terrains():
+    from uevavd.data.grid import N_VIEWS
+    from uevavd.data.synthetic.world import TRAIN_STAGES, training_stage_terrain, training_stages
+
+    stages = training_stages(0)
+    assert stages.shape == (N_VIEWS,) and np.array_equal(stages, training_stages(0))
+    counts = np.bincount(stages, minlength=TRAIN_STAGES)
+    assert len(counts) == TRAIN_STAGES and counts.min() >= N_VIEWS // TRAIN_STAGES
+    # every stage's views spread over the grid (all five altitudes), not one corner of it
+    for k in range(TRAIN_STAGES):
+        assert len({view_coords(v)[2] for v in np.flatnonzero(stages == k)}) == NZ
+    terrains = [training_stage_terrain(k) for k in range(TRAIN_STAGES)]
+    assert "urban" in terrains and "woodland" in terrains
+    assert terrains.count("urban") > terrains.count("woodland")
+
+
+def test_train_605_views_are_context_like_and_fully_visible():
+    from uevavd.data.synthetic.render import _Prep, render_unoccluded_view
+    from uevavd.data.synthetic.world import build_training_stage, training_stages
+
+    views = np.flatnonzero(training_stages(0) == 1)[::6]
+    scenes = [build_training_stage("sedan", seed=0, stage=k) for k in (0, 1)]
+    assert scenes[0].target == "sedan" and {"building", "tree", "vehicle"} <= set(scenes[1].categories.values())
+    assert not np.allclose(scenes[0].sun_dir, scenes[1].sun_dir), "each stage has its own sun"
+    # a stage is the same for the five targets: the background says nothing about the class
+    suv = build_training_stage("suv", seed=0, stage=1)
+    assert suv.target == "suv" and np.array_equal(suv.sun_dir, scenes[1].sun_dir)
+    assert np.array_equal(suv.ground_rgb, scenes[1].ground_rgb) and suv.categories == scenes[1].categories
+    other = scenes[1].prims["h_inst"] != TARGET_ID
+    assert np.array_equal(suv.prims["h_planes"][suv.prims["h_inst"] != TARGET_ID], scenes[1].prims["h_planes"][other])
+    a, b = render_view(suv, 300, 32), render_view(scenes[1], 300, 32)
+    assert ((a.seg == TARGET_ID) != (b.seg == TARGET_ID)).any()
+    assert not np.array_equal(render_view(scenes[0], 300, 32).rgb, render_view(scenes[1], 300, 32).rgb)
+    scene, prep = scenes[1], _Prep(scenes[1])
+    hidden = 0
+    for v in views:
+        plain = render_view(scene, int(v), 32, prep)
+        view = render_unoccluded_view(scene, int(v), 32, prep)
+        assert view.visible == 1.0 and not view.occluders
+        # only objects that hid the target are left out: the target and the ground stay as rendered
+        changed = plain.seg != view.seg
+        assert {scene.categories[int(i)] for i in np.unique(plain.seg[changed])} <= {"building", "tree", "vehicle"}
+        assert (view.seg[plain.seg == TARGET_ID] == TARGET_ID).all()
+        assert changed.any() == bool(plain.occluders)
+        hidden += bool(plain.occluders)
+        assert (view.seg != TARGET_ID).mean() > 0.5  # background and clutter around the target
+        assert len(np.unique(view.seg)) >= 3
+    assert 0 < hidden < len(views), "some views need an object left out, some do not"
+
+
+def test_excluded_instances_are_not_seen_but_cast_shadows():
+    scene = _with_building(build_unoccluded("suv", seed=0), (-25.0, -25.0), 12.0, 40.0)
+    v = view_index(0, 0, 0)
+    view = render_view(scene, v, 32)
+    assert view.visible == 0.0 and view.occluders == (999,)
+    clear = render_view(scene, v, 32, exclude=(999,))
+    assert clear.visible == 1.0 and not (clear.seg == 999).any() and not clear.occluders

@@ -13,7 +13,7 @@ import pytest
 
 from uevavd.cli import main
 from uevavd.data import layout
-from uevavd.data.grid import N_VIEWS
+from uevavd.data.grid import N_VIEWS, view_coords
 from uevavd.data.synthetic import render_context, write_world
 from uevavd.data.synthetic.cli import parse_contexts
 from uevavd.data.synthetic.writer import scene_complete
@@ -132,3 +132,55 @@ def test_cli_reports_bad_input(tmp_path, capsys):
     assert main(["synth", "--out", str(tmp_path / "w"), "--contexts", "0-3", "--quiet"]) == 2
     assert "context id 0 is out of range" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
+
+
+def _written_train_605(folder: Path):
+    meta = json.loads((folder / layout.SCENE_META).read_text())
+    cats = {int(k): v for k, v in json.loads((folder / layout.SEG_DIR / layout.CATEGORIES).read_text()).items()}
+    segs = {stem: cv2.imread(str(folder / layout.SEG_DIR / f"{stem}.png"), cv2.IMREAD_UNCHANGED)
+            for stem in meta["visible"]}
+    return meta, cats, segs
+
+
+def test_train_605_stages_are_written_in_one_id_space(tmp_path, monkeypatch):
+    from uevavd.data.synthetic import writer
+
+    jobs = writer._jobs_of
+
+    def two_stages(name, seed):  # the first two stages, hatchback and sedan, three views each
+        for stage, scene, views, render in jobs(name, seed):
+            if stage == 2:
+                return
+            if scene.target in ("hatchback", "sedan"):
+                yield stage, scene, views[:3], render
+
+    monkeypatch.setattr(writer, "_jobs_of", two_stages)
+    meta = writer.write_scene(tmp_path, "train_605", size=SIZE, seed=0)
+    assert meta["split"] == "train_605" and meta["target"] is None and len(meta["stages"]) == 2
+    assert len(meta["stage_of_view"]) == N_VIEWS
+    meta, cats, segs = _written_train_605(tmp_path / "train_605")
+    assert len(segs) == 12 and set(meta["visible"].values()) == {1.0}
+    assert [k for k, v in cats.items() if v == "target"] == [1]
+    ids = {stem: set(np.unique(s).tolist()) - {0, 1} for stem, s in segs.items()}
+    assert all(i <= set(cats) for i in ids.values())
+    stages = np.asarray(meta["stage_of_view"])
+
+    def objects(stage, target):
+        return set().union(*(ids[layout.view_stem(*view_coords(int(v)), target, "train_605")]
+                             for v in np.flatnonzero(stages == stage)[:3]))
+
+    # one stage is one background for every target; the two stages' objects never share an id
+    assert objects(0, "hatchback") & objects(0, "sedan")
+    assert objects(0, "hatchback") and objects(1, "hatchback")
+    assert not (objects(0, "hatchback") | objects(0, "sedan")) & (objects(1, "hatchback") | objects(1, "sedan"))
+
+
+@pytest.mark.slow
+def test_train_605_is_unoccluded_and_consistent(tmp_path):
+    from uevavd.data.synthetic.writer import write_scene
+
+    write_scene(tmp_path, "train_605", size=SIZE, seed=0)
+    meta, cats, segs = _written_train_605(tmp_path / "train_605")
+    assert len(segs) == 5 * N_VIEWS and set(meta["visible"].values()) == {1.0}
+    assert {v["terrain"] for v in meta["stages"]} == {"urban", "woodland"}
+    assert set().union(*(np.unique(s).tolist() for s in segs.values())) <= set(cats)

@@ -34,12 +34,14 @@ class View:
     """One rendered view: ``rgb`` (H, W, 3) uint8; ``seg`` (H, W) uint16 instance ids;
     ``box`` (4,) int32 XYXY pixels over visible target pixels, x2/y2 exclusive,
     [0, 0, 0, 0] when none is visible; ``visible`` float: visible target pixels / target
-    pixels with occluders removed."""
+    pixels with occluders removed; ``occluders``: sorted instance ids drawn over the
+    target's pixels (empty when it is fully visible)."""
 
     rgb: np.ndarray
     seg: np.ndarray
     box: np.ndarray
     visible: float
+    occluders: tuple[int, ...] = ()
 
 
 @dataclass
@@ -183,11 +185,13 @@ def _pixel_dirs(size: int, basis: np.ndarray) -> np.ndarray:
     return (focal_px(size) * f)[None, None] + c[None, :, None] * right + (-c)[:, None, None] * up
 
 
-def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *, cull: bool = True) -> View:
+def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *, cull: bool = True,
+                exclude: tuple[int, ...] = ()) -> View:
     """Render one viewpoint (grid index 0..604) of ``scene`` at ``size`` x ``size`` px.
 
     ``cull=False`` casts every primitive over the whole frame (the slow reference the
-    benchmark compares against; the images are identical)."""
+    benchmark compares against; the images are identical). ``exclude``: instance ids the
+    camera does not see (they still cast their shadows)."""
     prep = prep or _Prep(scene)
     p = prep.p
     origin = view_coords(view)
@@ -203,6 +207,9 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     e_rects = _rects(prep.e_corners, origin, basis, size, fpx)
     if not cull:
         g_rects[:], e_rects[:] = (0, size, 0, size), (0, size, 0, size)
+    if len(exclude):
+        g_rects[np.isin(p["h_inst"][prep.g_start], exclude)] = 0
+        e_rects[np.isin(p["e_inst"], exclude)] = 0
     for g, (y0, y1, x0, x1) in enumerate(g_rects):
         if y0 >= y1 or x0 >= x1:
             continue
@@ -241,14 +248,31 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     seg = seg.reshape(size, size)
     rgb = _shade(scene, prep, origin, dirs.reshape(-1, 3), pts, ground_rgb, h, e, pid).reshape(size, size, 3)
     vis = seg == TARGET_ID
-    full = int(np.isfinite(ttar).sum())
+    whole = np.isfinite(ttar)
+    full = int(whole.sum())
     n_vis = int(vis.sum())
     if n_vis:
         ys, xs = np.nonzero(vis)
         bx = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.int32)
     else:
         bx = np.zeros(4, np.int32)
-    return View(rgb=rgb, seg=seg, box=bx, visible=float(n_vis / full) if full else 0.0)
+    occluders = tuple(int(i) for i in np.unique(seg[whole & ~vis])) if n_vis < full else ()
+    return View(rgb=rgb, seg=seg, box=bx, visible=float(n_vis / full) if full else 0.0, occluders=occluders)
+
+
+def render_unoccluded_view(scene: Scene, view: int, size: int, prep: _Prep | None = None) -> View:
+    """Render a view with every object that would hide part of the target left out of it
+    (their shadows stay, as those of objects just outside the crop would): the target is
+    fully visible, the rest of the scene as it is. One render when nothing hides the
+    target; otherwise the objects drawn over it are left out and the view rendered again,
+    until none is (an object behind a removed one may show up in its place)."""
+    prep = prep or _Prep(scene)
+    v = render_view(scene, view, size, prep)
+    exclude: tuple[int, ...] = ()
+    while v.occluders:
+        exclude = tuple(sorted({*exclude, *v.occluders}))
+        v = render_view(scene, view, size, prep, exclude=exclude)
+    return v
 
 
 class _ShadowMap:

@@ -9,7 +9,7 @@ from ``numpy.random.default_rng([seed, context_id])``; the same inputs give the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,6 +22,13 @@ from .vehicles import MODELS, add_vehicle, vehicle_height, vehicle_length
 BLOCK_TARGETS: tuple[str, ...] = ("hatchback", "pickup", "sportscar", "sedan", "suv")
 TARGET_ID = 1
 TARGET_YAW = np.pi / 2  # heading +y (north)
+#: Sun elevation range (degrees) per terrain.
+SUN_ELEVATION = {"urban": (35.0, 72.0), "woodland": (28.0, 65.0)}
+#: ``train_605`` is rendered in this many context-like stages per target (each viewpoint in
+#: one of them, see :func:`training_stages`), so that the classifier's crops see the
+#: backgrounds, light and shadows of the contexts; every ``WOODLAND_EVERY``-th stage is woodland.
+TRAIN_STAGES = 20
+WOODLAND_EVERY = 5
 
 _CAR_PAINTS = (
     (0.75, 0.12, 0.10), (0.92, 0.92, 0.90), (0.08, 0.08, 0.09), (0.15, 0.25, 0.55),
@@ -112,8 +119,9 @@ def _add_building(prims: Primitives, ids: _Ids, rng, cx, cy, size_x, size_y, hei
                        (0.55, 0.56, 0.57))
 
 
-def _urban(prims: Primitives, ids: _Ids, rng, target: str, ground_first: int):
-    """Street scene in a local frame mirrored by (mx, my); the target is not mirrored."""
+def _urban(prims: Primitives, ids: _Ids, rng, half_t: float):
+    """Street scene in a local frame mirrored by (mx, my); the target (``half_t``: half its
+    length) is not mirrored."""
     mx = float(rng.choice([-1.0, 1.0]))
     my = float(rng.choice([-1.0, 1.0]))
     road_w = rng.uniform(7.0, 12.0)
@@ -179,7 +187,6 @@ def _urban(prims: Primitives, ids: _Ids, rng, target: str, ground_first: int):
                 _add_tree(prims, ids, rng, mx * (x_local + rng.uniform(-0.3, 0.3)), y, clear_origin=0.5)
             y += rng.uniform(6.0, 11.0)
     # parked cars in both parking lanes
-    half_t = vehicle_length(target) / 2
     names = sorted(MODELS)
     for lane_x, yaw in ((0.0, np.pi / 2), (road_w - 2 * curb, -np.pi / 2)):
         for direction in (1.0, -1.0):
@@ -252,6 +259,25 @@ def _finish(name, context, split, terrain, target, prims, ids, strips, rng, grou
     )
 
 
+def _build(name: str, context: int | None, split: str, terrain: str, target: str, rng,
+           half_length: float | None = None) -> Scene:
+    """A context-like scene around ``target`` (urban street or woodland clearing); parked cars
+    keep clear of a target ``half_length`` long (default: the target's own half length)."""
+    prims = Primitives()
+    # ids: 1 target, 2..5 ground regions + strips (built last, ids reserved here), objects after
+    n_ground = 4 + 8
+    ids = _Ids({TARGET_ID: "target", **{TARGET_ID + 1 + k: "ground" for k in range(n_ground)}})
+    add_vehicle(prims, target, centre=(0.0, 0.0), yaw=TARGET_YAW, instance=TARGET_ID)
+    if terrain == "urban":
+        strips = _urban(prims, ids, rng, vehicle_length(target) / 2 if half_length is None else half_length)
+    else:
+        strips = _woodland(prims, ids, rng, target)
+    for k in range(n_ground):  # drop the reserved ids; build_ground names the ones it uses
+        ids.categories.pop(TARGET_ID + 1 + k)
+    return _finish(name, context, split, terrain, target, prims, ids, strips, rng, TARGET_ID + 1,
+                   SUN_ELEVATION[terrain])
+
+
 def build_context(context_id: int, *, seed: int, target: str | None = None) -> Scene:
     """The scene of context ``context_id`` (1..150) for a world seed; ``target`` overrides
     the block's target (tests use this to place another model in the same context)."""
@@ -260,20 +286,53 @@ def build_context(context_id: int, *, seed: int, target: str | None = None) -> S
     split = split_of(cid)
     rng = np.random.default_rng([int(seed), cid])
     terrain = "woodland" if split == "hard" else "urban"
-    prims = Primitives()
-    # ids: 1 target, 2..5 ground regions + strips (built last, ids reserved here), objects after
-    n_ground = 4 + 8
-    ids = _Ids({TARGET_ID: "target", **{TARGET_ID + 1 + k: "ground" for k in range(n_ground)}})
-    add_vehicle(prims, target, centre=(0.0, 0.0), yaw=TARGET_YAW, instance=TARGET_ID)
-    if terrain == "urban":
-        strips = _urban(prims, ids, rng, target, TARGET_ID + 1)
-        elev = (35.0, 72.0)
-    else:
-        strips = _woodland(prims, ids, rng, target)
-        elev = (28.0, 65.0)
-    for k in range(n_ground):  # drop the reserved ids; build_ground names the ones it uses
-        ids.categories.pop(TARGET_ID + 1 + k)
-    return _finish(scene_name(cid), cid, split, terrain, target, prims, ids, strips, rng, TARGET_ID + 1, elev)
+    return _build(scene_name(cid), cid, split, terrain, target, rng)
+
+
+def training_stage_terrain(stage: int) -> str:
+    """Terrain of ``train_605`` stage ``stage``: every ``WOODLAND_EVERY``-th stage is woodland."""
+    return "woodland" if stage % WOODLAND_EVERY == WOODLAND_EVERY - 1 else "urban"
+
+
+def training_stages(seed: int) -> np.ndarray:
+    """(605,) int: the ``train_605`` stage (0..TRAIN_STAGES-1) each viewpoint is rendered in.
+    A seeded permutation dealt round-robin, so every stage's views spread over the grid; the
+    same assignment for every target (held-out viewpoints meet every stage)."""
+    from ..grid import N_VIEWS
+
+    perm = np.random.default_rng([int(seed), 7605]).permutation(N_VIEWS)
+    stages = np.empty(N_VIEWS, np.int64)
+    stages[perm] = np.arange(N_VIEWS) % TRAIN_STAGES
+    return stages
+
+
+def build_training_stage(target: str, *, seed: int, stage: int) -> Scene:
+    """Stage ``stage`` of the scene ``train_605`` with ``target`` at the origin: a context-like
+    scene (buildings, trees, parked cars, its own sun and ground) drawn from
+    ``default_rng([seed, 605, stage])``, independent of every context and the same for the
+    five targets (only the target differs), so that the background says nothing about the
+    class. Views are rendered from it without the objects that hide the target in that view
+    (:func:`render.render_unoccluded_view`)."""
+    if target not in TARGETS:
+        raise ValueError(f"unknown target {target!r}: expected one of {list(TARGETS)}")
+    if not 0 <= stage < TRAIN_STAGES:
+        raise ValueError(f"stage={stage}: expected 0..{TRAIN_STAGES - 1}")
+    rng = np.random.default_rng([int(seed), 605, int(stage)])
+    longest = max(vehicle_length(m) for m in MODELS) / 2  # parked cars clear of any of the five
+    scene = _build("train_605", None, "train_605", training_stage_terrain(stage), BLOCK_TARGETS[0], rng, longest)
+    return with_target(scene, target)
+
+
+def with_target(scene: Scene, target: str) -> Scene:
+    """The same scene with model ``target`` in place of its target (same id, pose and paint)."""
+    if target not in TARGETS:
+        raise ValueError(f"unknown target {target!r}: expected one of {list(TARGETS)}")
+    new = Primitives()
+    add_vehicle(new, target, centre=(0.0, 0.0), yaw=TARGET_YAW, instance=TARGET_ID)
+    fresh = new.arrays()
+    keep = scene.prims["h_inst"] != TARGET_ID
+    prims = {k: (np.concatenate([fresh[k], v[keep]]) if k.startswith("h_") else v) for k, v in scene.prims.items()}
+    return replace(scene, target=target, prims=prims, look_at=np.array([0.0, 0.0, vehicle_height(target) / 2]))
 
 
 def build_unoccluded(target: str, *, seed: int, scene: str = "00") -> Scene:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -28,13 +28,23 @@ import numpy as np
 from .. import layout
 from ..grid import N_VIEWS, view_coords
 from ..splits import CLASSIFIER_SCENE, TARGETS, UNOCCLUDED_SCENE, check_context, scene_name
-from .render import _Prep, focal_px, render_view
-from .world import BLOCK_TARGETS, Scene, build_context, build_unoccluded
+from .render import _Prep, focal_px, render_unoccluded_view, render_view
+from .world import (
+    BLOCK_TARGETS,
+    TARGET_ID,
+    TRAIN_STAGES,
+    Scene,
+    build_context,
+    build_training_stage,
+    build_unoccluded,
+    training_stages,
+    with_target,
+)
 
 FORMAT = "uevavd-synthetic"
 #: Generator version: bump it whenever the world or the renderer changes what they write,
 #: so that resumed or cached worlds written by an older generator are redone.
-VERSION = 2
+VERSION = 3
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
@@ -63,12 +73,29 @@ def _scene_jobs(contexts: Sequence[int], include_unoccluded: bool) -> list[str]:
     return names
 
 
-def _scenes_of(name: str, seed: int) -> Iterator[Scene]:
-    if name in (UNOCCLUDED_SCENE, CLASSIFIER_SCENE):
+def _jobs_of(name: str, seed: int) -> Iterator[tuple[int, Scene, np.ndarray, Callable]]:
+    """(stage, scene, view indices, render function) that make up scene folder ``name``;
+    ``stage`` numbers the train_605 stages (one background for the five targets), else 0."""
+    if name == UNOCCLUDED_SCENE:
         for target in TARGETS:
-            yield build_unoccluded(target, seed=seed, scene=name)
+            yield 0, build_unoccluded(target, seed=seed, scene=name), np.arange(N_VIEWS), render_view
+    elif name == CLASSIFIER_SCENE:
+        stages = training_stages(seed)
+        for k in range(TRAIN_STAGES):
+            base = build_training_stage(TARGETS[0], seed=seed, stage=k)
+            for target in TARGETS:
+                yield k, with_target(base, target), np.flatnonzero(stages == k), render_unoccluded_view
     else:
-        yield build_context(int(name), seed=seed)
+        yield 0, build_context(int(name), seed=seed), np.arange(N_VIEWS), render_view
+
+
+def _id_shift(categories: dict[int, str], offset: int) -> np.ndarray:
+    """Lookup table of new instance ids: 0 (none) and the target keep theirs, every other id
+    i becomes i - 1 + offset (the identity for offset 0)."""
+    shift = np.arange(max(categories) + 1, dtype=np.int64)
+    if offset:
+        shift[TARGET_ID + 1:] += offset - 1
+    return shift
 
 
 def _views_in(name: str) -> int:
@@ -105,23 +132,38 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
     files: dict[str, str] = {}
     visible: dict[str, float] = {}
     categories: dict[int, str] = {}
+    stages: list[dict] = []
+    order: list[tuple[tuple[int, int], str]] = []
     first = None
-    for scene in _scenes_of(name, seed):
+    offset, current, shift = 0, None, None
+    for stage, scene, views, render in _jobs_of(name, seed):
         first = first or scene
         prep = _Prep(scene)
-        categories.update(scene.categories)
-        for v in range(N_VIEWS):
-            x, y, z = view_coords(v)
+        if stage != current:
+            # train_605's stages are separate scenes: their object ids are shifted into one id space
+            current = stage
+            shift = _id_shift(scene.categories, offset)
+            categories.update({int(shift[i]): c for i, c in scene.categories.items()})
+            offset = max(categories)
+            if offset > np.iinfo(np.uint16).max:
+                raise RuntimeError(f"scene {name}: instance id {offset} does not fit the uint16 segmentation")
+            if name == CLASSIFIER_SCENE:
+                stages.append({"terrain": scene.terrain,
+                               "sun_direction": [round(float(c), 6) for c in scene.sun_dir]})
+        for v in views:
+            x, y, z = view_coords(int(v))
             stem = layout.view_stem(x, y, z, scene.target, name)
-            view = render_view(scene, v, size, prep)
+            view = render(scene, int(v), size, prep)
             for rel, data in (
                 (stem + layout.IMAGE_EXT, _png(cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR), folder / stem)),
                 (stem + layout.BOX_EXT, (" ".join(str(int(b)) for b in view.box) + "\n").encode()),
-                (f"{layout.SEG_DIR}/{stem}{layout.IMAGE_EXT}", _png(view.seg, folder / stem)),
+                (f"{layout.SEG_DIR}/{stem}{layout.IMAGE_EXT}", _png(shift[view.seg].astype(np.uint16), folder / stem)),
             ):
                 _atomic_write(folder / rel, data)
                 files[rel] = _sha256(data)
             visible[stem] = round(float(view.visible), 6)
+            order.append(((TARGETS.index(scene.target), int(v)), stem))
+    visible = {stem: visible[stem] for _, stem in sorted(order)}  # targets' views in grid order
     cats = {str(k): v for k, v in sorted(categories.items())}
     data = (json.dumps(cats, indent=1) + "\n").encode()
     rel = f"{layout.SEG_DIR}/{layout.CATEGORIES}"
@@ -143,6 +185,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
         "box_format": "x1 y1 x2 y2, XYXY crop pixels, x2/y2 exclusive; 0 0 0 0 = fully occluded",
         "categories": cats,
         "sun_direction": [round(float(c), 6) for c in first.sun_dir] if not unocc else None,
+        **({"stages": stages, "stage_of_view": training_stages(seed).tolist()} if stages else {}),
         "visible": visible,
         "files": files,
     }
