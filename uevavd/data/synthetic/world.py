@@ -27,7 +27,7 @@ SUN_ELEVATION = {"urban": (35.0, 72.0), "woodland": (28.0, 65.0)}
 #: ``train_605`` is rendered in this many context-like stages per target (each viewpoint in
 #: one of them, see :func:`training_stages`), so that the classifier's crops see the
 #: backgrounds, light and shadows of the contexts; every ``WOODLAND_EVERY``-th stage is woodland.
-TRAIN_STAGES = 20
+TRAIN_STAGES = 60
 WOODLAND_EVERY = 5
 
 _CAR_PAINTS = (
