@@ -173,9 +173,10 @@ def test_train_605_stages_cover_the_grid_and_both_terrains():
     assert stages.shape == (N_VIEWS,) and np.array_equal(stages, training_stages(0))
     counts = np.bincount(stages, minlength=TRAIN_STAGES)
     assert len(counts) == TRAIN_STAGES and counts.min() >= N_VIEWS // TRAIN_STAGES
-    # every stage's views spread over the grid (all five altitudes), not one corner of it
+    # every stage's views spread over the grid, not one corner of it
     for k in range(TRAIN_STAGES):
-        assert len({view_coords(v)[2] for v in np.flatnonzero(stages == k)}) == NZ
+        coords = np.array([view_coords(v) for v in np.flatnonzero(stages == k)])
+        assert len(set(coords[:, 2])) >= 3 and len(set(coords[:, 0])) >= 4 and np.ptp(coords[:, 1]) >= 40
     terrains = [training_stage_terrain(k) for k in range(TRAIN_STAGES)]
     assert "urban" in terrains and "woodland" in terrains
     assert terrains.count("urban") > terrains.count("woodland")
