@@ -8,6 +8,18 @@ import sys
 import time
 from pathlib import Path
 
+from ..plugins.registry import UnknownComponentError
+
+
+def _error(command: str, exc: BaseException) -> int:
+    """Bad input (a ValueError subclass naming the value: AblationError, ConfigError,
+    WeightsError, DatasetError, ...) as one line and exit 2; UEVAVD_DEBUG=1 re-raises."""
+    if os.environ.get("UEVAVD_DEBUG"):
+        raise exc
+    print(f"uevavd {command}: error: {exc} ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)",
+          file=sys.stderr)
+    return 2
+
 
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None,
@@ -39,7 +51,7 @@ def add_ablate(parser: argparse.ArgumentParser):
 
 
 def run_ablate(args: argparse.Namespace) -> int:
-    from .runner import AblationError, make_plan, parse_sweeps, run_ablation
+    from .runner import make_plan, parse_sweeps, run_ablation
 
     try:
         plan = make_plan(preset=args.preset, out=args.out, methods=args.methods, seeds=args.seeds,
@@ -48,9 +60,8 @@ def run_ablate(args: argparse.Namespace) -> int:
                          backend=args.backend, device=args.device, episodes=args.episodes,
                          gpus_per_run=args.gpus_per_run)
         results = run_ablation(plan)
-    except AblationError as exc:
-        print(f"uevavd ablate: error: {exc}", file=sys.stderr)
-        return 2
+    except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
+        return _error("ablate", exc)
     print_results(results)
     print(f"\nresults: {results}\nreport:  {results.parent / 'report' / 'report.md'}")
     return 0
@@ -80,16 +91,15 @@ def add_demo(parser: argparse.ArgumentParser):
 
 def run_demo(args: argparse.Namespace) -> int:
     """The quick preset end to end on the embedded synthetic world."""
-    from .runner import AblationError, make_plan, run_ablation
+    from .runner import make_plan, run_ablation
 
     t0 = time.perf_counter()
     try:
         plan = make_plan(preset="quick", out=args.out, seeds=args.seeds, workers=args.workers,
                          device=args.device)
         results = run_ablation(plan)
-    except AblationError as exc:
-        print(f"uevavd demo: error: {exc}", file=sys.stderr)
-        return 2
+    except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
+        return _error("demo", exc)
     print_results(results)
     stages = ", ".join(f"{k} {v:.0f} s" for k, v in plan.stages.items())
     print(f"\ndemo finished in {time.perf_counter() - t0:.0f} s ({stages}) on {os.cpu_count()} cores")

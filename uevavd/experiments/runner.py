@@ -164,7 +164,9 @@ def make_plan(
     for key in sweeps:
         if key not in SWEEPABLE:
             raise AblationError(f"sweep over {key!r}: accepted keys are {sorted(SWEEPABLE)}")
-    sweep_methods = list(sweep_methods or abl.get("sweep_methods", [methods[-1]]))
+    if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
+        sweep_methods = [m for m in abl.get("sweep_methods", [methods[-1]]) if m in methods]
+    sweep_methods = list(sweep_methods)
     unknown = [m for m in sweep_methods if m not in methods]
     if unknown:
         raise AblationError(f"--sweep-methods {unknown} are not among --methods {methods}")
