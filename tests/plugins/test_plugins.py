@@ -144,6 +144,22 @@ def test_broken_plugin_is_fatal_in_strict_mode(site, monkeypatch):
         manager.ensure_loaded()
 
 
+def test_manager_recovers_after_a_strict_failure(site, monkeypatch):
+    make_dist(site, "fake-broken", "0.9", "fakeplug_broken", BROKEN_IMPORT)
+    make_dist(site, "fake-good", "1.2.3", "fakeplug_good", GOOD)
+    monkeypatch.setenv("UEVAVD_STRICT_PLUGINS", "1")
+    for _ in range(2):  # the same error again, not a DuplicateComponentError on built-in 'none'
+        with pytest.raises(PluginError, match="fake-broken.*boom at import") as err:
+            manager.ensure_loaded()
+        assert not isinstance(err.value, DuplicateComponentError)
+    monkeypatch.setenv("UEVAVD_DISABLED_PLUGINS", "fake-broken")  # the user blocks it and carries on
+    reg = manager.registry
+    assert "none" in reg.names("segmenter") and "fake_enc" in reg.names("encoder")
+    names = [p.name for p in manager.plugins]
+    assert len(names) == len(set(names))
+    assert next(p for p in manager.plugins if p.name == "fake-broken").status == "blocked"
+
+
 def test_duplicate_name_is_an_error_naming_both(site):
     make_dist(site, "fake-dup", "2.0", "fakeplug_dup", """
         from uevavd.plugins import hookimpl

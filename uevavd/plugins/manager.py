@@ -116,7 +116,16 @@ class PluginManager:
         with self._lock:
             if self._loaded:
                 return
-            self._load_all()
+            try:
+                self._load_all()
+            except BaseException:
+                # A failed load (e.g. a broken plugin in strict mode) leaves nothing behind,
+                # so that the next access starts again from scratch instead of tripping over
+                # the half-filled registry (built-ins would clash with themselves).
+                self._pm = None
+                self._registry = Registry()
+                self._plugins = []
+                raise
             self._loaded = True
 
     # -- loading ------------------------------------------------------------------------
@@ -126,6 +135,8 @@ class PluginManager:
         pm = pluggy.PluginManager(PROJECT)
         pm.add_hookspecs(hookspecs)
         self._pm = pm
+        self._registry = Registry()
+        self._plugins = []
         blocked = {b.strip() for b in os.environ.get("UEVAVD_DISABLED_PLUGINS", "").split(",") if b.strip()}
         strict = _truthy("UEVAVD_STRICT_PLUGINS")
 
