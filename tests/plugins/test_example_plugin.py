@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -14,14 +15,24 @@ from uevavd.plugins.manager import manager
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "uevavd-example-plugin"
 
 
+def _tree(root: Path) -> dict[str, float]:
+    return {str(p.relative_to(root)): p.stat().st_mtime for p in root.rglob("*")}
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
+    # pip builds in the source folder (build/, *.egg-info): install from a copy, so that the
+    # repository's tree is never written to.
+    before = _tree(EXAMPLE)
+    source = tmp_path_factory.mktemp("src") / EXAMPLE.name
+    shutil.copytree(EXAMPLE, source, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
     target = tmp_path_factory.mktemp("site")
     cmd = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-           "--no-index", "--target", str(target), str(EXAMPLE)]
+           "--no-index", "--target", str(target), str(source)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert list(target.glob("uevavd_example_plugin-0.2.0.dist-info"))
+    assert _tree(EXAMPLE) == before, "installing the example wrote into examples/"
     return target
 
 
