@@ -52,3 +52,71 @@ def test_checkpoint_of_another_method_is_refused(table, tmp_path):
     settings = json.loads((run / "settings.json").read_text())
     with pytest.raises(CheckpointError, match="method"):
         load_checkpoint(run / "checkpoint.pt", expect={**settings, "method": "ibe_map", "n_ranges": 3})
+
+
+def test_one_discount_env_gamma_drives_the_td_target(table, tmp_path, monkeypatch):
+    """--set env.gamma=0.99 alone changes the TD target too; train.gamma differing from it
+    is refused naming both values, before anything is written."""
+    import uevavd.policy.trainer as trainer
+    from uevavd.config import ConfigError
+
+    seen = []
+
+    class Spy(trainer.Learner):
+        def __init__(self, *a, **kw):
+            seen.append(kw["gamma"])
+            super().__init__(*a, **kw)
+
+    monkeypatch.setattr(trainer, "Learner", Spy)
+    over = {**small("map"), "train.eval_splits": []}
+    run = train(load_method("map"), table, out=tmp_path / "g", episodes=50, progress=False, device="cpu",
+                overrides={**over, "env.gamma": 0.99})
+    assert seen == [0.99]
+    settings = json.loads((run / "settings.json").read_text())
+    assert settings["train"]["gamma"] == settings["env"]["gamma"] == 0.99
+    # both set and equal: accepted
+    train(load_method("map"), table, out=tmp_path / "g2", episodes=50, progress=False, device="cpu",
+          overrides={**over, "env.gamma": 0.95, "train.gamma": 0.95})
+    assert seen[-1] == 0.95
+    for bad in ({"env.gamma": 0.99, "train.gamma": 0.95}, {"train.gamma": 0.95}):
+        with pytest.raises(ConfigError, match=r"train.gamma = 0.95 and env.gamma = 0.9\d?"):
+            train(load_method("map"), table, out=tmp_path / "bad", episodes=50, progress=False, device="cpu",
+                  overrides={**over, **bad})
+        assert not (tmp_path / "bad").exists()
+
+
+def test_max_epochs_stop_always_checkpoints(table, tmp_path):
+    """A call stopped by max_epochs on an epoch that checkpoint_every skips still saves its
+    work, and resuming it gives the straight run's weights."""
+    spec = load_method("map")
+    kw = dict(episodes=200, seed=1, progress=False, device="cpu",
+              overrides={**small("map"), "train.checkpoint_every": 2, "train.eval_splits": ["train"]})
+    straight = train(spec, table, out=tmp_path / "a", **kw)
+    first = train(spec, table, out=tmp_path / "b", max_epochs=1, **kw)
+    assert (first / "checkpoint.pt").is_file()
+    assert load_checkpoint(first / "checkpoint.pt")["loop"]["epoch"] == 1
+    resumed = train(spec, table, out=tmp_path / "b", **kw)
+    assert load_checkpoint(resumed / "checkpoint.pt")["loop"]["episodes"] >= 200
+    rows = [json.loads(line)["epoch"] for line in (resumed / "evals.jsonl").read_text().splitlines()]
+    assert rows == [1, 2]
+    wa, wb = _weights(straight), _weights(resumed)
+    for k in wa:
+        assert torch.equal(wa[k], wb[k]), k
+
+
+@pytest.mark.parametrize("splits, missing", [(("hard", "hard"), "train"), (("train", "train"), "hard")])
+def test_table_without_a_split_leaves_the_run_directory_untouched(tmp_path, splits, missing):
+    from uevavd.perception.table import TableError
+    from uevavd.testing.policy import toy_table
+
+    t = toy_table(n_train=2, n_hard=0, feature_dim=8)
+    t = type(t).from_arrays(t.features, t.probs, t.boxes, scenes=list(t.scenes), targets=t.targets.tolist(),
+                            splits=list(splits), contexts=t.contexts.tolist())
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for out in (tmp_path / "absent", empty):
+        with pytest.raises(TableError, match=rf"split '{missing}'.*{splits[0]}"):
+            train(load_method("map"), t, out=out, episodes=50, progress=False, device="cpu",
+                  overrides=small("map"))
+    assert not (tmp_path / "absent").exists()
+    assert list(empty.iterdir()) == []

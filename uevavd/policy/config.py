@@ -6,6 +6,9 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Literal
 
+#: ``TrainConfig.gamma``'s default; at this value it follows ``env.gamma``.
+DEFAULT_GAMMA = 0.9
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -41,7 +44,10 @@ class TrainConfig:
     per_eps: float = 1e-3
     """Added to every episode's priority (mean |TD error| of its steps) so none starves."""
     gamma: float = 0.9
-    """Discount of the TD target (paper: 0.9; the environment's gamma is used for returns)."""
+    """Deprecated: the TD target's discount is ``env.gamma``, the one of the reported return
+    and the oracle. Left at 0.9 (the default, which the shipped method files still carry)
+    it follows ``env.gamma``; any other value must equal ``env.gamma`` or the run is
+    refused (see :func:`resolve_gamma`)."""
     grad_clip: float = 10.0
     """Clip the global gradient norm to this (0 disables)."""
     epoch_episodes: int = 25_000
@@ -52,7 +58,8 @@ class TrainConfig:
     """Contexts per split in the per-epoch evaluations, evenly spaced (0 = all; each is
     evaluated from all 605 start views). ``uevavd evaluate`` always uses all."""
     checkpoint_every: int = 1
-    """Epochs between checkpoints (the last epoch always writes one)."""
+    """Epochs between checkpoints (the last epoch, and the last of a call stopped by
+    ``max_epochs``, always write one)."""
     device: str = "auto"
     """"auto" (CUDA when available), "cpu" or "cuda[:i]"."""
     seed: int = 0
@@ -61,6 +68,26 @@ class TrainConfig:
     """torch CPU threads (0 leaves torch's default; 1 is fastest on a CPU shared with other jobs)."""
     loss: Literal["huber", "mse"] = "huber"
     """TD loss (Huber is the usual choice for DQN)."""
+
+    def resolve_gamma(self, env_gamma: float) -> TrainConfig:
+        """This config with ``gamma`` set to the one discount of the run (``env.gamma``).
+
+        ``train.gamma`` is a deprecated alias: at its default (0.9) it follows ``env.gamma``
+        (so ``--set env.gamma=0.99`` changes the TD target too), equal to ``env.gamma`` it is
+        accepted, and any other value raises :class:`uevavd.config.ConfigError` naming both
+        (a TD discount other than the return's would optimise another objective than the
+        one reported)."""
+        if self.gamma == env_gamma:
+            return self
+        if self.gamma == DEFAULT_GAMMA:
+            return self.replace(gamma=float(env_gamma))
+        from ..config import ConfigError
+
+        raise ConfigError(
+            f"train.gamma = {self.gamma} and env.gamma = {env_gamma} differ, but a run has one discount "
+            f"(the TD target's, the reported return's and the oracle's); set env.gamma = {self.gamma} "
+            "instead (train.gamma is deprecated and follows env.gamma when left at 0.9)"
+        )
 
     def replace(self, **changes: Any) -> TrainConfig:
         return dataclasses.replace(self, **changes)

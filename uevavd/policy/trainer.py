@@ -154,6 +154,7 @@ def train(
     cfg = TrainConfig.from_dict({**train_section, "seed": seed,
                                  **({"episodes": episodes} if episodes is not None else {})})
     env_cfg = EnvConfig().replace(**dict(spec.get("env", {}) or {}))
+    cfg = cfg.resolve_gamma(env_cfg.gamma)  # one discount: env.gamma (train.gamma is deprecated)
     dev = resolve_device(device if device != "auto" else cfg.device)
     out = Path(out)
     state_name, _ = spec.component("state")
@@ -168,13 +169,11 @@ def train(
     _check_run_dir(out, settings)
     if (out / "done.json").is_file():
         return out
-    out.mkdir(parents=True, exist_ok=True)
-    spec.save(out / "method.toml")
-    _write_json(out / "settings.json", settings)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
 
-    # -- seeding and setup --------------------------------------------------------------------
+    # -- seeding and setup (everything that can refuse the input, before the run directory
+    # is written: a table without the train or an eval split leaves no half-made run) --------
     torch.manual_seed(cfg.seed)
     net = build_network(spec, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
@@ -184,6 +183,9 @@ def train(
                         features_dtype=torch.float16)
     lookup = TableLookup(env.tables)
     evaluator = _Evaluator(table, cfg, env_cfg, dev)
+    out.mkdir(parents=True, exist_ok=True)
+    spec.save(out / "method.toml")
+    _write_json(out / "settings.json", settings)
     act_gen = torch.Generator(device=dev)
     act_gen.manual_seed(cfg.seed + 3)
     n, tmax = cfg.n_envs, env_cfg.t_max
@@ -300,11 +302,13 @@ def train(
                         if isinstance(value, int | float):
                             writer.add_scalar(f"eval_{split}/{key}", value, loop["episodes"])
                 _write_json(out / "evals.jsonl", "".join(json.dumps(r, default=str) + "\n" for r in evals))
-            if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes:
+            # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
+            stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
+            if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
                 checkpoint()
             writer.flush()
             bar.set_postfix(ret=f"{ret:.3f}", eps=f"{eps:.2f}", loss=f"{loss_val:.4f}")
-            if max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes:
+            if stop:
                 break
 
     bar.close()
