@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 #: name -> ("module:function" that adds its arguments and returns the handler, one-line help)
@@ -23,6 +24,24 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
     "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
 }
+
+
+def bad_input_types() -> tuple[type[BaseException], ...]:
+    """Exceptions that mean bad input rather than a bug: every ``ValueError`` subclass the
+    library raises for a value it refuses (ConfigError, WeightsError, TableError,
+    DatasetError, AblationError, ...), a missing file, an unknown component name."""
+    from .plugins.registry import UnknownComponentError
+
+    return (ValueError, FileNotFoundError, UnknownComponentError)
+
+
+def error(command: str, exc: BaseException) -> int:
+    """Bad input as one line on stderr and exit status 2; ``UEVAVD_DEBUG=1`` re-raises."""
+    if os.environ.get("UEVAVD_DEBUG"):
+        raise exc
+    print(f"uevavd {command}: error: {exc} ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)",
+          file=sys.stderr)
+    return 2
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -56,6 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("interrupted; finished work is kept and a rerun resumes", file=sys.stderr)
             return 130
+        except Exception as exc:  # noqa: BLE001 - bad input is one line; anything else propagates
+            if isinstance(exc, bad_input_types()):
+                return error(name, exc)
+            raise
     args = parser.parse_args(argv)
     parser.print_help()
     return 0 if args.command is None and not argv else 2

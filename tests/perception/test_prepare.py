@@ -179,3 +179,35 @@ def test_ray_backend_builds_the_same_table(world_605, tiny_classifier, tmp_path)
     for name in ("features", "probs", "boxes"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert not (tmp_path / "ray" / f"{remote.name}.partial").exists()
+
+
+def test_cli_bad_input_is_one_line_and_exit_2(tiny_world, tiny_classifier, tmp_path, capsys, monkeypatch):
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))  # no ImageNet files there
+    (tmp_path / "empty").mkdir()
+    truncated = tmp_path / "cut.safetensors"
+    truncated.write_bytes(tiny_classifier.read_bytes()[:1000])
+    world = str(tiny_world)
+    cases = [
+        (["prepare", world, "--method", "ibe_map", "--set", "nokey"], "ConfigError", "KEY=VALUE"),
+        (["prepare", world, "--method", "no_such_method"], "ConfigError", "no_such_method"),
+        (["prepare", world, "--method", "ibe_map", "--set", "perception.encoder.name=nope"], "", "nope"),
+        (["prepare", world, "--method", "map", "--set", "perception.encoder.weights=random", "--classifier",
+          str(truncated)], "WeightsError", "cut.safetensors"),
+        (["prepare", world, "--method", "map"], "WeightsError", "not found"),
+        (["prepare", str(tmp_path / "empty"), "--method", "map"], "DatasetError", "no scene folders"),
+        (["train-classifier", str(tmp_path / "empty"), "--out", str(tmp_path / "c.safetensors")],
+         "DatasetError", "no scene folders"),
+    ]
+    for argv, kind, needle in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith(f"uevavd {argv[0]}: error: ") and needle in err and kind in err, err
+        assert "Traceback" not in err
+    monkeypatch.setenv("UEVAVD_DEBUG", "1")
+    from uevavd.config import ConfigError
+
+    with pytest.raises(ConfigError):
+        main(["prepare", world, "--method", "ibe_map", "--set", "nokey"])

@@ -4,21 +4,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from pathlib import Path
 
+from ..cli import error as _error
 from ..plugins.registry import UnknownComponentError
-
-
-def _error(command: str, exc: BaseException) -> int:
-    """Bad input (a ValueError subclass naming the value: AblationError, ConfigError,
-    WeightsError, DatasetError, ...) as one line and exit 2; UEVAVD_DEBUG=1 re-raises."""
-    if os.environ.get("UEVAVD_DEBUG"):
-        raise exc
-    print(f"uevavd {command}: error: {exc} ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)",
-          file=sys.stderr)
-    return 2
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
