@@ -33,11 +33,89 @@ def _reference_loss(net, target, batch, lookup, gamma):
     return (per * w * batch.weight[:, None, None]).sum() / w.sum().clamp_min(1.0)
 
 
+def _explicit_loss(net, target, batch, lookup, gamma, head):
+    """The double-DQN Huber loss and per-episode mean |TD error| written out step by step,
+    without the heads' vectorised helpers: masked argmax of the online net at s_{t+1},
+    evaluated by the target net; a greedy stop's range takes the type branch's value."""
+    feats, boxes, mask = lookup.gather(batch.scene, batch.views)
+    with torch.no_grad():
+        q_on, q_tg, q_now = net(feats, boxes), target(feats, boxes), net(feats, boxes)
+    n_ranges = mask.shape[-1]
+    total, wsum, td = 0.0, 0.0, []
+    for b in range(batch.reward.shape[0]):
+        ep_err, ep_w = 0.0, 0.0
+        for t in range(batch.reward.shape[1]):
+            if not batch.valid[b, t]:
+                continue
+            r, a_t, a_r = float(batch.reward[b, t]), int(batch.a_type[b, t]), int(batch.a_range[b, t])
+            if head == "dueling_joint":  # stop is one action: its range-0 entry
+                taken = [float(q_now[0][b, t, a_t * n_ranges + (0 if a_t == T.STOP else a_r)])]
+                weights = [1.0]
+            else:
+                taken = [float(q_now[0][b, t, a_t]), float(q_now[1][b, t, a_r])]
+                weights = [1.0, 0.0 if a_t == T.STOP else 1.0]
+            if batch.done[b, t]:
+                y = [r] * len(taken)
+            else:
+                m = mask[b, t + 1]  # (7, A) allowed moves at s_{t+1}
+                if head == "dueling_joint":
+                    q = q_on[0][b, t + 1].view(7, n_ranges)
+                    best = max(((i, j) for i in range(7) for j in range(n_ranges)
+                                if m[i, j] and not (i == T.STOP and j > 0)),
+                               key=lambda ij: float(q[ij]))
+                    y = [r + gamma * float(q_tg[0][b, t + 1].view(7, n_ranges)[best])]
+                else:
+                    i = max((i for i in range(7) if m[i].any()), key=lambda i: float(q_on[0][b, t + 1, i]))
+                    j = max((j for j in range(n_ranges) if m[i, j]), key=lambda j: float(q_on[1][b, t + 1, j]))
+                    vt = float(q_tg[0][b, t + 1, i])
+                    vr = vt if i == T.STOP else float(q_tg[1][b, t + 1, j])
+                    if head == "indep":
+                        y = [r + gamma * vt, r + gamma * vr]
+                    else:
+                        y = [r + gamma * (vt + vr) / 2] * 2
+            for qv, yv, w in zip(taken, y, weights, strict=True):
+                err = abs(qv - yv)
+                huber = 0.5 * err**2 if err < 1.0 else err - 0.5
+                total += float(batch.weight[b]) * w * huber
+                wsum += w
+                ep_err, ep_w = ep_err + w * err, ep_w + w
+        td.append(ep_err / max(ep_w, 1.0))
+    return total / max(wsum, 1.0), torch.tensor(td)
+
+
+def _episodes(tables, seed=1):
+    """12 episodes of 1..5 decisions: moves, then a stop, or T_max moves (half of the full ones
+    end by stop at the last decision); ranges random, stops' included."""
+    g = torch.Generator().manual_seed(seed)
+    length = torch.tensor([1, 2, 3, 4, 5, 1, 2, 3, 4, 5, 3, 5])
+    n = len(length)
+    views = torch.randint(0, 605, (n, 6), generator=g)
+    a_type = torch.randint(0, T.STOP, (n, 5), generator=g)
+    last = torch.where((length < 5) | (torch.arange(n) % 2 == 0), T.STOP, 1)
+    a_type[torch.arange(n), length - 1] = last
+    return (tables.scenes[torch.randint(0, len(tables.scenes), (n,), generator=g)], views, a_type,
+            torch.randint(0, 4, (n, 5), generator=g), 0.1 * torch.randn(n, 5, generator=g), length)
+
+
+#: The heads and TD-target forms, each checked on multi-step episodes.
+HEADS = {
+    "dueling_branch": {"head.name": "dueling_branch", "head.td_target": "mean"},
+    "indep": {"head.name": "dueling_branch", "head.td_target": "indep"},
+    "dueling_joint": {"head.name": "dueling_joint"},
+}
+
+
+def _spec(method, head):
+    return load_method(method, {**HEADS[head], **small(method)})
+
+
+@pytest.mark.parametrize("head", list(HEADS))
 @pytest.mark.parametrize("method", ["map", "memo_map"])
-def test_update_matches_padded_reference_and_ignores_padding(table, method):
+def test_update_matches_padded_reference_and_ignores_padding(table, method, head):
     torch.manual_seed(0)
-    spec = load_method(method, small(method))
+    spec = _spec(method, head)
     net = build_network(spec, table.feature_dim)
+    assert spec.component("head")[0] == HEADS[head]["head.name"]
     learner = Learner(net, lr=1e-3, gamma=0.9, grad_clip=0.0)
     with torch.no_grad():  # a target network that differs from the online one
         for p in learner.target.parameters():
@@ -45,22 +123,19 @@ def test_update_matches_padded_reference_and_ignores_padding(table, method):
     tables = EnvTensors(table, "train", EnvConfig())
     lookup = TableLookup(tables)
     replay = EpisodeReplay(64, 5, seed=0)
-    g = torch.Generator().manual_seed(1)
-    n = 12
-    length = torch.tensor([1, 2, 3, 4, 5, 1, 2, 3, 4, 5, 1, 5])
-    views = torch.randint(0, 605, (n, 6), generator=g)
-    a_type = torch.randint(0, 7, (n, 5), generator=g)
-    a_type[torch.arange(n), length - 1] = T.STOP
-    replay.add(tables.scenes[torch.randint(0, len(tables.scenes), (n,), generator=g)], views, a_type,
-               torch.randint(0, 4, (n, 5), generator=g), 0.1 * torch.randn(n, 5, generator=g), length)
+    replay.add(*_episodes(tables))
     batch = replay.sample(16, 0.5)
+    assert bool((batch.valid & ~batch.done).any())  # non-terminal steps: targets bootstrap
 
     ref_net = copy.deepcopy(net)
+    explicit, explicit_td = _explicit_loss(ref_net, learner.target, batch, lookup, 0.9, head)
     ref = _reference_loss(ref_net, learner.target, batch, lookup, 0.9)
+    assert float(ref.detach()) == pytest.approx(explicit, rel=1e-4, abs=1e-6)
     ref.backward()
     loss, td = learner.update(batch, lookup)
     assert loss == pytest.approx(float(ref.detach()), rel=1e-5, abs=1e-7)
     assert td.shape == (16,) and bool((td > 0).all())
+    assert torch.allclose(td, explicit_td.float(), rtol=1e-4, atol=1e-6)
 
     # the gradient step equals Adam's first step on the reference gradients
     opt = torch.optim.Adam(ref_net.parameters(), lr=1e-3)
@@ -80,6 +155,13 @@ def test_update_matches_padded_reference_and_ignores_padding(table, method):
     lb = Learner(net_b, lr=1e-3, gamma=0.9, grad_clip=0.0)
     lb.target.load_state_dict(la.target.state_dict())
     assert la.update(batch, lookup)[0] == pytest.approx(lb.update(junk, lookup)[0], rel=1e-6)
+
+    # the discount reaches the loss (bootstrapped targets), for every head
+    l0 = Learner(copy.deepcopy(ref_net), lr=1e-3, gamma=0.0, grad_clip=0.0)
+    l0.target.load_state_dict(la.target.state_dict())
+    l9 = Learner(copy.deepcopy(ref_net), lr=1e-3, gamma=0.9, grad_clip=0.0)
+    l9.target.load_state_dict(la.target.state_dict())
+    assert l0.update(batch, lookup)[0] != pytest.approx(l9.update(batch, lookup)[0], rel=1e-4)
 
 
 def test_gru_packed_unroll_equals_padded_forward():

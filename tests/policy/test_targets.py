@@ -53,3 +53,18 @@ def test_masked_greedy_avoids_clamped_moves():
 def test_range_branch_gets_no_loss_on_stop():
     w = T.branch_weights(torch.tensor([0, 6]))
     assert w.tolist() == [[1.0, 1.0], [1.0, 0.0]]
+
+
+def test_joint_head_counts_stop_once():
+    """Stop ignores its range: the joint head reads only stop's range-0 entry, when acting
+    greedily (with or without a mask) and when reading the Q of a taken stop."""
+    q = torch.zeros(2, 28)
+    q[:, T.STOP * 4 + 3] = 9.0  # a never-read copy of stop
+    q[:, T.STOP * 4 + 0] = 1.0
+    q[1, 5] = 2.0  # backward, range 2
+    mask = torch.ones(2, 7, 4, dtype=torch.bool)
+    for m in (mask, None):
+        a_type, a_range = T.joint_greedy(q, m, 4)
+        assert a_type.tolist() == [T.STOP, 1] and a_range.tolist() == [0, 1]
+    idx = T.joint_index(torch.tensor([T.STOP, T.STOP, 2]), torch.tensor([0, 3, 3]), 4)
+    assert idx.tolist() == [24, 24, 11]

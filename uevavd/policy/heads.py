@@ -59,7 +59,11 @@ class BranchingDuelingHead(nn.Module):
 
 
 class JointDuelingHead(nn.Module):
-    """Standard dueling DQN over the 7*A joint actions (type-major: index = type*A + range)."""
+    """Standard dueling DQN over the 7*A joint actions (type-major: index = type*A + range).
+
+    Stop ignores its range (as in the environment), so it is one action: greedy choices and
+    the Q of a taken stop use its range-0 entry only (:func:`~uevavd.policy.targets.joint_index`),
+    which keeps stop's experience in one value and the max from picking among its copies."""
 
     n_branches = 1
 
@@ -76,8 +80,7 @@ class JointDuelingHead(nn.Module):
         return T.joint_greedy(q[0], mask, self.n_ranges)
 
     def taken(self, q: tuple[torch.Tensor, ...], a_type: torch.Tensor, a_range: torch.Tensor) -> torch.Tensor:
-        flat = a_type * self.n_ranges + a_range
-        return q[0].gather(-1, flat[..., None])
+        return q[0].gather(-1, T.joint_index(a_type, a_range, self.n_ranges)[..., None])
 
     def bootstrap(
         self, q_online: tuple[torch.Tensor, ...], q_target: tuple[torch.Tensor, ...], mask: torch.Tensor | None

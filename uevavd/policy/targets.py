@@ -54,9 +54,21 @@ def branch_greedy(
     return a_type, a_range
 
 
+def joint_index(a_type: torch.Tensor, a_range: torch.Tensor, n_ranges: int) -> torch.Tensor:
+    """Index into the joint head's 7*A outputs (type-major). Stop ignores its range, so it is
+    one action: any stop maps to its range-0 entry (the other three are never read)."""
+    return a_type * n_ranges + torch.where(a_type == STOP, torch.zeros_like(a_range), a_range)
+
+
 def joint_greedy(q: torch.Tensor, mask: torch.Tensor | None, n_ranges: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Greedy (type, range) of the joint head: (..., 7*A), (..., 7, A) -> (...,), (...,)."""
-    flat = masked_argmax(q, None if mask is None else mask.flatten(-2))
+    """Greedy (type, range) of the joint head: (..., 7*A), (..., 7, A) -> (...,), (...,).
+
+    Stop counts once (its range-0 entry, see :func:`joint_index`): a max over four copies of
+    the same action would bias its value upwards."""
+    one_stop = torch.ones(q.shape[-1] // n_ranges, n_ranges, dtype=torch.bool, device=q.device)
+    one_stop[STOP, 1:] = False
+    allowed = one_stop if mask is None else mask & one_stop
+    flat = masked_argmax(q, allowed.flatten(-2).expand(q.shape))
     return flat // n_ranges, flat % n_ranges
 
 
