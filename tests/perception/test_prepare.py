@@ -64,12 +64,24 @@ def test_key_changes_with_every_input(built, tiny_world, tiny_classifier, tmp_pa
 
     base = key()
     assert base == path.name
+    import torch
+
+    from uevavd.perception.segmenters import GroundTruthSegmenter
+    from uevavd.perception.weights import make_resnet
+
+    same_weights = tmp_path / "r18-seed0.pt"  # the very weights of weights="random", seed 0, as a file
+    torch.save(make_resnet("resnet18", seed=0).state_dict(), same_weights)
     variants = [
         key(**{"perception.gray_seed": 1}),
         key(**{"perception.decompose": False}),
         key(**{"perception.encoder.seed": 1}),
-        key(**{"perception.segmenter.name": "none"}),
+        key(**{"perception.encoder.name": "resnet50", "perception.encoder.weights": "random"}),  # architecture
+        key(**{"perception.encoder.weights": f"file:{same_weights}"}),  # the weights spec, same tensors
+        key(**{"perception.encoder.weights": "classifier"}),
     ]
+    with monkeypatch.context() as m:  # another segmenter (version)
+        m.setattr(GroundTruthSegmenter, "identity", lambda self: "segmenter:gt:v999")
+        variants.append(key())
     other_clf = tmp_path / "other.safetensors"
     from safetensors.torch import load_file, save_file
 
@@ -89,6 +101,18 @@ def test_key_changes_with_every_input(built, tiny_world, tiny_classifier, tmp_pa
         assert key() != base
     finally:
         os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert key() == base
+    # one box annotation changed (the image untouched) changes the key
+    box = img.with_suffix(".txt")
+    text = box.read_text()
+    x1, y1, x2, y2 = map(int, text.split())
+    box.write_text("1 1 3 3\n" if x2 == 0 else f"{x1} {y1} {x2} {y2 - 1}\n" if y2 - 1 > y1 else "0 0 0 0\n")
+    try:
+        reader.read_dataset.cache_clear()
+        assert key() != base
+    finally:
+        box.write_text(text)
+        reader.read_dataset.cache_clear()
     assert key() == base
 
 
@@ -154,6 +178,32 @@ def test_decompose_without_segmenter_is_refused(tiny_world, tiny_classifier, tmp
     m.write_text(method_toml.format(decompose="true").replace('segmenter = { name = "gt" }\n', ""))
     with pytest.raises(ValueError, match="needs a perception.segmenter"):
         prep.plan_table(tiny_world, m, classifier_path=tiny_classifier)
+    with pytest.raises(ValueError, match="decompose = true with segmenter 'none'"):
+        prep.plan_table(tiny_world, "ibe_map", classifier_path=tiny_classifier,
+                        overrides={"perception.segmenter.name": "none", "perception.encoder.name": "resnet18",
+                                   "perception.encoder.weights": "random"})
+    # without decomposition the segmenter does not matter (and is not built)
+    assert prep.plan_table(tiny_world, "ibe_map", classifier_path=tiny_classifier, overrides={
+        "perception.segmenter.name": "none", "perception.decompose": False, "perception.encoder.name": "resnet18",
+        "perception.encoder.weights": "random"}).segmenter is None
+
+
+def test_gt_segmenter_without_categories_is_refused(tiny_classifier, tmp_path, method_toml):
+    from uevavd.testing.worlds import write_tiny_world
+
+    world = write_tiny_world(tmp_path / "w", contexts=(1,), train605=False)
+    m = tmp_path / "m.toml"
+    m.write_text(method_toml.format(decompose="true"))
+    cats = world / "001" / "seg" / "categories.json"
+    cats.write_text('{"0": "none", "2": "building", "3": "ground"}')  # no target
+    with pytest.raises(ValueError, match=r"categories\.json: no instance has category 'target'"):
+        prep.plan_table(world, m, classifier_path=tiny_classifier)
+    cats.unlink()
+    with pytest.raises(ValueError, match=r"001/seg/categories\.json is missing"):
+        prep.plan_table(world, m, classifier_path=tiny_classifier)
+    with pytest.raises(ValueError, match=r"categories\.json is missing"):
+        prep.prepare_table(world, m, classifier_path=tiny_classifier, out_dir=tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")

@@ -111,6 +111,11 @@ def build_components(spec: MethodSpec, data_root: Path, classifier_path: str | N
             raise ValueError(f"method {spec.name!r} ({spec.source}) names no {section}; a table needs both an "
                              "encoder and a classifier, e.g. encoder = { name = \"resnet50\" }")
     decomposing = bool(spec.get("perception.decompose", False))
+    if decomposing and spec.get("perception.segmenter") and spec.component("perception.segmenter")[0] == "none":
+        raise ValueError(
+            f"method {spec.name!r} ({spec.source}): perception.decompose = true with segmenter 'none' would turn "
+            "every view into one flat gray (no target mask); use segmenter 'gt' or 'sam', or set "
+            "perception.decompose = false")
     segmenter = spec.build("perception.segmenter") if decomposing and spec.get("perception.segmenter") else None
     if decomposing and segmenter is None:
         raise ValueError(f"method {spec.name!r}: perception.decompose = true needs a perception.segmenter")
@@ -163,6 +168,28 @@ def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.nd
     return arrays
 
 
+def ground_truth_categories(manifest, scene: str, recs: list) -> dict[int, str]:
+    """The scene's instance id -> category table for a ground-truth segmenter; an error
+    naming the file when it is missing or names no ``target`` (without it every pixel of
+    the target would be grayed like the background)."""
+    from ..data.layout import CATEGORIES
+
+    missing_seg = [r for r in recs if r.seg is None]
+    if missing_seg:
+        raise ValueError(f"scene {scene}: the segmenter needs ground-truth segmentation, which "
+                         f"{len(missing_seg)} of its views lack (e.g. {missing_seg[0].image})")
+    path = Path(recs[0].seg).parent / CATEGORIES
+    cats = manifest.categories(scene)
+    if cats is None:
+        raise ValueError(f"scene {scene}: {path} is missing; the ground-truth segmenter needs it to tell the "
+                         'target from other instances ({"<instance id>": "<category>", ...}, with a "target" '
+                         "entry)")
+    if "target" not in cats.values():
+        raise ValueError(f"{path}: no instance has category 'target' (categories: {sorted(set(cats.values()))}); "
+                         "the ground-truth segmenter cannot tell the target from the background")
+    return cats
+
+
 def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, segmenter, gray_seed: int):
     """Decode a scene (in worker threads); segmenters with a data-only fast path
     (``decompose_views``, e.g. ``gt``) also pre-decompose here, off the model's thread."""
@@ -172,7 +199,7 @@ def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, segmenter, g
         if any(r.seg is None for r in recs):
             raise ValueError(f"scene {scene}: the segmenter needs ground-truth segmentation, which it lacks")
         maps = decoder.instance_maps([r.seg for r in recs])
-        cats = [manifest.categories(scene) or {}] * len(recs)
+        cats = [ground_truth_categories(manifest, scene, recs)] * len(recs)
         if hasattr(segmenter, "decompose_views"):
             seeds = [view_seed(gray_seed, scene, r.view, r.target) for r in recs]
             decomposed = segmenter.decompose_views(images, maps, cats, seeds)
@@ -233,6 +260,9 @@ def plan_table(
     if tuple(classifier.classes) != TARGETS:
         raise ValueError(f"classifier classes {list(classifier.classes)}; the table needs {list(TARGETS)}")
     decomposing = segmenter is not None
+    if decomposing and getattr(segmenter, "needs_ground_truth", False):
+        for scene, recs in scenes:  # fail before any image is decoded
+            ground_truth_categories(manifest, scene, recs)
     gray_seed = int(spec.get("perception.gray_seed", 0))
     parts = {
         "schema_version": SCHEMA_VERSION,
