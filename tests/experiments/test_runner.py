@@ -10,15 +10,19 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
 from uevavd.experiments.runner import (
+    FINAL_EVAL,
     RESULT_COLUMNS,
     AblationError,
+    final_eval,
     is_done,
     make_plan,
     parse_sweeps,
+    pick_trajectory_start,
     plan_jobs,
     run_ablation,
     stage_classifier,
@@ -40,6 +44,7 @@ description = "a few hundred episodes per run on the 16 px test world"
 "train.n_envs" = 16
 "train.learning_starts" = 50
 "train.eval_splits" = ["train", "hard"]
+"train.eval_contexts" = 1
 
 [classifier]
 epochs = 2
@@ -103,7 +108,97 @@ def test_results_are_tidy_and_complete(ablation):
         points = sorted(rows["episodes"].unique())
         assert len(points) == 2 and 100 <= points[0] < 200 <= points[1] < 250
         assert rows[rows["final"]]["episodes"].eq(points[1]).all() and rows["final"].sum() == 2
+        # the curve (per epoch, train.eval_contexts = 1 context) and the exhaustive final rows
+        # (both contexts of each split, as the baselines)
+        assert rows.loc[~rows["final"], "eval_contexts"].eq(1).all() and len(rows[~rows["final"]]) == 4
+        assert rows.loc[rows["final"], "eval_contexts"].eq(2).all()
+    assert df.loc[df["episodes"] < 0, "eval_contexts"].eq(2).all()
     assert df[["return", "accuracy", "recognition", "path_m"]].notna().all().all()
+
+
+def test_final_rows_are_the_exhaustive_evaluation_of_the_final_policy(ablation):
+    """Every context x 605 starts under the run's env config, cached in final_eval.json."""
+    from uevavd.env.config import EnvConfig
+    from uevavd.env.evaluate import evaluate_policy
+    from uevavd.policy.agent import load_policy
+
+    df = pd.read_csv(ablation["results"])
+    for job in ablation["jobs"]:
+        cached = json.loads(Path(job.out, FINAL_EVAL).read_text())
+        assert cached["key"]["env"]["thre"] == 0.2 and cached["key"]["splits"] == ["train", "hard"]
+        for split in ("train", "hard"):
+            res = evaluate_policy(job.table, split, load_policy(job.out), EnvConfig(thre=0.2, C=0.02))
+            assert len(res) == 2 * 605
+            row = df[(df["method"] == job.method) & df["final"] & (df["split"] == split)].iloc[0]
+            assert row["return"] == pytest.approx(res.summary()["mean_return"], abs=1e-9)
+            assert row["recognition"] == pytest.approx(res.summary()["recognition_rate"], abs=1e-9)
+
+
+def test_final_eval_is_recomputed_when_missing_or_stale(ablation, tmp_path):
+    """A run copied with another env config (the C=0 / thre=0.6 setting's) is evaluated under
+    that config, not the default; a missing or stale cache is rebuilt, a valid one reused."""
+    import dataclasses
+    import shutil
+
+    from uevavd.env.config import EnvConfig
+    from uevavd.env.evaluate import evaluate_policy
+    from uevavd.policy.agent import load_policy
+
+    job = ablation["jobs"][0]
+    copy = dataclasses.replace(job, out=str(tmp_path / "run"))
+    shutil.copytree(job.out, copy.out)
+    settings = json.loads(Path(copy.out, "settings.json").read_text())
+    settings["env"].update(thre=0.6, C=0.0)
+    Path(copy.out, "settings.json").write_text(json.dumps(settings))
+    first = final_eval(copy)  # the copied cache holds the default config: stale
+    assert first["key"]["env"]["thre"] == 0.6
+    want = evaluate_policy(copy.table, "hard", load_policy(copy.out), EnvConfig(thre=0.6, C=0.0)).summary()
+    assert first["splits"]["hard"]["mean_return"] == pytest.approx(want["mean_return"], abs=1e-9)
+    assert first["splits"]["hard"]["recognition_rate"] == pytest.approx(want["recognition_rate"], abs=1e-9)
+    mtime = Path(copy.out, FINAL_EVAL).stat().st_mtime_ns
+    assert final_eval(copy) == first and Path(copy.out, FINAL_EVAL).stat().st_mtime_ns == mtime  # reused
+    Path(copy.out, FINAL_EVAL).unlink()
+    assert final_eval(copy) == first  # recomputed, same numbers
+    assert not list(Path(copy.out).glob(f".{FINAL_EVAL}.*"))  # atomic write, no temp left
+
+
+def test_workers_default_to_the_number_of_cores(tiny, monkeypatch):
+    import os
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 7)
+    assert make_plan(preset=str(tiny["preset"]), out=tiny["root"] / "w", data=tiny["world"]).workers == 7
+    assert make_plan(preset=str(tiny["preset"]), out=tiny["root"] / "w", data=tiny["world"], workers=3).workers == 3
+
+
+def _one_hard_scene(good_views, visible):
+    """A table of one hard-test scene (hatchback) recognised only at ``good_views``."""
+    from uevavd.perception.table import ObservationTable
+
+    probs = np.full((1, 605, 5), 0.2375, np.float32)
+    probs[0, :, 0] = 0.05
+    probs[0, good_views] = [0.9, 0.025, 0.025, 0.025, 0.025]
+    return ObservationTable.from_arrays(
+        np.zeros((1, 605, 4)), probs, np.full((1, 605, 4), 0.5), scenes=["026"], targets=[0],
+        splits=["hard"], contexts=[26], visible=np.asarray(visible, np.float32)[None])
+
+
+def test_trajectory_start_passive_fails_and_oracle_succeeds():
+    """The least visible failing view (the far corner) cannot reach the one recognised view
+    (a corner) in 5 moves of at most 4 grid steps: it is not picked."""
+    from uevavd.env.config import EnvConfig
+    from uevavd.env.evaluate import evaluate_policy
+    from uevavd.env.oracle import OraclePolicy
+
+    config = EnvConfig()
+    table = _one_hard_scene([0], visible=1.0 - np.arange(605) / 605)
+    scene, start = pick_trajectory_start(table, config)
+    assert (scene, start) == pick_trajectory_start(table, config)  # deterministic
+    assert start != 604 and not table.correct(config.thre)[scene, start]  # passive fails
+    res = evaluate_policy(table, "hard", OraclePolicy(table, config), config)
+    i = int(np.flatnonzero((res.scene == scene) & (res.start_view == start))[0])
+    assert res.recognized[i] and res.final_view[i] == 0  # the oracle's episode ends recognised
+    reachable = res.recognized & ~table.correct(config.thre)[0]
+    assert start == int(np.flatnonzero(reachable).max())  # the least visible such start
 
 
 def test_oracle_bounds_every_policy_and_passive_never_moves(ablation):
@@ -139,6 +234,8 @@ def test_report_and_trajectories(ablation):
     assert methods == {"map", "ibe_map", "random", "oracle"}
     starts = {t["start_view"] for t in traj}
     assert len(starts) == 1 and all(t["views"][0] == t["start_view"] for t in traj)
+    oracle = next(t for t in traj if t["method"] == "oracle")
+    assert oracle["recognized"] and len(oracle["views"]) > 1  # passive fails there, the oracle moves and succeeds
 
 
 def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny):

@@ -14,7 +14,7 @@ from ..plugins.registry import UnknownComponentError
 def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None,
                         help="parallel processes for world generation, image decoding and runs "
-                             "(default: the number of cores, at most 2)")
+                             "(default: the number of cores)")
     parser.add_argument("--device", default="cpu", help="training device: cpu, cuda, cuda:1, auto")
 
 

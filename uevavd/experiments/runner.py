@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..config import ConfigError, load_method
+from ..data.grid import N_VIEWS
 from ..presets import load_preset
 from .io import atomic_write_text, write_csv
 
@@ -28,9 +29,11 @@ from .io import atomic_write_text, write_csv
 DEFAULT_SETTING = {"thre": 0.2, "C": 0.02}
 SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
 RESULT_COLUMNS = [
-    "method", "seed", "setting", "thre", "C", "episodes", "final", "split", "return", "accuracy",
+    "method", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return", "accuracy",
     "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
 ]
+#: A finished run's exhaustive evaluation of its final policy (every context x 605 starts).
+FINAL_EVAL = "final_eval.json"
 BASELINES = ("random", "passive", "oracle")
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
 SECTION_KEYS = {"world": {"seed", "size", "per_block"},
@@ -194,12 +197,17 @@ def make_plan(
         sweep_methods=sweep_methods,
         out=Path(out).resolve(),
         data=Path(data).resolve() if data else None,
-        workers=int(workers or min(os.cpu_count() or 1, 2)),
+        workers=int(workers or default_workers()),
         backend=backend,
         device=device,
         episodes=episodes,
         gpus_per_run=float(gpus_per_run),
     )
+
+
+def default_workers() -> int:
+    """Parallel processes when ``--workers`` is not given: the number of cores."""
+    return max(1, os.cpu_count() or 1)
 
 
 # -- stages ---------------------------------------------------------------------------------
@@ -266,6 +274,16 @@ def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict
     return over
 
 
+def env_config(plan: Plan, setting: dict[str, float]):
+    """The env config of a setting as the runs see it: the preset's ``env.*`` overrides (of
+    the first method; env keys are shared) with the setting's thre and C. The baselines and
+    the trajectories use it, so they are judged under the runs' own reward and horizon."""
+    from ..env.config import make_config
+
+    spec = load_method(plan.methods[0], overrides=method_overrides(plan, plan.methods[0], setting))
+    return make_config(dict(spec.get("env", {}) or {}))
+
+
 def stage_tables(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
     """One table per distinct perception config among the methods (MAP and Memo-MAP share)."""
     from ..perception.prepare import prepare_table, prepare_table_ray
@@ -301,7 +319,8 @@ def plan_jobs(plan: Plan, tables: dict[str, Path]) -> list[Job]:
 
 
 def run_job(job: Job) -> str:
-    """Train (or resume, or skip a finished) run. Runs in a worker process or Ray task."""
+    """Train (or resume, or skip a finished) run, then evaluate its final policy on every
+    context (:func:`final_eval`). Runs in a worker process or Ray task."""
     import torch
 
     from ..policy.trainer import train
@@ -309,11 +328,69 @@ def run_job(job: Job) -> str:
     torch.set_num_threads(max(1, job.threads))
     spec = load_method(job.spec_path)
     train(spec, Path(job.table), out=Path(job.out), seed=job.seed, device=job.device, progress=False)
+    final_eval(job)
     return job.key
 
 
 def is_done(job: Job) -> bool:
     return (Path(job.out) / "done.json").is_file()
+
+
+def _final_eval_key(run: Path) -> dict[str, Any]:
+    """What the cached final evaluation depends on: the finished run (its episode and
+    update counts), its env config, its table and the splits."""
+    settings = json.loads((run / "settings.json").read_text(encoding="utf-8"))
+    done = json.loads((run / "done.json").read_text(encoding="utf-8"))
+    splits = list(settings.get("train", {}).get("eval_splits") or ["train", "hard"])
+    return {"protocol": "every context of the split x all 605 start views, greedy policy",
+            "episodes": int(done["episodes"]), "updates": int(done.get("updates", -1)),
+            "wall_s": float(done.get("wall_s", float("nan"))), "env": settings["env"],
+            "table_key": settings["table_key"], "splits": splits}
+
+
+def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
+    """The exhaustive evaluation of a finished run's final policy: every context of each
+    of the run's ``train.eval_splits`` x all 605 start views, greedy, under the run's own
+    env config (its setting's thre and C). Cached in ``<run>/final_eval.json`` (written
+    atomically; recomputed when missing, unreadable or made for another run state).
+    Returns ``{"key": ..., "splits": {split: summary + "contexts"}}``, or None for an
+    unfinished run.
+
+    The per-epoch evaluations in ``evals.jsonl`` use only ``train.eval_contexts`` evenly
+    spaced contexts per split; the results' ``final`` rows come from here instead, so they
+    are comparable with the baselines, which are evaluated on every context too.
+    """
+    from ..env.config import make_config
+    from ..env.evaluate import evaluate_policy
+    from ..perception.table import ObservationTable
+    from ..policy.agent import load_policy
+
+    run = Path(job.out)
+    if not is_done(job):
+        return None
+    key = json.loads(json.dumps(_final_eval_key(run)))  # as it reads back from JSON
+    path = run / FINAL_EVAL
+    if path.is_file():
+        try:
+            cached = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError:
+            cached = None  # a damaged cache is recomputed
+        if isinstance(cached, dict) and cached.get("key") == key:
+            return cached
+    table = ObservationTable.load(Path(job.table))
+    if table.key != key["table_key"]:
+        raise AblationError(f"{run}: the run was trained on table {key['table_key']}, but {job.table} holds "
+                            f"table {table.key}; cannot evaluate its final policy")
+    config = make_config(key["env"])
+    dev = device or job.device
+    policy = load_policy(run, device=dev)
+    splits = {}
+    for split in key["splits"]:
+        res = evaluate_policy(table, split, policy, config, device=dev)
+        splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size)}
+    out = {"key": key, "splits": splits}
+    atomic_write_text(path, json.dumps(out, indent=1))
+    return out
 
 
 # -- results --------------------------------------------------------------------------------
@@ -329,27 +406,42 @@ def _metric_row(summary: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def run_rows(job: Job, setting: dict[str, float]) -> list[dict[str, Any]]:
-    """Rows of one run from its ``evals.jsonl`` (one JSON object per epoch x split)."""
+def _contexts(summary: dict[str, Any]) -> int:
+    """Contexts an evaluation covered (each from all 605 start views); -1 if unknown."""
+    if "contexts" in summary:
+        return int(summary["contexts"])
+    n = summary.get("eval_episodes", summary.get("episodes"))
+    return int(n) // N_VIEWS if n is not None else -1
+
+
+def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) -> list[dict[str, Any]]:
+    """Rows of one run: its learning curve from ``evals.jsonl`` (one row per epoch x split,
+    ``train.eval_contexts`` contexts each, ``final=False``) and, for a finished run, the
+    exhaustive evaluation of its final policy (:func:`final_eval`: every context,
+    ``final=True``, at the run's last episode count)."""
     path = Path(job.out) / "evals.jsonl"
     rows = []
-    if not path.is_file():
-        return rows
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    last = max((r["episodes"] for r in records), default=None)
-    for r in records:
-        rows.append({
-            "method": job.method, "seed": job.seed, "setting": job.setting, **setting,
-            "episodes": int(r["episodes"]), "final": r["episodes"] == last and is_done(job),
-            "split": r["split"], **_metric_row(r), "wall_s": float(r.get("wall_s", float("nan"))),
-        })
+    base = {"method": job.method, "seed": job.seed, "setting": job.setting, **setting}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            if not line.strip():
+                continue
+            r = json.loads(line)
+            rows.append({**base, "episodes": int(r["episodes"]), "final": False, "split": r["split"],
+                         "eval_contexts": _contexts(r), **_metric_row(r),
+                         "wall_s": float(r.get("wall_s", float("nan")))})
+    final = final_eval(job, device=device)
+    if final is not None:
+        for split, summary in final["splits"].items():
+            rows.append({**base, "episodes": int(final["key"]["episodes"]), "final": True, "split": split,
+                         "eval_contexts": _contexts(summary), **_metric_row(summary),
+                         "wall_s": float(final["key"]["wall_s"])})
     return rows
 
 
 def baseline_rows(plan: Plan, table: Path, splits: Sequence[str], log) -> list[dict[str, Any]]:
     """Random (one per seed), passive and oracle under every setting, on every split."""
     from ..env.baselines import PassivePolicy, RandomPolicy
-    from ..env.config import EnvConfig
     from ..env.evaluate import evaluate_policy
     from ..env.oracle import OraclePolicy
     from ..perception.table import ObservationTable
@@ -359,7 +451,7 @@ def baseline_rows(plan: Plan, table: Path, splits: Sequence[str], log) -> list[d
     tbl = ObservationTable.load(table)
     rows = []
     for setting_name, setting in plan.all_settings():
-        config = EnvConfig(thre=setting["thre"], C=setting["C"])
+        config = env_config(plan, setting)
         for split in splits:
             policies = [("passive", 0, PassivePolicy()), ("oracle", 0, OraclePolicy(tbl, config))]
             policies += [("random", s, RandomPolicy(seed=s)) for s in plan.seeds]
@@ -369,39 +461,58 @@ def baseline_rows(plan: Plan, table: Path, splits: Sequence[str], log) -> list[d
                     done[key] = evaluate_policy(tbl, split, policy, config).summary()
                 rows.append({
                     "method": name, "seed": seed, "setting": setting_name, **setting, "episodes": -1,
-                    "final": True, "split": split, **_metric_row(done[key]), "wall_s": 0.0,
+                    "final": True, "split": split, "eval_contexts": _contexts(done[key]),
+                    **_metric_row(done[key]), "wall_s": 0.0,
                 })
     atomic_write_text(cache, json.dumps(done, indent=1))
     return rows
 
 
-def pick_trajectory_start(table_path: Path, config) -> tuple[int, int]:
-    """A hard-test (scene index, start view) where the passive view fails and the oracle
-    succeeds: the kind of start Fig. 8 shows. Deterministic."""
-    from ..perception.table import ObservationTable
+def pick_trajectory_start(table, config) -> tuple[int, int]:
+    """A hard-test (table scene index, start view) where passive fails and the oracle
+    succeeds, the kind of start Fig. 8 shows: the start view is not recognised (passive
+    stops there and fails) and the oracle's optimal episode from it ends at a recognised
+    view. The first hard scene (table order) that has such a start is taken, and in it
+    the start whose target is least visible (ties: the lowest view index). Deterministic.
 
-    tbl = ObservationTable.load(table_path)
-    correct = tbl.correct(config.thre)
-    for s in tbl.scene_indices("hard"):
-        vis = np.nan_to_num(tbl.visible[s], nan=1.0)
-        candidates = np.flatnonzero(~correct[s])
-        if len(candidates) and correct[s].any():
-            return int(s), int(candidates[np.argmin(vis[candidates])])
-    s = int(tbl.scene_indices("hard")[0]) if len(tbl.scene_indices("hard")) else 0
-    return s, 0
+    ``table``: an :class:`~uevavd.perception.table.ObservationTable` or its folder;
+    ``config``: the env config of the episodes (thre, C, T_max). Without such a start in
+    the hard split it falls back to the least visible start where passive fails, then to
+    view 0 of the first hard scene.
+    """
+    from ..env.aod_env import load_table
+    from ..env.config import make_config
+    from ..env.evaluate import evaluate_policy
+    from ..env.oracle import OraclePolicy
+
+    tbl = load_table(table)
+    config = make_config(config)
+    hard = tbl.scene_indices("hard")
+    if not len(hard):
+        return 0, 0
+    passive_ok = tbl.correct(config.thre)  # passive stops at once: recognised iff its start view is
+    res = evaluate_policy(tbl, "hard", OraclePolicy(tbl, config), config)
+    oracle_ok = np.zeros_like(passive_ok)
+    oracle_ok[res.scene, res.start_view] = res.recognized
+    vis = np.nan_to_num(tbl.visible, nan=1.0)
+    for wanted in (~passive_ok & oracle_ok, ~passive_ok):
+        for s in hard:
+            candidates = np.flatnonzero(wanted[s])
+            if len(candidates):
+                return int(s), int(candidates[np.argmin(vis[s, candidates])])
+    return int(hard[0]), 0
 
 
 def trajectory_rows(plan: Plan, jobs: list[Job], tables: dict[str, Path]) -> list[dict[str, Any]]:
     """The greedy episode of each final default-setting policy (seed 0), random and oracle,
     from the same hard-test start."""
     from ..env.baselines import RandomPolicy
-    from ..env.config import EnvConfig
     from ..env.evaluate import evaluate_policy
     from ..env.oracle import OraclePolicy
     from ..perception.table import ObservationTable
     from ..policy.agent import load_policy
 
-    config = EnvConfig()
+    config = env_config(plan, DEFAULT_SETTING)
     first = tables[plan.methods[0]]
     scene, start = pick_trajectory_start(first, config)
     out = []
@@ -487,7 +598,7 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
         rows = []
         for job in jobs:
             setting = dict(plan.settings(job.method))[job.setting]
-            rows += run_rows(job, setting)
+            rows += run_rows(job, setting, device=plan.device)
         splits = sorted({r["split"] for r in rows}) or ["train", "hard"]
         rows += baseline_rows(plan, tables[plan.methods[0]], splits, log)
         results = write_csv(plan.out / "results.csv", rows, RESULT_COLUMNS)
