@@ -236,3 +236,109 @@ def test_bad_input_names_the_file(tmp_path):
     df.to_csv(tmp_path / "results.csv", index=False)
     with pytest.raises(ValueError, match=r"results\.csv.*path_m"):
         load_results(tmp_path / "results.csv")
+
+
+# -- exhaustive final rows, claim (a) per split, Student-t bands -------------------------
+
+
+def test_claim_a_is_checked_on_every_split():
+    # every method beats passive on the hard contexts, but not on the training contexts
+    df = make_results({"map": (0.5, 0.05), "ibe_map": (0.55, 0.3)}, passive=(0.7, -0.2))
+    a = check_claims(df)[0]
+    assert a.verdict == DISAGREES
+    assert "train contexts: disagrees" in a.evidence and "hard contexts: agrees" in a.evidence
+    assert "simple contexts: agrees" in a.evidence
+    ok = check_claims(make_results({"map": (0.5, 0.05), "ibe_map": (0.55, 0.3)}))[0]
+    assert ok.verdict == AGREES and all(f"{s} contexts: agrees" in ok.evidence for s in ("train", "simple", "hard"))
+
+
+def _with_exhaustive_final_rows(df, shift=0.2):
+    """As the runner writes it: every curve point final=False, plus a final row per split
+    (the exhaustive evaluation) at the last episode count, its return shifted."""
+    runs = ~df["method"].isin(("random", "passive", "oracle"))
+    last = df[runs & df["final"]].copy()
+    df = df.copy()
+    df.loc[runs, "final"] = False
+    last["return"] += shift
+    return pd.concat([df, last], ignore_index=True)
+
+
+def test_final_rows_come_from_the_exhaustive_evaluation_and_curves_do_not():
+    from uevavd.experiments.report_data import curve_rows
+
+    base = make_results({"map": (0.5, 0.05)})
+    df = _with_exhaustive_final_rows(base)
+    fin = final_rows(df)
+    hard = fin[(fin["method"] == "map") & (fin["split"] == "hard")].sort_values("seed")
+    assert hard["return"].to_numpy() == pytest.approx([0.05 - 0.005 + 0.2, 0.05 + 0.005 + 0.2])
+    curves = curve_rows(df)
+    assert len(curves) == len(base[base["method"] == "map"]) and not curves["final"].any()
+    # an older file (last curve point flagged final, no separate row) keeps that point in the curve
+    assert len(curve_rows(base)) == len(base[base["method"] == "map"])
+
+
+def test_curve_band_is_the_student_t_interval_over_seeds():
+    from scipy import stats
+
+    from uevavd.experiments.figures import curve_bands, smoothed_curves
+
+    df = make_results({"map": (0.5, 0.1)}, seeds=(0, 1, 2), noise=0.02)
+    df = df[df["method"] == "map"]
+    data = smoothed_curves(df, window=2)
+    band = curve_bands(data, "return")
+    assert len(band) == 3 * len(POINTS) and (band["n"] == 3).all()
+    for _, b in band.iterrows():
+        v = data[(data["split"] == b["split"]) & (data["eval_point"] == b["eval_point"])]["return"].to_numpy()
+        half = stats.t.ppf(0.975, 2) * v.std(ddof=1) / math.sqrt(3)
+        assert b["mean"] == pytest.approx(v.mean())
+        assert (b["lo"], b["hi"]) == pytest.approx((v.mean() - half, v.mean() + half))
+    one = curve_bands(smoothed_curves(df[df["seed"] == 0], window=2), "return")
+    assert one["lo"].isna().all() and one["hi"].isna().all()  # one seed: no band
+
+
+def test_fig9_draws_the_t_band_and_none_for_one_seed(tmp_path, monkeypatch):
+    import matplotlib.axes
+
+    from uevavd.experiments.figures import plot_curves
+
+    calls = []
+    real = matplotlib.axes.Axes.fill_between
+
+    def spy(self, x, y1, y2=0, **kw):
+        calls.append((np.asarray(x), np.asarray(y1), np.asarray(y2)))
+        return real(self, x, y1, y2, **kw)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "fill_between", spy)
+    df = make_results({"map": (0.5, 0.1)}, seeds=(0, 1, 2), noise=0.02)
+    curves = df[df["method"] == "map"]
+    base = df[df["method"].isin(("passive", "oracle", "random"))]
+    plot_curves(curves, base, tmp_path / "a.png", window=1)
+    assert len(calls) == 6  # 3 metrics x 2 splits, one method
+    hard_ret = curves[(curves["split"] == "hard")].groupby("episodes")["return"]
+    lo = hard_ret.mean() - stats_t975(2) * hard_ret.std(ddof=1) / math.sqrt(3)
+    assert any(np.allclose(c[1], lo.to_numpy()) for c in calls)
+    calls.clear()
+    plot_curves(curves[curves["seed"] == 0], base, tmp_path / "b.png", window=1)
+    assert calls == []
+
+
+def stats_t975(df: int) -> float:
+    from scipy import stats
+
+    return float(stats.t.ppf(0.975, df))
+
+
+def test_setup_says_which_rows_are_exhaustive(tmp_path):
+    df = _with_exhaustive_final_rows(make_results({"map": (0.5, 0.05)}))
+    df["eval_contexts"] = np.where(df["final"], 5, 2)
+    d = tmp_path / "new"
+    d.mkdir()
+    df.to_csv(d / "results.csv", index=False)
+    text = write_report(d, window=2).read_text(encoding="utf-8")
+    assert "are exhaustive: every context of each split x all 605 start views" in text
+    assert "(contexts per split: train 5, simple 5, hard 5)" in text and "(train 2, simple 2, hard 2)" in text
+    assert "95% Student-t interval over seeds" in text and "trailing sliding-window mean" in text
+    old = tmp_path / "old"
+    old.mkdir()
+    make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)
+    assert "flags each run's last per-epoch evaluation" in write_report(old).read_text(encoding="utf-8")

@@ -21,7 +21,7 @@ import seaborn as sns  # noqa: E402
 
 from ..data.grid import ACTION_TYPES, STOP, XS, YS, ZS, view_coords  # noqa: E402
 from .report_data import BASELINES, label, order_methods  # noqa: E402
-from .stats import smooth  # noqa: E402
+from .stats import Estimate, smooth  # noqa: E402
 
 #: Fig. 9 panels: (column, y-axis label).
 CURVE_METRICS: tuple[tuple[str, str], ...] = (
@@ -70,12 +70,27 @@ def smoothed_curves(curves: pd.DataFrame, window: int) -> pd.DataFrame:
     return data
 
 
+def curve_bands(data: pd.DataFrame, col: str) -> pd.DataFrame:
+    """Mean and 95% band over seeds of the smoothed curves (:func:`smoothed_curves`) at
+    each evaluation point: one row per (method, split, eval_point) with ``episodes``,
+    ``mean``, ``lo``, ``hi`` and ``n`` (seeds). The band is the Student-t interval of
+    :class:`uevavd.experiments.stats.Estimate` (mean ± t(0.975, n-1) · sd / √n), the
+    same as the tables'; NaN (no band) with fewer than two seeds."""
+    rows = []
+    for (m, split, k), g in data.groupby(["method", "split", "eval_point"], sort=True):
+        e = Estimate.of(g[col].to_numpy(dtype=np.float64))
+        rows.append({"method": m, "split": split, "eval_point": int(k), "episodes": float(g["episodes"].mean()),
+                     "mean": e.mean, "lo": e.lo, "hi": e.hi, "n": e.n})
+    return pd.DataFrame(rows, columns=["method", "split", "eval_point", "episodes", "mean", "lo", "hi", "n"])
+
+
 def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, window: int) -> Path:
     """Fig. 9: 3 metrics (rows) x {train, hard} (columns) against training episodes.
 
-    ``curves``: learned-method rows of one setting (``episodes >= 0``); each seed's curve
-    is smoothed with a ``window``-point sliding mean, then seaborn draws the mean over
-    seeds and a 95% confidence band (``errorbar=("ci", 95)``, bootstrap, fixed seed).
+    ``curves``: learned-method learning-curve rows of one setting (``episodes >= 0``);
+    each seed's curve is smoothed with a ``window``-point trailing sliding mean, then the
+    mean over seeds is drawn (seaborn) with the 95% Student-t band over seeds of
+    :func:`curve_bands` (matplotlib ``fill_between``; none with one seed).
     ``baselines``: final baseline rows of the same setting, drawn as dashed lines at
     their mean over seeds.
     """
@@ -91,8 +106,15 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
             if sub.empty:
                 ax.text(0.5, 0.5, f"no {split} rows", ha="center", va="center", transform=ax.transAxes)
             else:
-                sns.lineplot(data=sub, x="episodes", y=col, hue="policy", hue_order=hue_order, palette=palette,
-                             errorbar=("ci", 95), seed=0, ax=ax, legend=False)
+                band = curve_bands(sub, col)
+                band = band.assign(policy=band["method"].map(label))
+                sns.lineplot(data=band, x="episodes", y="mean", hue="policy", hue_order=hue_order, palette=palette,
+                             errorbar=None, ax=ax, legend=False)
+                for policy, g in band.groupby("policy", sort=False):
+                    ok = np.isfinite(g["lo"].to_numpy()) & np.isfinite(g["hi"].to_numpy())
+                    if ok.any():
+                        ax.fill_between(g["episodes"].to_numpy(), g["lo"].to_numpy(), g["hi"].to_numpy(),
+                                        where=ok, color=palette[policy], alpha=0.2, linewidth=0)
             base = baselines[baselines["split"] == split]
             for m in BASELINES:
                 vals = base.loc[base["method"] == m, col]
@@ -108,7 +130,8 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
                 for m in BASELINES if m in present]
     fig.legend(handles=handles, loc="lower center", ncol=max(1, len(handles)), frameon=False,
                bbox_to_anchor=(0.5, -0.01))
-    fig.suptitle(f"Mean over seeds and 95% CI after a {window}-point sliding-window mean", fontsize=11)
+    fig.suptitle(f"Mean over seeds and 95% Student-t interval over seeds after a {window}-point trailing "
+                 "sliding-window mean", fontsize=11)
     fig.tight_layout(rect=(0, 0.03, 1, 0.97))
     return _save(fig, path)
 

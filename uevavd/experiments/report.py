@@ -34,6 +34,7 @@ from .report_data import (
     DETERMINISTIC,
     METRICS,
     SPLITS,
+    curve_rows,
     default_setting,
     estimate,
     final_rows,
@@ -141,6 +142,7 @@ def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame
         f"- Training episodes at the final evaluation point: {', '.join(str(e) for e in episodes) or 'n/a'}"
         " (the paper trains 300,000)",
         f"- Data: `{meta.get('data_root', 'unknown')}`",
+        f"- Evaluation: {_evaluation_text(results)}",
     ]
     for n in notes:
         out.append(f"- Note: {n}")
@@ -154,10 +156,49 @@ def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame
     return out
 
 
+def _contexts_text(rows: pd.DataFrame) -> str:
+    """"train 20, hard 5" from the ``eval_contexts`` column (empty if unknown)."""
+    if "eval_contexts" not in rows or rows.empty:
+        return ""
+    parts = []
+    for split in SPLITS:
+        n = pd.to_numeric(rows.loc[rows["split"] == split, "eval_contexts"], errors="coerce").dropna()
+        n = n[n > 0]
+        if len(n):
+            lo, hi = int(n.min()), int(n.max())
+            parts.append(f"{split} {lo}" if lo == hi else f"{split} {lo}-{hi}")
+    return ", ".join(parts)
+
+
+def _evaluation_text(results: pd.DataFrame) -> str:
+    """Which rows are exhaustive: the final rows of learned runs and the baselines cover
+    every context; the learning-curve points only ``train.eval_contexts`` of them."""
+    runs = results[~is_baseline(results)]
+    final = runs[runs["final"]]
+    curve = runs[~runs["final"]]
+    keys = ["method", "seed", "setting", "split", "episodes"]
+    twins = final.merge(curve[keys].drop_duplicates(), on=keys, how="inner")
+    if not final.empty and twins.empty:  # an older results file: the last curve point is the final row
+        return ("this results file flags each run's last per-epoch evaluation as its final point "
+                "(`train.eval_contexts` contexts per split, evenly spaced, x 605 start views); the baselines cover "
+                "every context. Rerun `uevavd ablate` on the directory to add the exhaustive final evaluations.")
+    exhaustive = _contexts_text(pd.concat([final, results[is_baseline(results)]]))
+    sampled = _contexts_text(curve)
+    return ("final-point numbers (results tables, GenGap, sweeps, claims, the reference lines of Fig. 9) are "
+            "exhaustive: every context of each split x all 605 start views, greedy, for the learned policies' "
+            "final checkpoints and the baselines alike"
+            + (f" (contexts per split: {exhaustive})" if exhaustive else "")
+            + ". The learning-curve points of Fig. 9 are the per-epoch evaluations during training, on "
+            "`train.eval_contexts` evenly spaced contexts per split"
+            + (f" ({sampled})" if sampled else "") + " x 605 start views.")
+
+
 def _results_section(final: pd.DataFrame, setting: str) -> list[str]:
     out = ["## Results at the final evaluation point", "",
            f"Setting `{setting}`. Cells: mean ± std over seeds, and the 95% confidence interval "
            "(Student t over seeds) below it; passive and oracle are deterministic (one exact value). "
+           "Learned methods: their final policies evaluated on every context of the split x 605 start views, "
+           "like the baselines (see Setup). "
            "All values per episode: return is discounted (gamma = 0.9), accuracy is argmax == true "
            "class at the final view, recognition is the rate of reco = 1 at the end.", ""]
     for split in SPLITS:
@@ -194,7 +235,8 @@ def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, ou
                     window: int | None) -> list[str]:
     from .figures import plot_curves
 
-    curves = results[~is_baseline(results) & (results["setting"] == setting) & (results["episodes"] >= 0)]
+    curves = curve_rows(results)
+    curves = curves[(curves["setting"] == setting) & (curves["episodes"] >= 0)]
     out = ["## Learning curves (Fig. 9)", ""]
     if curves.empty:
         return out + ["No learning-curve rows in the default setting.", ""]
@@ -202,10 +244,15 @@ def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, ou
     w = int(window) if window is not None else max(1, min(5, points // 3))
     base = final[is_baseline(final) & (final["setting"] == setting)]
     plot_curves(curves, base, out_dir / "fig9_curves.png", window=w)
+    smoothing = (f"smoothed with a {w}-point trailing sliding-window mean (the point at k averages points "
+                 f"k-{w - 1}..k, so a smoothed curve lags the raw one by about {(w - 1) / 2:g} evaluation points)"
+                 if w > 1 else "not smoothed (window 1)")
     out += [f"Return, recognition rate and movement distance against training episodes on the training and "
-            f"hard-test contexts ({setting} setting). Each seed's curve ({points}+ evaluation points) is smoothed "
-            f"with a {w}-point trailing sliding-window mean; the line is the mean over seeds and the band a 95% "
-            "confidence interval (seaborn, bootstrap). Dashed lines: random, passive, oracle.", "",
+            f"hard-test contexts ({setting} setting). Each seed's curve ({points}+ evaluation points) is "
+            f"{smoothing}; the line is the mean over seeds and the band the 95% Student-t interval over seeds at "
+            "each evaluation point (mean ± t(0.975, n-1) · sd / √n, the same interval as the tables; no band "
+            "with one seed). Curve points are the per-epoch evaluations (`train.eval_contexts` contexts per "
+            "split); dashed lines: random, passive and oracle, evaluated on every context.", "",
             "![Fig. 9: learning curves](fig9_curves.png)", ""]
     return out
 

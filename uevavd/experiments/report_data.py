@@ -4,7 +4,12 @@ sweeps, per-seed GenGap).
 
 ``results.csv`` is tidy: one row per method x seed x setting x evaluation point x split
 (columns in :data:`REQUIRED_COLUMNS`). Baselines (random, passive, oracle) have
-``episodes == -1`` and are constant reference values.
+``episodes == -1`` and are constant reference values. A learned run has its per-epoch
+learning-curve rows (``final`` False; evaluated on ``train.eval_contexts`` contexts) and,
+once finished, one ``final`` row per split from the exhaustive evaluation of its final
+policy (every context, like the baselines; the optional ``eval_contexts`` column says how
+many contexts a row covers). Files of older versions flag the last curve point ``final``
+instead; both read the same way here.
 """
 
 from __future__ import annotations
@@ -140,6 +145,21 @@ def final_rows(df: pd.DataFrame) -> pd.DataFrame:
     if not parts:
         return df.iloc[0:0]
     return pd.concat(parts, ignore_index=True)
+
+
+def curve_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """The learning-curve rows of learned runs: every non-baseline row that is not a
+    ``final`` row standing beside a curve point at the same (method, seed, setting, split,
+    episodes) -- the exhaustive final evaluation is not a curve point (it covers other
+    contexts than the per-epoch evaluations). A ``final`` row with no curve point beside it
+    (files that flag the last curve point final) stays."""
+    keys = ["method", "seed", "setting", "split", "episodes"]
+    runs = df[~is_baseline(df)]
+    plain = runs[~runs["final"]]
+    have = set(map(tuple, plain[keys].drop_duplicates().to_numpy().tolist()))
+    flagged = runs[runs["final"]]
+    alone = flagged[[tuple(k) not in have for k in flagged[keys].to_numpy().tolist()]]
+    return pd.concat([plain, alone]).sort_index()
 
 
 def default_setting(df: pd.DataFrame) -> str:
