@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from uevavd.cli import main
 
 from .conftest import small
@@ -23,3 +25,74 @@ def test_train_then_evaluate_from_the_command_line(table, tmp_path, capsys):
     assert main(["train", "--method", "map", "--table", str(path), "--out", str(tmp_path / "x"),
                  "--set", "head.hiden=3"]) == 2
     assert "did you mean 'hidden'" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def run(table, tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli")
+    path = table.save(root / "table")
+    assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out",
+                 str(root / "run"), "--no-progress", "--device", "cpu", *_sets()]) == 0
+    return root / "run"
+
+
+def _sets(**extra):
+    return [a for k, v in {**small("map"), **extra}.items() for a in ("--set", f"{k}={json.dumps(v)}")]
+
+
+def _one_line_error(capsys, *needles):
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    return err
+
+
+@pytest.mark.parametrize("split, needles", [
+    ("bogus", ("unknown split 'bogus'", "'hard_test'", "train (3 contexts)", "hard (2 contexts)")),
+    ("simple", ("no contexts of split 'simple'", "train (3 contexts)", "hard (2 contexts)")),
+])
+def test_evaluate_a_split_the_table_lacks_is_one_line_and_exit_2(run, capsys, monkeypatch, split, needles):
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main(["evaluate", str(run), "--split", split]) == 2
+    _one_line_error(capsys, "uevavd evaluate: error:", *needles)
+    assert not (run / f"eval_{split}.json").exists()
+    monkeypatch.setenv("UEVAVD_DEBUG", "1")
+    with pytest.raises(ValueError, match=split):
+        main(["evaluate", str(run), "--split", split])
+
+
+def test_evaluate_bad_input_is_one_line(run, tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main(["evaluate", str(tmp_path)]) == 2
+    _one_line_error(capsys, "not a training run")
+    assert main(["evaluate", str(run), "--table", str(tmp_path / "nope")]) == 2
+    _one_line_error(capsys, "does not exist")
+    assert main(["evaluate", str(run), "--table", str(tmp_path)]) == 2  # a folder but no table
+    _one_line_error(capsys, "not an observation table", "TableError")
+
+
+def test_train_bad_input_is_one_line_and_exit_2(table, tmp_path, capsys, monkeypatch):
+    from uevavd.perception.table import TableError
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    out = tmp_path / "run"
+    base = ["train", "--method", "map", "--out", str(out), "--episodes", "50", "--no-progress", "--device", "cpu"]
+    assert main([*base, "--table", str(path), "--set", "train.lr"]) == 2
+    _one_line_error(capsys, "expected KEY=VALUE")
+    assert main([*base, "--table", str(path), *_sets(**{"env.gamma": 0.99, "train.gamma": 0.95})]) == 2
+    _one_line_error(capsys, "train.gamma = 0.95 and env.gamma = 0.99")
+    assert main([*base, "--table", str(tmp_path / "missing"), *_sets()]) == 2
+    _one_line_error(capsys, "table folder", "does not exist")
+    # a table without the train split
+    hard = type(table).from_arrays(table.features, table.probs, table.boxes, scenes=list(table.scenes),
+                                   targets=table.targets.tolist(), contexts=table.contexts.tolist(),
+                                   splits=["hard"] * len(table))
+    hard_path = hard.save(tmp_path / "hard_only")
+    assert main([*base, "--table", str(hard_path), *_sets()]) == 2
+    _one_line_error(capsys, "split 'train'", "hard", "TableError")
+    assert not out.exists()
+    monkeypatch.setenv("UEVAVD_DEBUG", "1")
+    with pytest.raises(TableError, match="split 'train'"):
+        main([*base, "--table", str(hard_path), *_sets()])

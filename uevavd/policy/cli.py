@@ -4,8 +4,48 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
+from typing import Any
+
+#: What bad input raises (ConfigError, TableError, RunDirError, CheckpointError are ValueErrors).
+BAD_INPUT = (ValueError, FileNotFoundError, NotADirectoryError)
+
+
+def _error(command: str, exc: BaseException | str) -> int:
+    """Bad input as one line on stderr and exit 2; ``UEVAVD_DEBUG=1`` re-raises an exception."""
+    if os.environ.get("UEVAVD_DEBUG"):
+        raise exc if isinstance(exc, BaseException) else ValueError(exc)
+    text = " ".join(str(exc).split())
+    hint = f" ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)" if isinstance(exc, BaseException) else ""
+    print(f"uevavd {command}: error: {text}{hint}", file=sys.stderr)
+    return 2
+
+
+def split_problem(table: Any, split: str, where: str) -> str | None:
+    """Why ``split`` cannot be evaluated on ``table`` (an unknown name, or no contexts of it
+    in the table), naming the splits the table has; None when it can."""
+    from ..data.splits import SPLIT_ALIASES, resolve_split
+
+    present = {s: int(sum(1 for x in table.splits if x == s)) for s in dict.fromkeys(table.splits)}
+    have = ", ".join(f"{s} ({n} contexts)" for s, n in present.items()) or "none"
+    try:
+        resolve_split(split)
+    except ValueError:
+        return (f"unknown split {split!r}: expected one of {sorted(SPLIT_ALIASES)}; "
+                f"{where} has the splits {have}")
+    if table.scene_indices(split).size == 0:
+        return f"{where} has no contexts of split {split!r}; its splits: {have}"
+    return None
+
+
+def _table_problem(path: Path) -> str | None:
+    if not path.exists():
+        return f"table folder {path} does not exist; build one with `uevavd prepare` or pass its path"
+    if not path.is_dir():
+        return f"--table {path} is a file, not an observation table folder (from `uevavd prepare`)"
+    return None
 
 
 def add_train(p: argparse.ArgumentParser):
@@ -28,18 +68,19 @@ def add_train(p: argparse.ArgumentParser):
             overrides = dict(parse_override(s) for s in args.set)
             spec = load_method(args.method, overrides)
         except ConfigError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+            return _error("train", exc)
         if (args.out / "done.json").is_file():
-            print(f"error: {args.out} holds a finished run (done.json); evaluate it with "
+            print(f"uevavd train: error: {args.out} holds a finished run (done.json); evaluate it with "
                   f"`uevavd evaluate {args.out}` or train into another --out", file=sys.stderr)
             return 1
+        problem = _table_problem(args.table)
+        if problem:
+            return _error("train", problem)
         try:
             out = train(spec, args.table, out=args.out, episodes=args.episodes, seed=args.seed,
                         device=args.device, progress=not args.no_progress, max_epochs=args.max_epochs)
-        except (RunDirError, ValueError, FileNotFoundError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
+        except (RunDirError, *BAD_INPUT) as exc:
+            return _error("train", exc)
         status = "finished" if (out / "done.json").is_file() else "paused (rerun the same command to resume)"
         print(f"run {status}: {out}")
         return 0
@@ -49,51 +90,62 @@ def add_train(p: argparse.ArgumentParser):
 
 def add_evaluate(p: argparse.ArgumentParser):
     p.add_argument("run_dir", type=Path, help="training run directory")
-    p.add_argument("--split", default="hard", help="train, simple, hard, test (simple + hard) or all")
+    p.add_argument("--split", default="hard",
+                   help="train, simple, hard or test (simple + hard); the table must hold contexts of it")
     p.add_argument("--table", type=Path, default=None, help="observation table (default: the run's)")
     p.add_argument("--json", type=Path, default=None, help="output JSON (default RUN_DIR/eval_<split>.json)")
     p.add_argument("--device", default="cpu")
 
     def run(args: argparse.Namespace) -> int:
-        from ..env.aod_env import load_table
-        from ..env.baselines import PassivePolicy, RandomPolicy
-        from ..env.config import EnvConfig
-        from ..env.evaluate import evaluate_policy
-        from ..env.oracle import OraclePolicy
-        from .agent import load_policy
-
-        settings_path = args.run_dir / "settings.json"
-        if not settings_path.is_file():
-            print(f"error: {args.run_dir} is not a training run (no settings.json)", file=sys.stderr)
-            return 1
-        settings = json.loads(settings_path.read_text(encoding="utf-8"))
-        table_path = args.table or settings.get("table_path")
-        if not table_path:
-            print("error: the run names no table folder; pass --table", file=sys.stderr)
-            return 1
-        table = load_table(table_path)
-        if table.key != settings["table_key"]:
-            print(f"error: table {table_path} has key {table.key} but the run was trained on "
-                  f"{settings['table_key']}; pass the run's table with --table", file=sys.stderr)
-            return 1
-        cfg = EnvConfig().replace(**settings["env"])
-        policies = {
-            settings["method"]: load_policy(args.run_dir, device=args.device),
-            "random": RandomPolicy(0), "passive": PassivePolicy(), "oracle": OraclePolicy(table, cfg),
-        }
-        results = {name: evaluate_policy(table, args.split, pol, cfg, device=args.device)
-                    for name, pol in policies.items()}
-        cols = ["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"]
-        print(f"{args.run_dir} on split {args.split!r} ({len(next(iter(results.values())))} episodes)")
-        print(f"{'policy':<12}" + "".join(f"{c:>18}" for c in cols))
-        for name, res in results.items():
-            s = res.summary()
-            print(f"{name:<12}" + "".join(f"{s[c]:>18.4f}" for c in cols))
-        path = args.json or args.run_dir / f"eval_{args.split}.json"
-        from .trainer import _write_json
-
-        _write_json(path, {name: res.to_dict() for name, res in results.items()})
-        print(f"wrote {path}")
-        return 0
+        try:
+            return _evaluate(args)
+        except BAD_INPUT as exc:
+            return _error("evaluate", exc)
 
     return run
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from ..env.aod_env import load_table
+    from ..env.baselines import PassivePolicy, RandomPolicy
+    from ..env.config import EnvConfig
+    from ..env.evaluate import evaluate_policy
+    from ..env.oracle import OraclePolicy
+    from .agent import load_policy
+
+    settings_path = args.run_dir / "settings.json"
+    if not settings_path.is_file():
+        return _error("evaluate", f"{args.run_dir} is not a training run (no settings.json)")
+    settings = json.loads(settings_path.read_text(encoding="utf-8"))
+    table_path = args.table or settings.get("table_path")
+    if not table_path:
+        return _error("evaluate", "the run names no table folder; pass --table")
+    problem = _table_problem(Path(table_path))
+    if problem:
+        return _error("evaluate", problem)
+    table = load_table(table_path)
+    if table.key != settings["table_key"]:
+        return _error("evaluate", f"table {table_path} has key {table.key} but the run was trained on "
+                                  f"{settings['table_key']}; pass the run's table with --table")
+    problem = split_problem(table, args.split, f"table {table_path}")
+    if problem:
+        return _error("evaluate", problem)
+    cfg = EnvConfig().replace(**settings["env"])
+    policies = {
+        settings["method"]: load_policy(args.run_dir, device=args.device),
+        "random": RandomPolicy(0), "passive": PassivePolicy(), "oracle": OraclePolicy(table, cfg),
+    }
+    results = {name: evaluate_policy(table, args.split, pol, cfg, device=args.device)
+               for name, pol in policies.items()}
+    cols = ["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"]
+    print(f"{args.run_dir} on split {args.split!r} ({len(next(iter(results.values())))} episodes)")
+    print(f"{'policy':<12}" + "".join(f"{c:>18}" for c in cols))
+    for name, res in results.items():
+        s = res.summary()
+        print(f"{name:<12}" + "".join(f"{s[c]:>18.4f}" for c in cols))
+    path = args.json or args.run_dir / f"eval_{args.split}.json"
+    from .trainer import _write_json
+
+    _write_json(path, {name: res.to_dict() for name, res in results.items()})
+    print(f"wrote {path}")
+    return 0

@@ -85,8 +85,8 @@ class TrainConfig:
 
         raise ConfigError(
             f"train.gamma = {self.gamma} and env.gamma = {env_gamma} differ, but a run has one discount "
-            f"(the TD target's, the reported return's and the oracle's); set env.gamma = {self.gamma} "
-            "instead (train.gamma is deprecated and follows env.gamma when left at 0.9)"
+            "(the TD target's, the reported return's and the oracle's): set only env.gamma "
+            "(train.gamma is deprecated; left at 0.9 it follows env.gamma)"
         )
 
     def replace(self, **changes: Any) -> TrainConfig:
