@@ -261,3 +261,71 @@ def test_cli_bad_input_is_one_line_and_exit_2(tiny_world, tiny_classifier, tmp_p
 
     with pytest.raises(ConfigError):
         main(["prepare", world, "--method", "ibe_map", "--set", "nokey"])
+
+
+def _small_table(n: int = 2, dim: int = 8) -> ObservationTable:
+    rng = np.random.default_rng(0)
+    probs = rng.random((n, N_VIEWS, 5)).astype(np.float32)
+    return ObservationTable.from_arrays(
+        rng.standard_normal((n, N_VIEWS, dim)), probs / probs.sum(-1, keepdims=True),
+        np.tile(np.array([0.25, 0.25, 0.75, 0.75], np.float32), (n, N_VIEWS, 1)),
+        scenes=[f"{i + 1:03d}" for i in range(n)], targets=list(range(n)), splits=["train"] * n)
+
+
+def _poke(f, value: float, index: int = 3) -> None:
+    """Overwrite one float16 of an .npy file in place (size unchanged), as a hand edit would."""
+    offset = np.load(f, mmap_mode="r").offset
+    with open(f, "r+b") as fh:
+        fh.seek(offset + 2 * index)
+        fh.write(np.float16(value).tobytes())
+
+
+def test_table_load_does_not_scan_the_features(tmp_path, monkeypatch):
+    path = _small_table().save(tmp_path / "t")
+    meta = json.loads((path / "meta.json").read_text())
+    rec = meta["integrity"]["files"]["features.npy"]
+    assert rec["bytes"] == (path / "features.npy").stat().st_size and len(rec["sha256"]) == 64
+    scanned = []
+    real = np.isfinite
+    monkeypatch.setattr(np, "isfinite", lambda a, *k, **kw: scanned.append(np.shape(a)) or real(a, *k, **kw))
+    t = ObservationTable.load(path)
+    assert isinstance(t.features, np.memmap)
+    assert scanned and t.features.shape not in scanned  # probs and boxes are checked, features are not
+    monkeypatch.setattr(np, "isfinite", real)
+    assert t.verify() is t
+
+
+def test_table_written_by_hand_is_refused(tmp_path):
+    path = _small_table().save(tmp_path / "t")
+    feats = path / "features.npy"
+    # NaN written into the feature file in place (same size), right after save
+    _poke(feats, np.nan)
+    with pytest.raises(TableError, match="features contain NaN or inf"):
+        ObservationTable.load(path)
+    # a finite change is refused too: the file no longer is the one that was checked
+    _poke(feats, 7.0)
+    with pytest.raises(TableError, match="changed since the table was written"):
+        ObservationTable.load(path)
+    # ... unless the editor also restores the timestamp: then only verify() sees it
+    rec = json.loads((path / "meta.json").read_text())["integrity"]["files"]["features.npy"]
+    os.utime(feats, ns=(rec["mtime_ns"], rec["mtime_ns"]))
+    t = ObservationTable.load(path)
+    with pytest.raises(TableError, match="sha256 differs"):
+        t.verify()
+    # a truncated file
+    feats.write_bytes(feats.read_bytes()[:-10])
+    with pytest.raises(TableError):
+        ObservationTable.load(path)
+    # a copy that did not keep the times is hashed, found intact and served
+    good = _small_table().save(tmp_path / "good")
+    copy = tmp_path / "copy"
+    shutil.copytree(good, copy, copy_function=shutil.copyfile)
+    assert ObservationTable.load(copy).verify().key == ObservationTable.load(good).key
+    # a table without the record (an older uevavd) is scanned in full at load
+    meta = json.loads((copy / "meta.json").read_text())
+    del meta["integrity"]
+    (copy / "meta.json").write_text(json.dumps(meta))
+    _poke(copy / "features.npy", np.inf)
+    os.utime(copy / "features.npy", ns=(0, 0))
+    with pytest.raises(TableError, match="NaN or inf"):
+        ObservationTable.load(copy)

@@ -13,6 +13,16 @@ plus per-scene ``scenes`` (names), ``contexts`` (ids), ``targets`` (class indice
 ``<key>/`` of ``.npy`` files and ``meta.json``, written into a temporary folder and
 renamed into place, so a reader never sees a half-written table. Arrays load
 memory-mapped, so an environment step is an array lookup.
+
+Integrity: values (finite, probabilities summing to 1, boxes in [0, 1]) are checked in
+full once, when a table is built (:meth:`ObservationTable.from_arrays`) and written
+(:meth:`ObservationTable.save`). ``save`` records each array file's size, modification
+time (set one second back, so that any later write, however soon, gives another one) and
+sha256 in ``meta.json``. :meth:`ObservationTable.load` re-checks the small arrays (probs,
+boxes, visible) in full and the features only by ``stat``: a features file whose size or
+time differs from the record is hashed and scanned before it is served, so loading an
+untouched table never reads the features. :meth:`ObservationTable.verify` hashes and
+scans everything.
 """
 
 from __future__ import annotations
@@ -39,6 +49,18 @@ META_FILE = "meta.json"
 
 class TableError(ValueError):
     """An observation table is invalid, stale or of another schema; the message says why."""
+
+
+#: Arrays small enough to check in full on every load (features are checked by stat + record).
+SMALL_ARRAYS = ("probs", "boxes", "visible")
+#: Value checks that save/from_arrays run in full, recorded in meta.json.
+CHECKS = ("shapes", "finite features, probs and boxes", "probs sum to 1", "boxes in [0, 1]")
+_BACKDATE_NS = 10**9
+
+
+def _file_sha256(path: Path) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 def _digest_arrays(*arrays: np.ndarray) -> str:
@@ -113,8 +135,10 @@ class ObservationTable:
         return table
 
     # -- validation -------------------------------------------------------------------------
-    def check(self, where: str = "table") -> None:
-        """Raise :class:`TableError` naming the problem unless the table is consistent."""
+    def check(self, where: str = "table", *, values: bool = True) -> None:
+        """Raise :class:`TableError` naming the problem unless the table is consistent.
+
+        ``values=False`` checks shapes and metadata only (no pass over the arrays)."""
         s = len(self.scenes)
         f, p, b, v = self.features, self.probs, self.boxes, self.visible
         if f.ndim != 3 or f.shape[:2] != (s, N_VIEWS):
@@ -136,7 +160,16 @@ class ObservationTable:
             raise TableError(f"{where}: unknown split(s) {bad}; expected among {list(SPLITS)}")
         if s and (self.targets.min() < 0 or self.targets.max() >= k):
             raise TableError(f"{where}: target class index out of 0..{k - 1}")
-        for name, arr in (("features", f), ("probs", p), ("boxes", b)):
+        if values:
+            self._check_values(where, ("features", "probs", "boxes"))
+
+    def _check_values(self, where: str, names: Sequence[str]) -> None:
+        """Full pass over the named arrays: finite; probabilities sum to 1; boxes in [0, 1]."""
+        s = len(self.scenes)
+        for name in names:
+            if name == "visible":  # NaN means unknown there
+                continue
+            arr = getattr(self, name)
             finite = np.isfinite(arr).all(axis=tuple(range(1, arr.ndim)))
             if not finite.all():
                 i = int(np.flatnonzero(~finite)[0])
@@ -144,10 +177,30 @@ class ObservationTable:
                     f"{where}: {name} contain NaN or inf (first in scene {self.scenes[i]!r}); "
                     "rebuild the table (`uevavd prepare`) or fix the arrays passed to from_arrays"
                 )
-        if s and not np.allclose(p.sum(-1), 1.0, atol=1e-3):
+        if s and "probs" in names and not np.allclose(self.probs.sum(-1), 1.0, atol=1e-3):
             raise TableError(f"{where}: class probabilities do not sum to 1 over the last axis")
-        if s and (b.min() < 0 or b.max() > 1):
+        if s and "boxes" in names and (self.boxes.min() < 0 or self.boxes.max() > 1):
             raise TableError(f"{where}: boxes must be normalised to [0, 1] (XYXY / (W, H, W, H))")
+
+    def verify(self) -> ObservationTable:
+        """Full check of a loaded table: every array file's sha256 against the record made
+        when it was written, and every value (finite, probabilities, boxes). Reads all data;
+        :meth:`load` does not. Returns the table; raises :class:`TableError`."""
+        if self.path is None:
+            self.check()
+            return self
+        files = dict(self.meta.get("integrity", {}).get("files", {}))
+        for name in ARRAYS:
+            f = self.path / f"{name}.npy"
+            rec = files.get(f.name)
+            if rec is None:
+                raise TableError(f"{self.path}: no integrity record for {f.name} in {META_FILE} (written by an "
+                                 "older uevavd); values are still checked, but a checksum cannot be")
+            if _file_sha256(f) != rec["sha256"]:
+                raise TableError(f"{f}: sha256 differs from the one recorded when the table was written; "
+                                 "the file was changed or damaged: rebuild the table")
+        self.check(where=str(self.path))
+        return self
 
     # -- accessors --------------------------------------------------------------------------
     @property
@@ -191,10 +244,21 @@ class ObservationTable:
         """Write to folder ``path`` atomically (temp folder + rename). Returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        self.check(where=str(path))  # the one full pass over the values; load trusts the record
         tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
         try:
+            files = {}
             for name in ARRAYS:
-                np.save(tmp / f"{name}.npy", np.ascontiguousarray(getattr(self, name)))
+                f = tmp / f"{name}.npy"
+                with open(f, "wb") as fh:
+                    np.save(fh, np.ascontiguousarray(getattr(self, name)))
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                # Back-date the file: any later write sets the time to "now", never to this.
+                st = f.stat()
+                os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns - _BACKDATE_NS))
+                st = f.stat()
+                files[f.name] = {"bytes": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": _file_sha256(f)}
             meta = dict(self.meta)
             meta.update(
                 scenes=list(self.scenes),
@@ -202,6 +266,7 @@ class ObservationTable:
                 targets=self.targets.tolist(),
                 splits=list(self.splits),
                 shapes={n: list(getattr(self, n).shape) for n in ARRAYS},
+                integrity={"checked": list(CHECKS), "files": files},
             )
             with open(tmp / META_FILE, "w", encoding="utf-8") as fh:
                 json.dump(meta, fh, indent=1, sort_keys=True)
@@ -223,7 +288,11 @@ class ObservationTable:
     def load(
         cls, path: str | os.PathLike[str], *, expect_key: str | None = None, mmap: bool = True
     ) -> ObservationTable:
-        """Load a table folder (memory-mapped). Refuses another schema, another key, or NaN."""
+        """Load a table folder (memory-mapped). Refuses another schema, another key, or NaN.
+
+        Cheap: the small arrays are checked in full, the features by their file's size and
+        modification time against the record written by :meth:`save` (hashed and scanned
+        only when those differ, or when the table has no record). :meth:`verify` checks all."""
         path = Path(path)
         meta_path = path / META_FILE
         if not meta_path.is_file():
@@ -265,7 +334,26 @@ class ObservationTable:
             path=path,
             **arrays,
         )
-        table.check(where=str(path))
+        table.check(where=str(path), values=False)
+        table._check_values(str(path), SMALL_ARRAYS)
+        records = meta.get("integrity", {}).get("files", {})
+        for name in ARRAYS:
+            if name in SMALL_ARRAYS:
+                continue
+            f = path / f"{name}.npy"
+            rec = records.get(f.name)
+            if rec is not None:
+                st = f.stat()
+                if st.st_size != rec["bytes"]:
+                    raise TableError(f"{f}: {st.st_size} bytes but {rec['bytes']} when the table was written; "
+                                     "the file was truncated or replaced: rebuild the table")
+                if st.st_mtime_ns == rec["mtime_ns"]:
+                    continue  # untouched since save, which checked its values
+            # No record (an older table) or changed since written: scan it, then compare its hash.
+            table._check_values(str(path), (name,))
+            if rec is not None and _file_sha256(f) != rec["sha256"]:
+                raise TableError(f"{f}: changed since the table was written (sha256 differs from {META_FILE}); "
+                                 "rebuild the table, or write changed arrays with from_arrays(...).save()")
         return table
 
 
