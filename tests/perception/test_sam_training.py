@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from uevavd.perception.sam import build_sam_segmenter, load_sam
-from uevavd.perception.sam.data import split_heldout
+from uevavd.perception.sam.data import selection_keys, split_heldout
 from uevavd.perception.sam.evaluate import evaluate
-from uevavd.perception.sam.finetune import finetune
+from uevavd.perception.sam.finetune import finetune_model
 from uevavd.perception.sam.model import SmallConfig, build_model, save_full
 from uevavd.perception.sam.training import TrainArgs, train_loop
 
@@ -37,21 +37,48 @@ def test_views_hold_out_a_context(views):
     assert all(train.target_mask(i).any() or not train.boxes[i].any() for i in range(len(train)))
 
 
+def assert_same_views(a, b) -> None:
+    """Two lists of SamView are exactly equal: target, segments, ring points, raw masks."""
+    assert len(a) == len(b)
+    for i, (x, y) in enumerate(zip(a, b, strict=True)):
+        assert np.array_equal(x.target, y.target), f"view {i}: target masks differ"
+        assert len(x.segments) == len(y.segments), f"view {i}: {len(x.segments)} vs {len(y.segments)} segments"
+        assert all(np.array_equal(s, t) for s, t in zip(x.segments, y.segments, strict=True)), f"view {i}: segments"
+        assert np.array_equal(x.points, y.points) and len(x.raw) == len(y.raw)
+        assert all(np.array_equal(s, t) for s, t in zip(x.raw, y.raw, strict=True)), f"view {i}: raw ring masks"
+
+
 def test_finetune_lowers_loss_and_the_saved_model_gives_the_same_masks(views, base, tmp_path):
     train, held = views
     out = tmp_path / "ft.safetensors"
-    args = TrainArgs(steps=30, batch_size=4, lr=3e-3, warmup=1, points_per_view=1, save_every=10)
-    rep = finetune(base, train, held, out=out, args=args, device="cpu", embedding_cache=tmp_path / "emb.pt")
+    # lr 1e-2: enough for the tiny decoder to give non-empty target masks to compare.
+    args = TrainArgs(steps=30, batch_size=4, lr=1e-2, warmup=1, points_per_view=1, save_every=10)
+    rep, in_memory = finetune_model(base, train, held, out=out, args=args, device="cpu",
+                                    embedding_cache=tmp_path / "emb.pt")
     assert rep["loss_last"] < rep["loss_first"]
     assert (tmp_path / "emb.pt").is_file() and not (tmp_path / "ft.safetensors.resume").exists()
     assert {"heldout_before", "heldout_after"} <= set(rep)
     tuned = build_sam_segmenter(checkpoint=str(out), device="cpu")
     assert tuned.loaded.model_type == "small"
-    # Same numbers as the in-memory model measured right after training.
+    assert tuned.identity() == in_memory.identity()
+    # The reloaded model (base file + saved decoder) gives exactly the in-memory model's
+    # target masks, surrounding segments, ring points and raw ring masks.
+    idx = np.array([0, 3, 5, 8, 11])
+    assert held.boxes[idx].any(1).sum() >= 3  # mostly views with a visible target
+    got = tuned.segment_detailed(held.images[idx], held.boxes[idx])
+    assert_same_views(got, in_memory.segment_detailed(held.images[idx], held.boxes[idx]))
+    assert sum(len(v.segments) for v in got) > 0 and sum(v.target.any() for v in got) >= 3
+    # ... and not the base model's: fine-tuning changed masks, so the check above can fail.
+    before = build_sam_segmenter(checkpoint=str(base), device="cpu").segment_detailed(held.images[idx],
+                                                                                       held.boxes[idx])
+    with pytest.raises(AssertionError):
+        assert_same_views(got, before)
     assert evaluate(tuned, held) == rep["heldout_after"]
     base_dec = load_sam(base).model.mask_decoder.state_dict()
     assert any(not torch.equal(v, base_dec[k]) for k, v in tuned.model.mask_decoder.state_dict().items())
     assert tuned.identity() != build_sam_segmenter(checkpoint=str(base)).identity()
+    # The decoder file names the views it was trained on (for the mask-quality report).
+    assert selection_keys(tuned.loaded.meta["train_views"]) == set(train.keys)
 
 
 def test_training_resumes_from_its_snapshot(views, tmp_path):
@@ -94,6 +121,50 @@ def test_train_sam_small_command(tiny_world, tmp_path, capsys):
     loaded = seg.loaded
     assert loaded.model_type == "small" and loaded.meta["config"]["img_size"] == 32
     assert loaded.meta["data_hash"] and loaded.meta["train"]["steps"] == 3
+    # The checkpoint names the views it was trained on: the same 8 that split_heldout draws.
+    train, _ = split_heldout(tiny_world, per_context=8, heldout_per_context=4, seed=0)
+    sel = loaded.meta["train_views"]
+    assert selection_keys(sel) == set(train.keys) and len(train.keys) == sel["n"] == 8
+    assert sel["per_context"] == 8 and sel["seed"] == 0 and sel["contexts"] == [1]
+
+
+def test_report_leaves_out_the_training_views(tiny_world, views, base, tmp_path):
+    """The mask-quality report's train row is measured on views the model was not trained
+    on: the checkpoint's metadata names them (or, for files written before it did, they are
+    redrawn from the seed and checked against the data hash)."""
+    from uevavd.perception.sam.data import load_views, read_manifest, view_selection
+    from uevavd.perception.sam.model import save_decoder
+    from uevavd.perception.sam.report import miou_per_split, training_views
+
+    train, _ = views  # 24 views of context 1, seed 0
+    m = read_manifest(tiny_world)
+    torch.manual_seed(0)
+    model = build_model("small", TINY)
+    recorded = tmp_path / "recorded.safetensors"
+    save_full(recorded, model, "small", TINY, train_views=view_selection(train))
+    keys, how = training_views(load_sam(recorded), m)
+    assert keys == set(train.keys) and len(keys) == 24 and how == "recorded"
+    left = load_views(m, contexts=[1], per_context=605, seed=123, exclude=keys)
+    assert len(left) == 605 - 24 and not set(left.keys) & keys
+    seg = build_sam_segmenter(checkpoint=str(recorded), ring_points=2)
+    rows = miou_per_split(seg, tiny_world, per_context=2, exclude=keys)
+    assert rows["train"]["training_views_left_out"] == 24 and rows["train"]["contexts"] == [1, 31]
+    # An older file of ours (no train_views): redrawn from seed and count, verified by hash.
+    old = tmp_path / "old.safetensors"
+    save_full(old, model, "small", TINY, data_hash=train.digest(), n_train_views=24, train={"seed": 0})
+    keys_old, how_old = training_views(load_sam(old), m)
+    assert keys_old == keys and "data hash verified" in how_old
+    save_full(old, model, "small", TINY, data_hash="0" * 64, n_train_views=24, train={"seed": 0})
+    assert training_views(load_sam(old), m)[0] is None
+    # A fine-tuned decoder: its own training views and its base's.
+    other = train.subset(np.arange(5))
+    other.keys = ["031/" + k.split("/", 1)[1] for k in other.keys]
+    dec = tmp_path / "dec.safetensors"
+    save_decoder(dec, model, load_sam(recorded), train_views=view_selection(other))
+    assert training_views(load_sam(dec), m)[0] == keys | set(other.keys)
+    # A file that records no training here (an official checkpoint) leaves nothing out.
+    torch.save(model.state_dict(), tmp_path / "official.pth")
+    assert training_views(load_sam(tmp_path / "official.pth"), m)[0] == set()
 
 
 @pytest.mark.slow

@@ -22,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 from ...paths import cache_dir
-from .data import GTViews
+from .data import GTViews, view_selection
 from .evaluate import evaluate
 from .model import LoadedSam, file_sha256, load_sam, save_decoder
 from .segmenter import SamSegmenter
@@ -73,7 +73,26 @@ def finetune(
     embedding_cache: Path | None = None,
 ) -> dict:
     """Fine-tune the mask decoder of ``checkpoint``; write ``out`` (decoder weights +
-    metadata) and ``<out>.report.json`` (held-out mIoU before and after). Returns the report."""
+    metadata naming the base and the training views) and ``<out>.report.json`` (held-out
+    mIoU before and after). Returns the report."""
+    return finetune_model(checkpoint, train, heldout, out=out, model_type=model_type, device=device, args=args,
+                          fresh=fresh, embedding_cache=embedding_cache)[0]
+
+
+def finetune_model(
+    checkpoint: str | os.PathLike[str],
+    train: GTViews,
+    heldout: GTViews | None,
+    *,
+    out: str | os.PathLike[str],
+    model_type: str = "auto",
+    device: str = "auto",
+    args: TrainArgs = TrainArgs(lr=1e-4, steps=500, points_per_view=0),
+    fresh: bool = False,
+    embedding_cache: Path | None = None,
+) -> tuple[dict, SamSegmenter]:
+    """Like :func:`finetune`, returning ``(report, segmenter over the fine-tuned model in
+    memory)``; the segmenter has the default prompting settings."""
     out_path = Path(out).expanduser()
     out_path.parent.mkdir(parents=True, exist_ok=True)
     base = load_sam(checkpoint, model_type)
@@ -100,14 +119,14 @@ def finetune(
                         desc="finetune-sam", fresh=fresh)
     meta = {"data_hash": data_hash, "image_size": list(train.images.shape[1:3]), "train": asdict(args),
             "n_train_views": len(train), "train_seconds_this_run": round(time.perf_counter() - t0, 1)}
-    save_decoder(out_path, model, base, **meta)
+    save_decoder(out_path, model, base, **meta, train_views=view_selection(train))
     report.update(meta, checkpoint=str(out_path), sha256=file_sha256(out_path),
                   **loss_summary(losses))
+    tuned = SamSegmenter(LoadedSam(model, base.model_type, out_path, report["sha256"], meta), device=device)
     if heldout is not None and len(heldout):
-        tuned = SamSegmenter(LoadedSam(model, base.model_type, out_path, report["sha256"], meta), device=device)
         report["heldout_after"] = evaluate(tuned, heldout, progress=True)
     resume = out_path.with_name(out_path.name + ".resume")
     if resume.exists():
         resume.unlink()
     write_json(out_path.with_name(out_path.name + ".report.json"), report)
-    return report
+    return report, tuned

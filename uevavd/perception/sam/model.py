@@ -205,6 +205,22 @@ def read_checkpoint(path: str | os.PathLike[str]) -> tuple[dict[str, torch.Tenso
     return obj, {}
 
 
+def read_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Our metadata of a checkpoint without reading its tensors: the ``uevavd`` JSON of a
+    ``.safetensors`` header; ``{}`` for other files and files without it."""
+    p = Path(path).expanduser()
+    if p.suffix != ".safetensors" or not p.is_file():
+        return {}
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(p), framework="pt", device="cpu") as f:
+            raw = (f.metadata() or {}).get(META_KEY)
+    except Exception as e:  # safetensors raises its own error types
+        raise CheckpointError(f"{p}: not a readable safetensors file ({e})") from None
+    return json.loads(raw) if raw else {}
+
+
 def _strict_load(module: torch.nn.Module, state: dict[str, torch.Tensor], path: Path, what: str) -> None:
     try:
         module.load_state_dict(state, strict=True)

@@ -1,5 +1,8 @@
 """Mask-quality figures for ``docs/sam.md``: mIoU per split and a picture of prompts and masks.
 
+Views the model was trained on are left out of every split (the checkpoint's metadata
+names them), so the train row measures unseen views of the training contexts.
+
     python -m uevavd.perception.sam.report WORLD --checkpoint FILE --json out.json --png docs/img/sam_views.png
 """
 
@@ -14,22 +17,60 @@ import cv2
 import numpy as np
 
 
-def miou_per_split(seg, root: str | Path, *, per_context: int = 60, seed: int = 123) -> dict:
+def training_views(loaded, manifest) -> tuple[set[str] | None, str]:
+    """(keys of the views of ``manifest`` the model was trained on, how that is known).
+
+    From the checkpoint's metadata (``train_views``, written by ``train-sam-small`` and
+    ``finetune-sam``); for a fine-tuned decoder, the base checkpoint's too. A checkpoint of
+    ours written before that field existed: the selection is redrawn from its seed and
+    count and accepted only when the redrawn views hash to the recorded ``data_hash``.
+    ``None`` when our training metadata exists but the views cannot be recovered; an empty
+    set when the file records no training here (an official checkpoint)."""
+    from .data import load_views, selection_keys, train_and_heldout_contexts
+    from .model import read_meta
+
+    metas = [loaded.meta]
+    if loaded.meta.get("kind") == "decoder" and loaded.meta.get("base_checkpoint"):
+        metas.append(read_meta(loaded.meta["base_checkpoint"]))
+    keys: set[str] = set()
+    how = []
+    for meta in metas:
+        if meta.get("train_views", {}).get("views"):
+            keys |= selection_keys(meta["train_views"])
+            how.append("recorded")
+        elif meta.get("data_hash") and meta.get("n_train_views") and "seed" in meta.get("train", {}):
+            ids = train_and_heldout_contexts(manifest)[0]
+            per = int(meta["n_train_views"]) // len(ids)
+            v = load_views(manifest, contexts=ids, per_context=per, seed=int(meta["train"]["seed"]))
+            if v.digest() != meta["data_hash"]:
+                return None, (f"the checkpoint records no training views and redrawing {per} per context with "
+                              f"seed {meta['train']['seed']} does not reproduce its data hash")
+            keys |= set(v.keys)
+            how.append(f"redrawn ({per} per context, seed {meta['train']['seed']}), data hash verified")
+    return keys, "; ".join(how) or "the checkpoint records no training on this data"
+
+
+def miou_per_split(seg, root: str | Path, *, per_context: int = 60, seed: int = 123,
+                   exclude: set[str] | None = None) -> dict:
     """{split: evaluate(...)} over ``per_context`` random views of each context of each split
-    present under ``root`` (train views are drawn with another seed than training's)."""
-    from .data import load_views, read_manifest
+    present under ``root``, drawn with ``seed`` from the views not in ``exclude`` (the
+    keys of the views the model was trained on, see :func:`training_views`)."""
+    from .data import load_views, read_manifest, view_key
     from .evaluate import evaluate
 
     m = read_manifest(root)
     split = {r.context: r.split for r in m if r.context is not None}
+    exclude = exclude or set()
     out = {}
     for name in ("train", "simple", "hard"):
         ids = sorted(c for c, s in split.items() if s == name)
         if ids:
-            v = load_views(m, contexts=ids, per_context=per_context, seed=seed)
+            v = load_views(m, contexts=ids, per_context=per_context, seed=seed, exclude=exclude)
             r = evaluate(seg, v, progress=True)
             out[name] = {k: r[k] for k in ("target_miou", "surround_miou", "n_target", "n_surround")}
             out[name]["contexts"] = ids
+            out[name]["training_views_left_out"] = sum(
+                1 for rec in m if rec.context in ids and view_key(rec) in exclude)
     return out
 
 
@@ -96,8 +137,12 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(a.threads)
     seg = build_sam_segmenter(checkpoint=a.checkpoint, device="cpu")
+    trained_on, how = training_views(seg.loaded, read_manifest(a.data))
+    if trained_on is None:
+        print(f"warning: {how}; the train row may include training views (optimistic)", file=sys.stderr)
     table = {"checkpoint": str(seg.loaded.path), "identity": seg.identity(),
-             "splits": miou_per_split(seg, a.data, per_context=a.per_context)}
+             "training_views": {"n": None if trained_on is None else len(trained_on), "how": how},
+             "splits": miou_per_split(seg, a.data, per_context=a.per_context, exclude=trained_on)}
     print(json.dumps(table, indent=2))
     if a.json:
         Path(a.json).write_text(json.dumps(table, indent=2) + "\n", encoding="utf-8")

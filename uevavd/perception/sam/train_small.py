@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from segment_anything import SamPredictor
 
-from .data import GTViews
+from .data import GTViews, view_selection
 from .evaluate import evaluate
 from .model import LoadedSam, SmallConfig, build_model, default_small_path, file_sha256, save_full
 from .segmenter import SamSegmenter, images_to_input
@@ -66,7 +66,9 @@ def train_small(
     meta = {"data_hash": data_hash, "image_size": list(train.images.shape[1:3]), "train": asdict(args),
             "n_train_views": len(train), "train_seconds_this_run": round(seconds, 1),
             "torch_threads": torch.get_num_threads()}
-    save_full(out_path, model, "small", config, **meta)
+    # Which views trained the model (keys, contexts, per-context count, seed), so the mask-
+    # quality report can leave them out of its train row; kept out of the printed report.
+    save_full(out_path, model, "small", config, **meta, train_views=view_selection(train))
     report = {"checkpoint": str(out_path), "sha256": file_sha256(out_path), **meta,
               **loss_summary(losses)}
     if heldout is not None and len(heldout):
