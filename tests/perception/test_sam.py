@@ -212,3 +212,145 @@ def test_published_sizes_match_segment_anything_builders():
     ref = sam_model_registry["vit_b"]().state_dict()
     assert ours == {k: v.shape for k, v in ref.items()}
     assert infer_model_type(ref) == "vit_b"
+
+
+# -- MobileSAM (vit_t) through the user's mobile_sam package -----------------------------
+class TinyViTLike(torch.nn.Module):
+    """Stands in for MobileSAM's TinyViT encoder: same interface (``img_size``; (B, 3, S, S)
+    preprocessed images -> (B, C, S/8, S/8) embeddings) and ``layers.*`` weights, by which
+    a MobileSAM state dict is recognised."""
+
+    def __init__(self, img_size: int = 32, dim: int = 32):
+        super().__init__()
+        self.img_size = img_size
+        self.layers = torch.nn.ModuleList([torch.nn.Conv2d(3, 16, 8, stride=8), torch.nn.Conv2d(16, dim, 1)])
+
+    def forward(self, x):
+        return self.layers[1](torch.nn.functional.gelu(self.layers[0](x)))
+
+
+def fake_mobile_sam(calls: list, model_class=None, encoder_class=TinyViTLike):
+    """A ``mobile_sam`` module whose ``sam_model_registry["vit_t"]`` builds, like MobileSAM's,
+    a model of segment-anything's ``Sam`` class around the TinyViT-like encoder."""
+    import types
+
+    from segment_anything.modeling import MaskDecoder, PromptEncoder, Sam, TwoWayTransformer
+
+    def build_sam_vit_t(checkpoint=None):
+        calls.append(checkpoint)
+        return (model_class or Sam)(
+            image_encoder=encoder_class(),
+            prompt_encoder=PromptEncoder(embed_dim=32, image_embedding_size=(4, 4), input_image_size=(32, 32),
+                                         mask_in_chans=16),
+            mask_decoder=MaskDecoder(num_multimask_outputs=3, transformer=TwoWayTransformer(
+                depth=1, embedding_dim=32, mlp_dim=64, num_heads=2), transformer_dim=32, iou_head_depth=3,
+                iou_head_hidden_dim=32),
+        )
+
+    mod = types.ModuleType("mobile_sam")
+    mod.sam_model_registry = {"vit_t": build_sam_vit_t}
+    return mod
+
+
+@pytest.fixture
+def mobile_ckpt(monkeypatch, tmp_path):
+    """(path of a mobile_sam.pt state dict, its weights, the builder's calls) with the fake
+    ``mobile_sam`` importable."""
+    import sys
+
+    calls: list = []
+    mod = fake_mobile_sam(calls)
+    monkeypatch.setitem(sys.modules, "mobile_sam", mod)
+    torch.manual_seed(0)
+    state = mod.sam_model_registry["vit_t"]().state_dict()
+    calls.clear()
+    path = tmp_path / "mobile_sam.pt"
+    torch.save(state, path)
+    return path, state, calls
+
+
+def test_vit_t_loads_strictly_and_weights_only(mobile_ckpt, monkeypatch):
+    path, state, calls = mobile_ckpt
+    seen = []
+    real_load = torch.load
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return real_load(*args, **kwargs)
+
+    monkeypatch.setattr(torch, "load", spy)
+    loaded = load_sam(path)  # type from the state dict's TinyViT keys
+    assert loaded.model_type == "vit_t" and isinstance(loaded.model.image_encoder, TinyViTLike)
+    assert seen == [{"map_location": "cpu", "weights_only": True}]
+    assert calls == [None]  # the package builds an empty model; our loader reads the file
+    got = loaded.model.state_dict()
+    assert got.keys() == state.keys() and all(torch.equal(got[k], v) for k, v in state.items())
+    assert load_sam(path, "vit_t").model_type == "vit_t"
+    with pytest.raises(CheckpointError, match=r"type 'vit_t'.*model_type='vit_b'"):
+        load_sam(path, "vit_b")
+    for name, sd in (("missing", {k: v for k, v in state.items() if k != "mask_decoder.iou_token.weight"}),
+                     ("unexpected", {**state, "image_encoder.layers.9.weight": torch.zeros(1)})):
+        torch.save(sd, path.with_name(f"{name}.pt"))
+        with pytest.raises(CheckpointError, match=f"{name}.pt: the weights do not fit a SAM vit_t .strict load."):
+            load_sam(path.with_name(f"{name}.pt"))
+
+
+def test_vit_t_is_driven_by_sam_predictor(mobile_ckpt, monkeypatch):
+    from segment_anything import SamPredictor
+
+    from uevavd.testing import check_segmenter
+
+    path, _, _ = mobile_ckpt
+    seg = build_sam_segmenter(checkpoint=str(path), model_type="vit_t", ring_points=4)
+    assert isinstance(seg.predictor, SamPredictor) and seg.predictor.model is seg.model
+    assert seg.predictor.transform.target_length == 32  # from image_encoder.img_size
+    assert seg.identity().startswith("sam:vit_t:")
+    prompts = []
+    real = SamPredictor.predict_torch
+
+    def counting(self, point_coords, point_labels, boxes=None, *args, **kwargs):
+        prompts.append("box" if boxes is not None else len(point_coords))
+        return real(self, point_coords, point_labels, boxes, *args, **kwargs)
+
+    monkeypatch.setattr(SamPredictor, "predict_torch", counting)
+    v = toy_views(3)
+    out = seg.segment_detailed(v.images, v.boxes)
+    # view 0 is fully occluded (ring prompts only); views 1, 2: a box, then the ring.
+    assert prompts == [len(out[0].points), "box", len(out[1].points), "box", len(out[2].points)]
+    for r in out:
+        assert r.target.shape == (32, 32) and all(not (s & r.target).any() for s in r.segments)
+    check_segmenter(seg)
+
+
+def test_vit_t_needs_the_sam_interface(monkeypatch):
+    import sys
+    import types
+
+    from segment_anything.modeling import Sam
+
+    from uevavd.perception.sam.model import build_model
+
+    monkeypatch.setitem(sys.modules, "mobile_sam", None)  # not installed
+    with pytest.raises(CheckpointError, match="needs the 'mobile_sam' package"):
+        build_model("vit_t")
+    monkeypatch.setitem(sys.modules, "mobile_sam", types.ModuleType("mobile_sam"))
+    with pytest.raises(CheckpointError, match=r"no sam_model_registry\['vit_t'\]"):
+        build_model("vit_t")
+
+    class NoPostprocess(Sam):
+        postprocess_masks = None
+
+    monkeypatch.setitem(sys.modules, "mobile_sam", fake_mobile_sam([], model_class=NoPostprocess))
+    with pytest.raises(CheckpointError, match=r"lacks what .*SamPredictor drives: postprocess_masks"):
+        build_model("vit_t")
+
+    class NoImgSize(TinyViTLike):
+        def __init__(self):
+            super().__init__()
+            del self.img_size
+
+    monkeypatch.setitem(sys.modules, "mobile_sam", fake_mobile_sam([], encoder_class=NoImgSize))
+    with pytest.raises(CheckpointError, match=r"image_encoder\.img_size"):
+        build_model("vit_t")
+    monkeypatch.setitem(sys.modules, "mobile_sam", fake_mobile_sam([]))
+    assert isinstance(build_model("vit_t"), Sam)

@@ -23,6 +23,7 @@ import hashlib
 import json
 import os
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -121,17 +122,60 @@ def build_model(model_type: str, config: SmallConfig | None = None) -> Sam:
     raise CheckpointError(f"unknown SAM model type {model_type!r}; expected one of {', '.join(MODEL_TYPES)}")
 
 
+#: What the segmenter and training drive through segment-anything's ``SamPredictor``:
+#: attribute -> what it must be. A model from elsewhere (MobileSAM) must have all of it.
+SAM_INTERFACE = {
+    "image_encoder": "a module mapping preprocessed (B, 3, S, S) images to (B, C, h, w) embeddings, "
+                     "with an int img_size = S",
+    "prompt_encoder": "a module called with points=, boxes=, masks= and with get_dense_pe()",
+    "mask_decoder": "a module called with image_embeddings=, image_pe=, sparse_prompt_embeddings=, "
+                    "dense_prompt_embeddings=, multimask_output=",
+    "preprocess": "a method normalising and padding (B, 3, h, w) images",
+    "postprocess_masks": "a method (low-res masks, input size, original size) -> mask logits",
+    "mask_threshold": "a float logit threshold",
+    "device": "the model's torch.device",
+}
+
+
+def check_sam_interface(model: Any, source: str) -> None:
+    """Raise :class:`CheckpointError` naming ``source`` and each missing piece when
+    ``model`` lacks part of :data:`SAM_INTERFACE` (segment-anything's ``Sam`` interface)."""
+    missing = [f"{name} ({what})" for name, what in SAM_INTERFACE.items() if getattr(model, name, None) is None]
+    if not missing:
+        enc, pe = model.image_encoder, model.prompt_encoder
+        if not isinstance(getattr(enc, "img_size", None), int):
+            missing.append(f"image_encoder.img_size ({SAM_INTERFACE['image_encoder']})")
+        if not callable(getattr(pe, "get_dense_pe", None)):
+            missing.append(f"prompt_encoder.get_dense_pe ({SAM_INTERFACE['prompt_encoder']})")
+        for name in ("image_encoder", "prompt_encoder", "mask_decoder"):
+            if not isinstance(getattr(model, name), torch.nn.Module):
+                missing.append(f"{name} as a torch.nn.Module")
+        if not isinstance(model, torch.nn.Module):
+            missing.append("the model itself as a torch.nn.Module (for load_state_dict)")
+    if missing:
+        raise CheckpointError(f"{source}: the model lacks what segment-anything's SamPredictor drives: "
+                              + "; ".join(missing))
+
+
 def build_mobile_sam() -> torch.nn.Module:
     """MobileSAM (TinyViT encoder + SAM's prompt encoder and decoder) from the user's
-    ``mobile_sam`` package. Its model has the same attributes as ``Sam`` (image_encoder,
-    prompt_encoder, mask_decoder, preprocess, postprocess_masks), so ``SamPredictor`` and
-    everything here drive it unchanged."""
+    ``mobile_sam`` package, untrained (weights come from the checkpoint, loaded strictly by
+    :func:`load_sam`). MobileSAM's model is used as it is: it has segment-anything's ``Sam``
+    interface (:data:`SAM_INTERFACE`), which is checked here so that a package without it
+    fails with a message naming what is missing instead of deep inside ``SamPredictor``."""
     try:
-        from mobile_sam import sam_model_registry as mobile_registry  # type: ignore[import-not-found]
+        import mobile_sam  # type: ignore[import-not-found]
     except ImportError:
         raise CheckpointError("model type 'vit_t' (MobileSAM) needs the 'mobile_sam' package, which is not "
                               "installed; install MobileSAM or use vit_b / vit_l / vit_h / small") from None
-    return mobile_registry["vit_t"](checkpoint=None).eval()
+    registry = getattr(mobile_sam, "sam_model_registry", None)
+    build = registry.get("vit_t") if isinstance(registry, Mapping) else None
+    if not callable(build):
+        raise CheckpointError("the installed 'mobile_sam' package has no sam_model_registry['vit_t'] builder; "
+                              "expected MobileSAM's package (github.com/ChaoningZhang/MobileSAM)")
+    model = build(checkpoint=None)  # random weights: the file is read by our own weights-only loader
+    check_sam_interface(model, "mobile_sam.sam_model_registry['vit_t']")
+    return model.eval()
 
 
 # -- reading checkpoints --------------------------------------------------------------------
