@@ -167,6 +167,69 @@ def test_report_leaves_out_the_training_views(tiny_world, views, base, tmp_path)
     assert training_views(load_sam(tmp_path / "official.pth"), m)[0] == set()
 
 
+@pytest.fixture(scope="module")
+def one_context_world(tmp_path_factory):
+    """The tiny world with one context scene (605 views of 16 px: a table needs all 605)."""
+    from uevavd.testing.worlds import write_tiny_world
+
+    return write_tiny_world(tmp_path_factory.mktemp("one-context"), contexts=(1,), train605=False)
+
+
+@pytest.fixture(scope="module")
+def random_classifier(tmp_path_factory):
+    """An untrained resnet18 classifier file (a table needs one; its quality does not matter here)."""
+    from uevavd.data.splits import TARGETS
+    from uevavd.perception.classifier import write_classifier_file
+    from uevavd.perception.weights import make_resnet
+
+    path = tmp_path_factory.mktemp("clf") / "random.safetensors"
+    meta = {"arch": "resnet18", "classes": list(TARGETS), "mean": [0.5] * 3, "std": [0.25] * 3}
+    return write_classifier_file(path, make_resnet("resnet18", num_classes=len(TARGETS)).state_dict(), meta)
+
+
+def test_prepare_builds_a_decomposed_table_with_sam(one_context_world, random_classifier, base, tmp_path,
+                                                     method_toml):
+    """`sam` plugs into `prepare` like any segmenter: the table's features are those of the
+    views pre-decomposed with the sam segmenter's masks (fast: tiny SAM, 2 ring points)."""
+    from uevavd.data.grid import N_VIEWS
+    from uevavd.perception.decompose import decompose, view_seed
+    from uevavd.perception.images import read_rgb
+    from uevavd.perception.prepare import plan_table, prepare_table
+    from uevavd.perception.sam import SamSegmenter
+    from uevavd.perception.table import ObservationTable
+    from uevavd.testing import check_segmenter
+
+    method = tmp_path / "tiny_sam.toml"
+    method.write_text(method_toml.format(decompose="true").replace(
+        '{ name = "gt" }', f'{{ name = "sam", checkpoint = "{base}", ring_points = 2, batch_size = 64 }}'))
+    path = prepare_table(one_context_world, method, classifier_path=random_classifier, out_dir=tmp_path / "t",
+                         workers=1, progress=False)
+    t = ObservationTable.load(path, expect_key=path.name)
+    assert t.features.shape == (1, N_VIEWS, 512)
+    parts = t.meta["config"]["key_parts"]
+    assert parts["decompose"] is True and parts["segmenter"].startswith("sam:small:") and ":n2:" in parts["segmenter"]
+    # The same components as prepare built them: contract checks, and the features of a few
+    # views recomputed from sam's masks (the first image-encoder batch, as in prepare).
+    plan = plan_table(one_context_world, method, classifier_path=random_classifier)
+    assert plan.key == path.name and isinstance(plan.segmenter, SamSegmenter)
+    check_segmenter(plan.segmenter)
+    scene, recs = plan.scenes[0]
+    images = np.stack([read_rgb(r.image) for r in recs[:64]])
+    segs = plan.segmenter.segment(images, np.array([r.box for r in recs[:64]], np.int64))
+    idx = [0, 5, 20, 41, 63]
+    assert any(segs[i].target.any() for i in idx) and all(segs[i].segments for i in idx)
+    decomposed = np.stack([decompose(images[i], segs[i].target, segs[i].segments,
+                                     seed=view_seed(plan.gray_seed, scene, recs[i].view, recs[i].target))
+                           for i in idx])
+    assert not np.array_equal(decomposed, images[idx])
+    want = plan.encoder.encode(decomposed)
+    got = t.features[0, idx].astype(np.float32)
+    scale = float(np.abs(want).max())
+    assert np.allclose(got, want, rtol=1e-2, atol=1e-2 * scale)
+    raw = plan.encoder.encode(images[idx])
+    assert not np.allclose(got, raw, rtol=1e-2, atol=1e-2 * scale)  # the encoder saw decomposed views
+
+
 @pytest.mark.slow
 def test_ibe_map_table_with_the_sam_segmenter(tiny_world, tiny_classifier, base, tmp_path, method_toml):
     """`prepare` builds a pre-decomposed observation table with `sam` like any segmenter."""
