@@ -225,6 +225,62 @@ def test_scene_mismatch_and_unknown_folder(tmp_path, write_scene_fn):
         read_dataset(tmp_path / "nowhere")
 
 
+def test_files_the_reader_cannot_use_are_named(tmp_path, write_scene_fn, encoded, caplog):
+    files = write_scene_fn(tmp_path / "001", target="sedan", token="001")
+    d = tmp_path / "001"
+    # obvious non-data files: never reported
+    for name in ("README.md", "readme.txt", "LICENSE", "scene.json", ".DS_Store", ".hidden.txt", "Thumbs.db"):
+        (d / name).write_text("{}")
+    (d / "seg").mkdir()
+    (d / "seg" / "notes.bin").write_text("x")
+    (tmp_path / "manifest.json").write_text("{}")
+    (tmp_path / "uevavd.json").write_text("{}")
+    manifest, problems = scan(tmp_path)
+    assert problems == [] and len(manifest) == N_VIEWS
+    # an annotation whose image is gone; an annotation whose name does not parse; unknown types
+    stem = Path(files[7][0]).stem
+    (d / files[7][0]).rename(d / (stem + ".bmp"))
+    (d / "x-50_y+40_sedan_001.json").write_text("[1, 1, 3, 3]")
+    (d / "notes.docx").write_bytes(b"PK")
+    (d / "boxes_v2.csv").write_text("image,x1,y1,x2,y2\n")
+    (d / "labels").mkdir()
+    (d / "labels" / "annotations.csv").write_text("image,x1,y1,x2,y2\n")
+    (d / "labels" / "x-15_y+10_z070_sedan_001.xml").write_text("<annotation/>")
+    (d / "extra").mkdir()
+    (d / "annotations.csv").write_text("image,x1,y1,x2,y2\nx+50_y+50_z100_sedan_001.png,1,1,3,3\n"
+                                      "garbage.png,1,1,3,3\n")
+    problems = scan(tmp_path)[1]
+    got = {(p.kind, p.path) for p in problems}
+    expected = {
+        ("orphan_annotation", d / (stem + ".txt")),
+        ("unknown_file", d / (stem + ".bmp")),
+        ("unparseable_annotation_name", d / "x-50_y+40_sedan_001.json"),
+        ("unknown_file", d / "notes.docx"),
+        ("unknown_file", d / "boxes_v2.csv"),
+        ("unknown_file", d / "labels" / "annotations.csv"),
+        ("orphan_annotation", d / "labels" / "x-15_y+10_z070_sedan_001.xml"),
+        ("unknown_file", d / "extra"),
+        ("unparseable_annotation_name", d / "annotations.csv"),  # row 'garbage'
+        ("missing_views", d),  # the view whose image became a .bmp
+    }
+    assert got == expected, sorted(got ^ expected)
+    msgs = {p.kind: p.message for p in problems}
+    assert "without its image" in msgs["orphan_annotation"] and ".png" in msgs["unknown_file"] + str(problems)
+    rows = [p for p in problems if p.path == d / "annotations.csv"]
+    assert "garbage" in rows[0].message
+    # the row for an existing image is used, and no orphan is reported for it
+    assert not any("x+50_y+50_z100" in p.message for p in problems)
+    # read_dataset raises for the missing view, and lists the unused files with it
+    with pytest.raises(DatasetError, match="notes.docx"):
+        read_dataset(tmp_path)
+    # unused files alone are logged, not raised: the views read are complete
+    (d / (stem + ".bmp")).rename(d / files[7][0])
+    with caplog.at_level("WARNING", logger="uevavd.data.reader"):
+        m = read_dataset(tmp_path)
+    assert len(m) == N_VIEWS and "not used" in caplog.text and "uevavd validate" in caplog.text
+    assert {p.kind for p in m.problems} == {"unknown_file", "unparseable_annotation_name", "orphan_annotation"}
+
+
 def test_image_size_from_header(tmp_path, encoded):
     for ext in (".png", ".jpg"):
         f = tmp_path / f"a{ext}"

@@ -81,13 +81,25 @@ def test_cli_clean_and_broken(variant_root, broken_root, capsys, tmp_path):
     assert code == 1
     assert "PROBLEMS" in out and "truncated_image (1)" in out and "two_targets (1)" in out
     assert str(broken_root[1]["box_outside"]) in out
-    assert "more (use --verbose)" in out  # 605 mixed-size files, 20 shown
+    # every problem is listed by default: all 605 mixed-size files
+    assert "not listed" not in out and out.count("\n    ") == len(broken_root_problems(tmp_path / "r.json"))
     data = json.loads((tmp_path / "r.json").read_text())
     assert data["problems"]["mixed_sizes"] == N_VIEWS and len(data["problem_list"]) == sum(data["problems"].values())
-    assert main(["validate", str(broken_root[0]), "--no-decode", "--verbose"]) == 1
+    assert all(p["path"] in out for p in data["problem_list"])
+    # a cap says how many it left out and how to see them
+    assert main(["validate", str(broken_root[0]), "--max-per-kind", "20"]) == 1
     out = capsys.readouterr().out
-    assert "more (use --verbose)" not in out and "truncated_image" not in out
+    hidden = N_VIEWS - 20
+    assert f"({hidden} not listed: at most 20 per kind; omit --max-per-kind to list all)" in out
+    assert f"... {hidden} more mixed_sizes not listed" in out
+    assert main(["validate", str(broken_root[0]), "--no-decode", "--max-per-kind", "20", "--verbose"]) == 1
+    out = capsys.readouterr().out
+    assert "not listed" not in out and "truncated_image" not in out
     assert main(["validate", str(tmp_path / "absent")]) == 1
+
+
+def broken_root_problems(report_json):
+    return json.loads(report_json.read_text())["problem_list"]
 
 
 def test_synthetic_world_validates_and_hashes(synthetic_root, tmp_path):

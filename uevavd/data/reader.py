@@ -9,12 +9,19 @@ Nothing is decoded here, so 10^5 views take seconds; :func:`uevavd.data.validate
 decodes every image.
 
 With ``check=True`` every problem (each naming its file and what was expected) is
-collected and raised together as one :class:`DatasetError`.
+collected and raised together as one :class:`DatasetError`. Files in a scene folder that
+the reader cannot use are named too (kinds in :data:`UNUSED_FILE_KINDS`: an annotation
+without its image, a name that does not parse, a file of unknown type); they are
+problems for ``uevavd validate`` but only logged as a warning by :func:`read_dataset`,
+since the views it did read are complete without them. Obvious non-data files (README,
+LICENSE, ``scene.json``, ``manifest.json``, ``uevavd.json``, ``seg/``, hidden files) are
+ignored.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import struct
@@ -32,8 +39,9 @@ from .annotations import (
     read_table,
 )
 from .grid import N_VIEWS, coords_to_view, view_coords
-from .layout import CATEGORIES, SCENE_META, SEG_DIR, view_stem
+from .layout import CATEGORIES, DATASET_CARD, MANIFEST, SCENE_META, SEG_DIR, view_stem
 from .naming import (
+    IMAGE_EXTS,
     NameParseError,
     SceneId,
     UnknownTargetError,
@@ -50,11 +58,21 @@ __all__ = [
     "DatasetError",
     "Manifest",
     "Problem",
+    "UNUSED_FILE_KINDS",
     "ViewRecord",
     "image_size",
     "read_dataset",
     "scan",
 ]
+
+log = logging.getLogger(__name__)
+
+#: Problems that name a file the reader could not use, without making the views it read
+#: wrong: reported by ``uevavd validate``, logged (not raised) by :func:`read_dataset`.
+UNUSED_FILE_KINDS: frozenset[str] = frozenset({"orphan_annotation", "unparseable_annotation_name", "unknown_file"})
+# Names (lower-case) and stems that are not data: never reported.
+_NOT_DATA_NAMES = frozenset({SCENE_META, MANIFEST, DATASET_CARD, CATEGORIES, "thumbs.db", "desktop.ini"})
+_NOT_DATA_STEMS = frozenset({"readme", "license", "licence", "notice", "changelog", "citation"})
 
 #: Sub-folders of a scene that may hold the per-image annotation files.
 ANNOTATION_DIRS: tuple[str, ...] = ("annotations", "annotation", "labels", "boxes", "bboxes", "gt")
@@ -88,7 +106,7 @@ class DatasetError(ValueError):
         counts = Counter(p.kind for p in self.problems)
         head = f"{len(self.problems)} problem(s) in dataset {self.root} (" + ", ".join(
             f"{k}: {n}" for k, n in sorted(counts.items())
-        ) + "); run `uevavd validate ROOT --verbose` for a full report:"
+        ) + "); run `uevavd validate ROOT` for a full report:"
         super().__init__("\n  ".join([head, *(str(p) for p in self.problems)]))
 
 
@@ -201,7 +219,16 @@ def _read_visible(scene_dir: Path, problems: list[Problem]) -> dict[str, float]:
     return {}
 
 
-def _load_tables(scene_dir: Path, files: list[str], problems: list[Problem]) -> dict[str, BoxAnnotation]:
+def _is_data_name(name: str) -> bool:
+    """False for hidden files and obvious non-data files (README, metadata we write)."""
+    low = name.lower()
+    return not (low.startswith(".") or low in _NOT_DATA_NAMES or low.partition(".")[0] in _NOT_DATA_STEMS)
+
+
+def _load_tables(scene_dir: Path, files: list[str], problems: list[Problem],
+                 origin: dict[str, Path] | None = None) -> dict[str, BoxAnnotation]:
+    """Boxes of the scene's annotation tables by image stem (first table wins); ``origin``
+    receives the table each stem came from."""
     merged: dict[str, BoxAnnotation] = {}
     for name in files:
         if name.partition(".")[0].lower() not in TABLE_STEMS or not is_table_name(name):
@@ -215,6 +242,8 @@ def _load_tables(scene_dir: Path, files: list[str], problems: list[Problem]) -> 
         problems.extend(Problem("unparseable_annotation", path, msg.removeprefix(f"{path} ")) for msg in errors)
         for k, v in boxes.items():
             merged.setdefault(k, v)
+            if origin is not None:
+                origin.setdefault(k, path)
     return merged
 
 
@@ -226,15 +255,77 @@ def _list_files(path: Path) -> list[str]:
         return []
 
 
+def _unused_files(scene_dir: Path, files: list[str], ann_files: dict[str, tuple[int, str]],
+                  ann_dir_files: dict[str, list[str]], table: dict[str, BoxAnnotation],
+                  table_origin: dict[str, Path], image_stems: set[str], problems: list[Problem]) -> None:
+    """Problems for every file of the scene the reader did not use (see UNUSED_FILE_KINDS)."""
+    used_ann = {path for stem, (_, path) in ann_files.items() if stem in image_stems}
+    known_dirs = {SEG_DIR, *ANNOTATION_DIRS}
+    try:
+        with os.scandir(scene_dir) as it:
+            folders = sorted(e.name for e in it if e.is_dir() and not e.name.startswith("."))
+    except OSError:
+        folders = []
+    for name in folders:
+        if name.lower() not in known_dirs:
+            problems.append(Problem("unknown_file", scene_dir / name, "folder not read: a scene folder holds its "
+                                    f"images and annotations directly, plus {SEG_DIR}/ and optionally one of "
+                                    f"{list(ANNOTATION_DIRS)} for the annotations"))
+    for sub, names in [("", files), *ann_dir_files.items()]:
+        d = scene_dir / sub if sub else scene_dir
+        for name in names:
+            if not _is_data_name(name):
+                continue
+            stem, _, ext = name.rpartition(".")
+            ext = "." + ext.lower()
+            path = d / name
+            if not sub and is_image_name(name):
+                continue  # images are judged one by one in _scan_scene
+            if is_table_name(name):
+                if sub:
+                    problems.append(Problem("unknown_file", path, "annotation table not read: tables are read from "
+                                            f"the scene folder itself ({scene_dir / name})"))
+                continue  # read by _load_tables (its rows are checked below)
+            if ext not in ANNOTATION_EXTS or not stem:
+                problems.append(Problem("unknown_file", path, "not an image (" + ", ".join(IMAGE_EXTS) + "), a box "
+                                        "annotation (" + ", ".join(ANNOTATION_EXTS) + ") or an annotation table "
+                                        f"({TABLE_STEMS[0]}.csv, ...); the reader cannot use it"))
+                continue
+            if stem.lower() in _NOT_PER_IMAGE or str(path) in used_ann:
+                continue
+            if stem in ann_files and ann_files[stem][1] != str(path) and stem in image_stems:
+                continue  # a second annotation of an image that has a preferred one
+            try:
+                _parse_name(stem)
+            except NameParseError as e:
+                problems.append(Problem("unparseable_annotation_name", path, f"annotation whose name does not parse: {e}"))
+                continue
+            problems.append(Problem("orphan_annotation", path, f"box annotation without its image: expected {stem}"
+                                    f"{IMAGE_EXTS[0]} (or {'/'.join(IMAGE_EXTS[1:])}) in {scene_dir}"))
+    for stem in sorted(set(table) - image_stems):
+        where = table_origin.get(stem, scene_dir)
+        try:
+            _parse_name(stem)
+        except NameParseError as e:
+            problems.append(Problem("unparseable_annotation_name", where, f"row {stem!r}: the image name does not parse: {e}"))
+            continue
+        problems.append(Problem("orphan_annotation", where, f"row {stem!r} has no image: expected {stem}"
+                                f"{IMAGE_EXTS[0]} in {scene_dir}"))
+
+
 def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Problem]):
     """Records of one scene (sorted), its image size (H, W) or None."""
     files = _list_files(scene_dir)
     # Plain strings in this loop: pathlib costs more than the parsing at 10^5 files.
     ann_files: dict[str, tuple[int, str]] = {}  # stem -> (preference rank, path)
+    ann_dir_files: dict[str, list[str]] = {}
     base = str(scene_dir)
     for sub in ("", *ANNOTATION_DIRS):
         d = os.path.join(base, sub) if sub else base
-        for name in files if not sub else _list_files(Path(d)):
+        names = files if not sub else _list_files(Path(d))
+        if sub and names:
+            ann_dir_files[sub] = names
+        for name in names:
             stem, _, ext = name.rpartition(".")
             ext = "." + ext.lower()
             if ext in ANNOTATION_EXTS and stem.lower() not in _NOT_PER_IMAGE:
@@ -242,7 +333,8 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
                 prev = ann_files.get(stem)
                 if prev is None or rank < prev[0]:
                     ann_files[stem] = (rank, os.path.join(d, name))
-    table = _load_tables(scene_dir, files, problems)
+    table_origin: dict[str, Path] = {}
+    table = _load_tables(scene_dir, files, problems, table_origin)
     seg_names = {n.rpartition(".")[0]: n for n in _list_files(scene_dir / SEG_DIR) if n.lower().endswith(".png")}
     visible = _read_visible(scene_dir, problems)
     images = [n for n in files if is_image_name(n)]
@@ -314,6 +406,8 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
             seg=seg,
             visible=visible.get(stem),
         ))
+    _unused_files(scene_dir, files, ann_files, ann_dir_files, table, table_origin,
+                  {n.rpartition(".")[0] for n in images}, problems)
     if check:
         _check_scene(sid, scene_dir, records, seen, size, problems)
     # Stable sort: images were visited in sorted name order, so ties stay deterministic.
@@ -402,6 +496,11 @@ def read_dataset(root: str | Path, *, check: bool = True) -> Manifest:
     holds what did not).
     """
     manifest, problems = scan(root, check=check)
-    if check and problems:
+    if check and any(p.kind not in UNUSED_FILE_KINDS for p in problems):
         raise DatasetError(manifest.root, problems)
+    unused = [p for p in problems if p.kind in UNUSED_FILE_KINDS]
+    if unused:
+        kinds = ", ".join(f"{k}: {n}" for k, n in sorted(Counter(p.kind for p in unused).items()))
+        log.warning("dataset %s: %d file(s) not used (%s), e.g. %s; `uevavd validate ROOT` lists them all",
+                    manifest.root, len(unused), kinds, unused[0])
     return manifest

@@ -3,8 +3,9 @@ image and segmentation, and the sha256 of every file where ``manifest.json`` lis
 
 ``uevavd validate ROOT`` prints the root, image size, scenes, the contexts each target
 owns, split counts (against the paper's 100 / 25 / 25 when the release is complete),
-the occluded-view fraction overall and per split, and every problem grouped by kind;
-it exits 1 when there are problems.
+the occluded-view fraction overall and per split, and every problem grouped by kind
+(``--max-per-kind N`` to shorten the list; the report counts what it left out); it exits
+1 when there are problems, including files the reader cannot use.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .layout import MANIFEST
-from .reader import Problem, scan
+from .reader import UNUSED_FILE_KINDS, Problem, scan
 from .records import Manifest
 from .splits import CLASSIFIER_SCENE, N_CONTEXTS, SPLITS, UNOCCLUDED_SCENE, counts
 
@@ -71,8 +72,9 @@ class ValidationReport:
             "problems": dict(sorted(Counter(p.kind for p in self.problems).items())),
         }
 
-    def format(self, *, verbose: bool = False, per_kind: int = 20) -> str:
-        """Human-readable report; at most ``per_kind`` problems of each kind unless verbose."""
+    def format(self, *, verbose: bool = False, per_kind: int | None = None) -> str:
+        """Human-readable report listing every problem, or at most ``per_kind`` of each kind
+        (the rest counted, and how to see them said); ``verbose`` lists all regardless."""
         s = self.summary()
         h, w = s["image_size"]
         scenes = s["scenes"]
@@ -102,17 +104,23 @@ class ValidationReport:
         if self.ok:
             lines.append("no problems")
             return "\n".join(lines)
-        lines.append(f"PROBLEMS    {len(self.problems)}")
         by_kind: dict[str, list[Problem]] = defaultdict(list)
         for p in self.problems:
             by_kind[p.kind].append(p)
+        cap = None if verbose or per_kind is None else max(0, int(per_kind))
+        hidden = 0 if cap is None else sum(max(0, len(v) - cap) for v in by_kind.values())
+        head = f"PROBLEMS    {len(self.problems)}"
+        if hidden:
+            head += f" ({hidden} not listed: at most {cap} per kind; omit --max-per-kind to list all)"
+        lines.append(head)
         for kind in sorted(by_kind):
             items = by_kind[kind]
-            lines.append(f"  {kind} ({len(items)})")
-            shown = items if verbose else items[:per_kind]
+            note = " (files the reader cannot use; it reads the rest)" if kind in UNUSED_FILE_KINDS else ""
+            lines.append(f"  {kind} ({len(items)}){note}")
+            shown = items if cap is None else items[:cap]
             lines.extend(f"    {p}" for p in shown)
             if len(shown) < len(items):
-                lines.append(f"    ... {len(items) - len(shown)} more (use --verbose)")
+                lines.append(f"    ... {len(items) - len(shown)} more {kind} not listed (omit --max-per-kind)")
         return "\n".join(lines)
 
 
@@ -258,7 +266,11 @@ def validate(root: str | Path, *, decode_images: bool = True, workers: int = 2,
 def add_validate(parser: argparse.ArgumentParser):
     """``uevavd validate ROOT``: check a dataset root, print a report, exit 1 on problems."""
     parser.add_argument("root", type=Path, help="dataset root (UEVAVD layout, real or synthetic)")
-    parser.add_argument("--verbose", "-v", action="store_true", help="list every problem (default: 20 per kind)")
+    parser.add_argument("--max-per-kind", type=int, default=None, metavar="N",
+                        help="list at most N problems of each kind; the report says how many were not "
+                             "listed (default: list every problem)")
+    parser.add_argument("--verbose", "-v", action="store_true",
+                        help="list every problem, even with --max-per-kind (listing all is the default)")
     parser.add_argument("--no-decode", action="store_true", help="skip decoding images (names and annotations only)")
     parser.add_argument("--no-hashes", action="store_true", help="skip the sha256 check against manifest.json")
     parser.add_argument("--workers", type=int, default=2, help="decoding threads (default 2)")
@@ -271,7 +283,7 @@ def add_validate(parser: argparse.ArgumentParser):
         except FileNotFoundError as e:
             print(f"error: {e}")
             return 1
-        print(report.format(verbose=args.verbose))
+        print(report.format(verbose=args.verbose, per_kind=args.max_per_kind))
         if args.json is not None:
             _write_json(args.json, report)
         return 0 if report.ok else 1
