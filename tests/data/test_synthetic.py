@@ -132,10 +132,46 @@ def test_scenes_are_deterministic_and_differ_between_contexts():
     assert not np.array_equal(a.rgb, c.rgb)
 
 
-def test_view_coords_match_camera_positions():
-    # a view from the east sees the target's east side: the target's centroid column stays centred,
-    # and the camera's position is the grid position
-    assert view_coords(view_index(10, 5, 0)).tolist() == [50.0, 0.0, 60.0]
+def _project(points: np.ndarray, position: np.ndarray, look_at: np.ndarray, size: int) -> np.ndarray:
+    """Pinhole projection written out here, independent of the renderer: camera at
+    ``position`` looking at ``look_at``, image up = world +y made orthogonal to the view
+    direction, focal 8 * size px (a 256 px crop of a 4096 px, 90 degree frame). Returns
+    continuous (col, row) with the image's top-left corner at (0, 0)."""
+    f = look_at - position
+    f = f / np.linalg.norm(f)
+    up = np.array([0.0, 1.0, 0.0]) - f[1] * f
+    up /= np.linalg.norm(up)
+    right = np.cross(f, up)
+    d = points - position
+    depth = d @ f
+    fpx = 2048 * size / 256
+    return np.stack([size / 2 + fpx * (d @ right) / depth, size / 2 - fpx * (d @ up) / depth], axis=1)
+
+
+@pytest.mark.parametrize("ix, iy, iz", [(10, 5, 0), (0, 0, 0), (5, 5, 4), (2, 9, 2), (7, 1, 3)])
+def test_view_coords_match_camera_positions(ix, iy, iz):
+    """A marker cube floating beside the target lands exactly where a camera at the grid's
+    coordinates, aimed at the target, projects it (its silhouette's box is the box of its
+    projected corners, to the pixel). Placing the camera one grid step (10 m) off in x, y
+    or z moves the box by more than a pixel in all but one of these (view, axis) pairs."""
+    size = 64
+    scene = build_unoccluded("sedan", seed=0)
+    centre, half, z0, z1 = np.array([1.5, -1.5]), 0.5, 5.0, 6.0
+    extra = Primitives()
+    extra.add_hull(box(tuple(centre), 2 * half, 2 * half, z0, z1), M_FACADE, 999, (0.6, 0.6, 0.6), (3.0, 3.0, 1.0, 0.5))
+    ea = extra.arrays()
+    prims = {k: np.concatenate([v, ea[k]]) if k.startswith("h_") else v for k, v in scene.prims.items()}
+    marked = dataclasses.replace(scene, prims=prims, categories={**scene.categories, 999: "building"})
+    view = view_index(ix, iy, iz)
+    position = view_coords(view).astype(np.float64)
+    corners = np.array([[centre[0] + sx * half, centre[1] + sy * half, z] for sx in (-1, 1) for sy in (-1, 1)
+                        for z in (z0, z1)])
+    uv = _project(corners, position, np.asarray(scene.look_at, np.float64), size)
+    ys, xs = np.nonzero(render_view(marked, view, size).seg == 999)
+    assert len(xs) > 4, "the marker should be in the crop"
+    rendered = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1])
+    expected = np.array([*uv.min(0), *uv.max(0)])
+    assert np.abs(rendered - expected).max() <= 1.0, (rendered, expected.round(2))
 
 
 def _occlusion(v: np.ndarray) -> tuple[float, float, float]:
