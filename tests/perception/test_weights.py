@@ -51,6 +51,22 @@ def test_missing_and_truncated_files(tmp_path, r18_file):
         build_resnet18(weights=f"file:{cut}")
 
 
+@pytest.mark.parametrize("keep", [0.5, 0.999, 100, 4], ids=["half", "last-bytes", "in-header", "length-prefix"])
+def test_truncated_safetensors_names_the_file(tmp_path, keep):
+    from safetensors.torch import save_file
+
+    whole = tmp_path / "r18.safetensors"
+    save_file(make_resnet("resnet18", seed=3).state_dict(), str(whole))
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.safetensors"
+    cut.write_bytes(data[: int(len(data) * keep) if isinstance(keep, float) else keep])
+    with pytest.raises(WeightsError, match=r"cut\.safetensors.*(truncated|not a readable)"):
+        load_state_dict_file(cut)
+    with pytest.raises(WeightsError, match=r"cut\.safetensors"):
+        build_resnet18(weights=f"file:{cut}")
+    assert set(load_state_dict_file(whole)) == set(make_resnet("resnet18").state_dict())
+
+
 def test_other_architecture_names_both(r18_file):
     with pytest.raises(WeightsError, match=r"resnet18.*resnet50"):
         build_resnet50(weights=f"file:{r18_file}")
