@@ -145,6 +145,89 @@ def test_resume_after_interruption(built, tiny_world, tiny_classifier, tmp_path,
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
+class _Killed(BaseException):
+    """Stands for the process dying: nothing after it runs in the 'killed' frame."""
+
+
+def test_killed_while_writing_a_shard(built, tiny_world, tiny_classifier, tmp_path, monkeypatch):
+    """A crash in the middle of writing scene 031's shard, as a kill would leave it: half a file
+    under the shard's own name (what a non-atomic writer leaves) and a half temp file. The rerun
+    recomputes 031, never serves the half file, and gives the table of an uninterrupted build."""
+    import io
+
+    method, path = built
+    out = tmp_path / "out"
+    partial = out / f"{path.name}.partial"
+    real_write = prep._write_shard
+
+    def dies_mid_write(target, arrays):
+        if target.stem != "031":
+            return real_write(target, arrays)
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        data = buf.getvalue()
+        target.write_bytes(data[: len(data) // 2])
+        (target.parent / f".{target.name}.k1ll3d.tmp").write_bytes(data[: len(data) // 3])
+        raise _Killed
+
+    monkeypatch.setattr(prep, "_write_shard", dies_mid_write)
+    with pytest.raises(_Killed):
+        prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    assert not (out / path.name).exists()
+    assert (partial / "031.npz").stat().st_size > 0  # the half file is there, under the shard's name
+    assert prep._read_shard(partial / "031.npz", 512, 5) is None  # and is not taken for a finished shard
+    assert prep._read_shard(partial / "001.npz", 512, 5) is not None
+    with pytest.raises(TableError):
+        ObservationTable.load(partial)
+    monkeypatch.setattr(prep, "_write_shard", real_write)
+    calls = []
+    real_compute = prep._compute_scene
+    monkeypatch.setattr(prep, "_compute_scene", lambda scene, *a, **k: calls.append(scene) or real_compute(scene, *a, **k))
+    done = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    assert calls == ["031"] and done == out / path.name and not partial.exists()
+    a, b = ObservationTable.load(done), ObservationTable.load(path)
+    for name in ("features", "probs", "boxes", "visible"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_killed_inside_the_real_shard_writer_leaves_no_shard(built, tiny_world, tiny_classifier, tmp_path,
+                                                              monkeypatch):
+    """The real writer goes through a temp file and a rename: a crash while np.savez is half
+    way leaves nothing under the shard's name; the same for a crash while the table is saved."""
+    method, path = built
+    out = tmp_path / "out"
+    partial = out / f"{path.name}.partial"
+    real_savez = np.savez
+    written = []
+
+    def savez_dies_on_second(fh, **arrays):
+        written.append(fh)
+        if len(written) == 2:
+            fh.write(b"PK\x03\x04 half a zip")
+            raise _Killed
+        return real_savez(fh, **arrays)
+
+    monkeypatch.setattr(np, "savez", savez_dies_on_second)
+    with pytest.raises(_Killed):
+        prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    monkeypatch.setattr(np, "savez", real_savez)
+    assert sorted(p.name for p in partial.glob("*.npz")) == ["001.npz"]
+    # now die while the finished table is written: no table appears, the shards stay
+    real_save = np.save
+    monkeypatch.setattr(np, "save", lambda fh, arr, *a, **k: (fh.write(b"\x93NUMPY half"), _raise(_Killed)))
+    with pytest.raises(_Killed):
+        prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    monkeypatch.setattr(np, "save", real_save)
+    assert not (out / path.name).exists() and sorted(p.name for p in partial.glob("*.npz")) == ["001.npz", "031.npz"]
+    monkeypatch.setattr(prep, "_compute_scene", lambda *a, **k: pytest.fail("a finished shard was recomputed"))
+    done = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    np.testing.assert_array_equal(ObservationTable.load(done).features, ObservationTable.load(path).features)
+
+
+def _raise(exc):
+    raise exc
+
+
 def test_corrupt_shard_is_recomputed(built, tiny_world, tiny_classifier, tmp_path, monkeypatch):
     method, path = built
     out = tmp_path / "out"
