@@ -7,8 +7,13 @@ Measures, on a synthetic table of 25 contexts (one split, D = 544 float16 featur
   float16 (converted per gather), and the ratio to the baseline
 * the time to evaluate all 25 x 605 = 15,125 (context, start) pairs with the passive,
   random and oracle policies (target: < 2 s on CPU), and the oracle's DP alone
+* the same for a network policy: IBE-MAP's GRU agent at the paper's sizes (ResNet50's
+  2048-d features -> g_t 544 -> GRU h_t 544 -> s_t 512 -> dueling head, untrained weights:
+  speed does not depend on them) acting greedily, both with the table's features handed to
+  the policy (each view projected once, what ``load_policy`` of a run does) and with the
+  (N, 2048) features gathered every step; a fresh policy each repeat, so the projections count
 
-Run: ``python benchmarks/bench_env.py [--device cpu|cuda] [--threads 1] [--steps 200]``.
+Run: ``python benchmarks/bench_env.py [--device cpu|cuda] [--threads 1] [--steps 200] [--only network]``.
 """
 
 from __future__ import annotations
@@ -94,8 +99,13 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: shared machines)")
     ap.add_argument("--steps", type=int, default=200, help="batched steps per measurement")
+    ap.add_argument("--only", choices=("network",), default=None,
+                    help="run only the network-policy evaluation case")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.only == "network":
+        bench_network_policy(args.device, EnvConfig())
+        return
     table = synthetic_table()
     cfg = EnvConfig()
     print(f"table: {len(table)} contexts x {N_VIEWS} views, D={table.feature_dim}; device={args.device}, "
@@ -124,6 +134,31 @@ def main() -> None:
 
     sec = timed(lambda: evaluate_policy(table, "hard", FeatureReader(0), cfg, device=args.device))
     print(f"  random + feature gathers   {sec:7.3f} s   (what a network policy pays before its forward pass)")
+    bench_network_policy(args.device, cfg)
+
+
+def bench_network_policy(device: str, cfg: EnvConfig, feature_dim: int = 2048) -> None:
+    """Exhaustive greedy evaluation of an IBE-MAP-sized GRU agent on a 25-context split."""
+    from uevavd.config import load_method
+    from uevavd.policy.agent import GreedyPolicy
+    from uevavd.policy.network import build_network
+
+    table = synthetic_table(dim=feature_dim, seed=1)
+    torch.manual_seed(0)
+    spec = load_method("ibe_map")
+    net = build_network(spec, feature_dim, n_ranges=cfg.max_range)
+    params = sum(p.numel() for p in net.parameters())
+    features = torch.from_numpy(np.array(table.features))
+    print(f"network policy: ibe_map ({spec.component('state')[0]} h={net.estimator.hidden_dim}, "
+          f"s_t={net.estimator.state_dim}, head {spec.component('head')[0]}; {params / 1e6:.2f} M parameters, "
+          f"untrained), D={feature_dim}, {len(table) * N_VIEWS:,} pairs:")
+    cases = (("features handed over", lambda: GreedyPolicy(net, device=device, features=features)),
+             ("features gathered per step", lambda: GreedyPolicy(net, device=device)))
+    for name, make in cases:
+        sec = timed(lambda make=make: evaluate_policy(table, "hard", make(), cfg, device=device))
+        res = evaluate_policy(table, "hard", make(), cfg, device=device).summary()
+        print(f"  ibe_map greedy, {name:27s} {sec:7.3f} s   mean return {res['mean_return']:+.3f}, "
+              f"stop rate {res['stop_rate']:.3f}, steps/episode {res['steps_per_episode']:.2f}")
 
 
 if __name__ == "__main__":
