@@ -412,3 +412,59 @@ def test_table_written_by_hand_is_refused(tmp_path):
     os.utime(copy / "features.npy", ns=(0, 0))
     with pytest.raises(TableError, match="NaN or inf"):
         ObservationTable.load(copy)
+
+
+def test_classifier_backbone_encoder_shares_one_forward(tiny_world, tiny_classifier, tmp_path, monkeypatch):
+    """weights='classifier' on raw views: features and probabilities from one forward pass,
+    equal to what the encoder and the classifier give separately."""
+    from uevavd.data.reader import read_dataset
+    from uevavd.perception.classifier import load_classifier
+    from uevavd.perception.encoders import build_resnet18
+
+    method = tmp_path / "own.toml"
+    method.write_text(METHOD_OWN)
+    clf = load_classifier(tiny_classifier, device="cpu")
+    enc = build_resnet18(weights="classifier", classifier=str(tiny_classifier), device="cpu")
+    assert clf.shares_backbone(enc)
+    assert not clf.shares_backbone(build_resnet18(weights="random", device="cpu"))
+    monkeypatch.setattr(type(clf), "predict_proba",
+                        lambda self, images: pytest.fail("second forward"))
+    path = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=tmp_path / "out",
+                              progress=False)
+    monkeypatch.undo()
+    t = ObservationTable.load(path)
+    recs = sorted((r for r in read_dataset(tiny_world).records if r.scene == "001"), key=lambda r: r.view)
+    import cv2
+
+    images = np.stack([cv2.cvtColor(cv2.imread(str(r.image)), cv2.COLOR_BGR2RGB) for r in recs[:50]])
+    np.testing.assert_allclose(t.probs[0, :50], clf.predict_proba(images), atol=1e-5)
+    np.testing.assert_allclose(t.features[0, :50].astype(np.float32), enc.encode(images), rtol=1e-2, atol=1e-2)
+
+
+def test_decomposed_table_reuses_the_raw_views_probabilities(built, tiny_world, tiny_classifier, tmp_path,
+                                                             monkeypatch):
+    """The probabilities on raw views are cached by (classifier, scene files): a second table
+    of the same data and classifier (another segmenter or encoder) classifies nothing again."""
+    method, path = built
+    probs_dirs = list((path.parent / "probs").iterdir())
+    assert len(probs_dirs) == 1 and len(list(probs_dirs[0].glob("*.npy"))) == 2
+    other = tmp_path / "other.toml"
+    other.write_text(method.read_text().replace("gray_seed = 0", "gray_seed = 1"))
+    out = tmp_path / "out"
+    shutil.copytree(path.parent / "probs", out / "probs")
+    from uevavd.perception.classifier import ResNetClassifier
+
+    monkeypatch.setattr(ResNetClassifier, "predict_proba", lambda self, images: pytest.fail("reclassified"))
+    second = prep.prepare_table(tiny_world, other, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    assert second.name != path.name
+    np.testing.assert_array_equal(ObservationTable.load(second).probs, ObservationTable.load(path).probs)
+
+
+METHOD_OWN = """
+name = "own"
+[perception]
+segmenter = { name = "none" }
+encoder = { name = "resnet18", weights = "classifier" }
+classifier = { name = "resnet18" }
+decompose = false
+"""

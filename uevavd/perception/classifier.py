@@ -130,6 +130,27 @@ class ResNetClassifier:
     def identity(self) -> str:
         return f"classifier:{self.arch}:{','.join(self.classes)}:{self.weights_hash}:{self.runner.describe()}"
 
+    def shares_backbone(self, encoder: Any) -> bool:
+        """True when ``encoder`` is this recognizer's own backbone (``weights="classifier"``
+        from the same file) run with the same preprocessing on the same device: then one
+        forward pass gives both the features and, through :meth:`proba_from_features`, the
+        probabilities."""
+        runner = getattr(encoder, "runner", None)
+        return (getattr(encoder, "arch", None) == self.arch
+                and getattr(encoder, "weights_desc", None) == "classifier"
+                and getattr(encoder, "weights_hash", None) == self.weights_hash
+                and runner is not None and runner.mean == self.runner.mean and runner.std == self.runner.std
+                and runner.device == self.runner.device)
+
+    def proba_from_features(self, features: np.ndarray) -> np.ndarray:
+        """(N, D) float pooled backbone features -> (N, K) float32 probabilities through
+        this classifier's ``fc`` (what :meth:`predict_proba` computes after the backbone)."""
+        fc = self.runner.model.fc
+        with torch.inference_mode():
+            x = torch.as_tensor(np.asarray(features, np.float32), device=fc.weight.device)
+            p = torch.softmax(fc(x), dim=1).cpu().numpy().astype(np.float32, copy=False)
+        return p / p.sum(axis=1, keepdims=True)
+
     def __repr__(self) -> str:
         return f"ResNetClassifier({self.arch}, classes={self.classes}, device={self.runner.device})"
 

@@ -206,7 +206,40 @@ def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, segmenter, g
     return images, decomposed, maps, cats
 
 
-def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw):
+def _probs_path(probs_dir: Path | None, manifest, scene: str, recs: list) -> Path | None:
+    """Where the classifier's probabilities on a scene's raw views are cached: keyed by the
+    classifier's identity (``probs_dir``) and the scene's own files, so tables that differ
+    only in segmenter or encoder (MAP's and IBE-MAP's) classify each raw view once."""
+    if probs_dir is None:
+        return None
+    return probs_dir / f"{scene}-{dataset_fingerprint(manifest, [(scene, recs)])}.npy"
+
+
+def _cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
+    if path is None or not path.is_file():
+        return None
+    try:
+        probs = np.load(path, allow_pickle=False)
+    except Exception:  # noqa: BLE001 - unreadable: recomputed
+        return None
+    ok = probs.shape == (N_VIEWS, n_classes) and probs.dtype == np.float32 and bool(np.isfinite(probs).all())
+    return probs if ok else None
+
+
+def _save_probs(path: Path, probs: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.save(fh, probs)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw,
+                   probs_path: Path | None = None):
     images, decomposed, maps, cats = loaded
     boxes_px = np.array([r.box for r in recs], np.float32).reshape(-1, 4)
     enc_in = images if decomposed is None else decomposed
@@ -216,10 +249,21 @@ def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_
             decompose(img, s.target, s.segments, seed=view_seed(gray_seed, scene, r.view, r.target))
             for img, s, r in zip(images, segs, recs, strict=True)
         ])
+    if enc_in is images and getattr(classifier, "shares_backbone", lambda e: False)(encoder):
+        # the encoder is the recognizer's own backbone on the same raw views: one forward
+        features = encoder.encode(images)
+        probs = classifier.proba_from_features(features)
+    else:
+        features = encoder.encode(enc_in)
+        probs = _cached_probs(probs_path, len(classifier.classes))
+        if probs is None:
+            probs = classifier.predict_proba(images).astype(np.float32)
+    if probs_path is not None and not probs_path.is_file():
+        _save_probs(probs_path, probs.astype(np.float32))
     h, w = image_hw
     return {
-        "features": encoder.encode(enc_in).astype(np.float16),
-        "probs": classifier.predict_proba(images).astype(np.float32),
+        "features": features.astype(np.float16),
+        "probs": probs.astype(np.float32),
         "boxes": boxes_px / np.array([w, h, w, h], np.float32),
         "visible": np.array([np.nan if r.visible is None else r.visible for r in recs], np.float32),
     }
@@ -315,6 +359,7 @@ def prepare_table(
             log.warning("prepare: existing table %s is unusable (%s); rebuilding", final, exc)
     partial = out_dir / f"{key}.partial"
     partial.mkdir(parents=True, exist_ok=True)
+    probs_dir = out_dir / "probs" / hashlib.sha256(classifier.identity().encode()).hexdigest()[:16]
     (partial / "key.json").write_text(json.dumps(parts, indent=1, sort_keys=True), encoding="utf-8")
     k = len(TARGETS)
     shards: dict[str, dict[str, np.ndarray]] = {}
@@ -334,7 +379,8 @@ def prepare_table(
             loaded = nxt.result()
             nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], segmenter, gray_seed) if i + 1 < len(todo) else None
             arrays = _compute_scene(scene, recs, loaded, segmenter=segmenter, encoder=encoder,
-                                    classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size)
+                                    classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size,
+                                    probs_path=_probs_path(probs_dir, manifest, scene, recs))
             _write_shard(partial / f"{scene}.npz", arrays)
             shards[scene] = arrays
             bar.update(N_VIEWS)
