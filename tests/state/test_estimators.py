@@ -25,3 +25,11 @@ def test_paper_sizes():
 def test_bad_sizes_are_refused():
     with pytest.raises(ValueError, match="box_dim"):
         manager.registry.build("state", "gru", feature_dim=8, input_dim=8, box_dim=8)
+
+
+def test_gru_hidden_follows_input_dim_unless_set():
+    """h_t has g_t's size by default (paper: 544 = 544), so one override scales both."""
+    est = load_method("memo_map", overrides={"state.input_dim": 160}).build("state", feature_dim=64)
+    assert est.hidden_dim == 160 and est.encoder.out_dim == 160
+    est = load_method("memo_map", overrides={"state.hidden": 96}).build("state", feature_dim=64)
+    assert est.hidden_dim == 96

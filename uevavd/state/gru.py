@@ -60,8 +60,10 @@ class GRUState(nn.Module):
 
 
 def build_gru(
-    *, feature_dim: int = 2048, input_dim: int = 544, box_dim: int = 32, hidden: int = 544, state_dim: int = 512
+    *, feature_dim: int = 2048, input_dim: int = 544, box_dim: int = 32, hidden: int | None = None,
+    state_dim: int = 512,
 ) -> GRUState:
-    """The recurrent estimator (paper sizes: g_t 544, h_t 544, s_t 512). ``feature_dim``
-    (D of the table) is passed by the trainer at build time."""
-    return GRUState(feature_dim, input_dim, box_dim, hidden, state_dim)
+    """The recurrent estimator (paper sizes: g_t 544, h_t 544, s_t 512). ``hidden`` (h_t)
+    defaults to ``input_dim``, as in the paper, so scaling g_t scales h_t with it.
+    ``feature_dim`` (D of the table) is passed by the trainer at build time."""
+    return GRUState(feature_dim, input_dim, box_dim, input_dim if hidden is None else int(hidden), state_dim)
