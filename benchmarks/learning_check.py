@@ -1,6 +1,7 @@
 """Learning check: each method's greedy policy against random, passive and oracle.
 
     python benchmarks/learning_check.py --table MAP_TABLE [--ibe-table IBE_TABLE] [--episodes 20000]
+    python benchmarks/learning_check.py --table T --ibe-table I --preset quick --episodes 40000
     python benchmarks/learning_check.py --toy            # development stand-in, not the real check
 
 MAP and Memo-MAP train on ``--table`` (no decomposition); IBE-MAP on ``--ibe-table``
@@ -33,6 +34,8 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None, help="keep the runs here (default: a temp folder)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--preset", default=None,
+                    help="apply this preset's [overrides] first (e.g. quick), then --set; --episodes still wins")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -65,7 +68,13 @@ def main() -> int:
     rows["random"] = score(base, RandomPolicy(0))
     rows["passive"] = score(base, PassivePolicy())
     rows["oracle"] = score(base, OraclePolicy(base, cfg))
-    over = {"train.threads": args.threads, **dict(parse_override(s) for s in args.set)}
+    over = {}
+    if args.preset:
+        from uevavd.presets import load_preset
+
+        over.update(load_preset(args.preset).get("overrides", {}))
+        print(f"preset {args.preset} overrides: {over}")
+    over.update({"train.threads": args.threads, **dict(parse_override(s) for s in args.set)})
     for method in args.methods.split(","):
         table = ibe if method == "ibe_map" else base
         spec = load_method(method, over)
@@ -82,6 +91,7 @@ def main() -> int:
         print(f"trained {method} in {wall:.0f} s ({args.episodes / wall:.0f} episodes/s): {run}")
 
     print(f"\nmean return on the training contexts ({args.episodes} training episodes, seed {args.seed}"
+          f"{', preset ' + args.preset if args.preset else ''}"
           f"{', overrides ' + ' '.join(args.set) if args.set else ''})")
     gap = rows["oracle"] - rows["passive"]
     ok = True
