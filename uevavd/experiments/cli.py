@@ -65,11 +65,12 @@ def print_results(results: Path) -> None:
     cols = ["return", "accuracy", "recognition", "path_m", "steps"]
     several = final.groupby("method")["seed"].nunique().max() > 1
     table = final.groupby(["split", "method"], sort=False)[cols].agg(["mean", "std"] if several else "mean")
+    table = table.rename(columns={"steps": "decisions"})  # decisions per episode (path_m is the flight)
     with pd.option_context("display.width", 160, "display.max_columns", 20, "display.precision", 3):
         for split in [s for s in ("train", "simple", "hard") if s in set(final["split"])]:
             how = "mean / std over seeds" if several else "one seed"
             print(f"\n{split} contexts (final evaluation, {how}):")
-            print(table.loc[split].to_string())
+            print(table.loc[split].to_string(float_format=lambda v: f"{v:.3f}", na_rep="-"))
 
 
 def add_demo(parser: argparse.ArgumentParser):
