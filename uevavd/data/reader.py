@@ -295,22 +295,23 @@ def _unused_files(scene_dir: Path, files: list[str], ann_files: dict[str, tuple[
                 continue
             if stem in ann_files and ann_files[stem][1] != str(path) and stem in image_stems:
                 continue  # a second annotation of an image that has a preferred one
-            try:
-                _parse_name(stem)
-            except NameParseError as e:
-                problems.append(Problem("unparseable_annotation_name", path, f"annotation whose name does not parse: {e}"))
-                continue
-            problems.append(Problem("orphan_annotation", path, f"box annotation without its image: expected {stem}"
-                                    f"{IMAGE_EXTS[0]} (or {'/'.join(IMAGE_EXTS[1:])}) in {scene_dir}"))
+            problems.append(_imageless(stem, path, "annotation whose name does not parse",
+                                       f"box annotation without its image: expected {stem}{IMAGE_EXTS[0]} "
+                                       f"(or {'/'.join(IMAGE_EXTS[1:])}) in {scene_dir}"))
     for stem in sorted(set(table) - image_stems):
-        where = table_origin.get(stem, scene_dir)
-        try:
-            _parse_name(stem)
-        except NameParseError as e:
-            problems.append(Problem("unparseable_annotation_name", where, f"row {stem!r}: the image name does not parse: {e}"))
-            continue
-        problems.append(Problem("orphan_annotation", where, f"row {stem!r} has no image: expected {stem}"
-                                f"{IMAGE_EXTS[0]} in {scene_dir}"))
+        problems.append(_imageless(stem, table_origin.get(stem, scene_dir),
+                                   f"row {stem!r}: the image name does not parse",
+                                   f"row {stem!r} has no image: expected {stem}{IMAGE_EXTS[0]} in {scene_dir}"))
+
+
+def _imageless(stem: str, where: Path, unparsed: str, orphan: str) -> Problem:
+    """The problem of an annotation (file or table row) that no image of the scene uses:
+    its name does not parse, or it parses and the image is missing."""
+    try:
+        _parse_name(stem)
+    except NameParseError as e:
+        return Problem("unparseable_annotation_name", where, f"{unparsed}: {e}")
+    return Problem("orphan_annotation", where, orphan)
 
 
 def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Problem]):
