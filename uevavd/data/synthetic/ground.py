@@ -102,4 +102,6 @@ def lookup(rgb_map: np.ndarray, id_map: np.ndarray, x: np.ndarray, y: np.ndarray
     """Colour (N, 3) float32 and id (N,) uint16 of ground points (x, y) in metres (nearest cell)."""
     ix = np.clip(((x + EXTENT) / RES).astype(np.int64), 0, N_CELLS - 1)
     iy = np.clip(((y + EXTENT) / RES).astype(np.int64), 0, N_CELLS - 1)
-    return rgb_map[iy, ix], id_map[iy, ix]
+    iy *= N_CELLS
+    iy += ix  # flat cell index: one gather per map is cheaper than 2-d fancy indexing
+    return rgb_map.reshape(-1, 3).take(iy, axis=0), id_map.ravel().take(iy)

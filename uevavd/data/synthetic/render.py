@@ -100,7 +100,12 @@ class _Prep:
         self.g_r = np.array(
             [np.linalg.norm(hv[a:b].reshape(-1, 3) - c, axis=1).max() for a, b, c in zip(starts, self.g_end, self.g_c, strict=True)]
         )
+        hc = hv.mean(1) if len(inst) else np.zeros((0, 3))
+        self.h_c = hc  # per-hull bounding spheres, for culling before projecting vertices
+        self.h_r = np.linalg.norm(hv - hc[:, None], axis=2).max(1) if len(inst) else np.zeros(0)
         self.e_c = p["e_centre"]
+        self.e_c32 = self.e_c.astype(np.float32)
+        self.e_inv_r2 = (1.0 / p["e_radii"] ** 2).astype(np.float32)
         self.e_r = p["e_radii"].max(1) if len(self.e_c) else np.zeros(0)
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
         self.e_corners = self.e_c[:, None, :] + signs[None] * p["e_radii"][:, None, :]
@@ -114,9 +119,16 @@ class _Prep:
             self._shadow[key] = _ShadowMap(self, sun, 0.8 * 60.0 / focal_px(size))
         return self._shadow[key]
 
-    def group_rects(self, origin, basis, size: int, fpx: float) -> np.ndarray:
-        """(G, 4) pixel rectangles of the hull groups (union of their parts' rectangles)."""
-        r = _rects(self.p["h_verts"], origin, basis, size, fpx)
+    def group_rects(self, origin, basis, size: int, fpx: float, cull: bool = True) -> np.ndarray:
+        """(G, 4) pixel rectangles of the hull groups (union of their parts' rectangles).
+        With ``cull``, hulls whose bounding sphere lies outside the view frustum get an empty
+        rectangle without projecting their vertices (no ray of the crop can hit them)."""
+        if cull:
+            r = np.zeros((len(self.h_c), 4), np.int64)
+            keep = np.flatnonzero(_in_frustum(self.h_c, self.h_r, origin, basis, size, fpx))
+            r[keep] = _rects(self.p["h_verts"][keep], origin, basis, size, fpx)
+        else:
+            r = _rects(self.p["h_verts"], origin, basis, size, fpx)
         if len(r) == 0:
             return r
         empty = (r[:, 0] >= r[:, 1]) | (r[:, 2] >= r[:, 3])
@@ -125,6 +137,18 @@ class _Prep:
         lo = np.minimum.reduceat(r[:, [0, 2]], self.g_start, axis=0)
         hi = np.maximum.reduceat(r[:, [1, 3]], self.g_start, axis=0)
         return np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], 1)
+
+
+def _in_frustum(centre: np.ndarray, radius: np.ndarray, origin, basis, size: int, fpx: float) -> np.ndarray:
+    """(P,) bool: spheres (centres (P, 3), radii (P,)) that may reach into the view frustum of a
+    ``size`` px crop (conservative: a sphere outside one of its four side planes, or wholly
+    behind the camera, is out)."""
+    q = (centre - origin) @ basis.T  # depth, x, y
+    tan = 0.5 * size / fpx
+    k = 1.0 / np.sqrt(1.0 + tan * tan)  # side planes' distances: (|x| - depth tan) k
+    r = radius * 1.001 + 1e-3
+    side = (np.maximum(np.abs(q[:, 1]), np.abs(q[:, 2])) - q[:, 0] * tan) * k
+    return (side < r) & (q[:, 0] > -r)
 
 
 def _rects(points: np.ndarray, origin, basis, size: int, fpx: float) -> np.ndarray:
@@ -160,10 +184,20 @@ def _hull_t(origin_term: np.ndarray, den: np.ndarray, axis: int) -> np.ndarray:
     return np.where((tn <= tf) & (tn > 1e-6), tn, _INF)
 
 
-def _entry_plane(planes: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """(N,) index of the face each hit point lies on: the plane of its hull (planes (N, K, 4))
-    with the largest ``n . p - d`` (zero on the face, negative for the others)."""
-    return (np.einsum("nkc,nc->nk", planes[..., :3], pts) - planes[..., 3]).argmax(-1)
+def _hull_cast(origin_term: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_hull_t` for the camera's rays, keeping what finds the entry face: ``origin_term``
+    (P, K, 1) and ``den`` (P, K, M) for P hulls of K planes and M rays give the entry distance
+    (P, M) (``inf`` on a miss) and the per-plane entry candidates (P, K, M) (``-inf`` for
+    planes the ray leaves through): the face a ray enters through is the plane whose
+    candidate equals the entry distance."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = origin_term / den
+    enter = den < 0
+    cand = np.where(enter, t, -_INF)
+    tn = cand.max(1)
+    np.copyto(t, _INF, where=enter)
+    tf = t.min(1)
+    return np.where((tn <= tf) & (tn > 1e-6), tn, _INF), cand
 
 
 def _ellipsoid_t(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -179,10 +213,28 @@ def _ellipsoid_t(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radii: np.nda
     return np.where((disc > 0) & (t > 1e-6), t, _INF)
 
 
+def _ellipsoid_cast(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """:func:`_ellipsoid_t` for rays from one origin ``o`` (3,) along ``d`` (..., 3): the
+    quadratic's coefficients as dot products (float64, as there)."""
+    inv = 1.0 / (radii * radii)
+    oc = o - centre
+    a = np.square(d, dtype=np.float64) @ inv
+    b = d.astype(np.float64) @ (2.0 * oc * inv)
+    c = float(oc * oc @ inv) - 1.0
+    disc = b * b - 4 * a * c
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    t = (-b - sq) / (2 * a)
+    return np.where((disc > 0) & (t > 1e-6), t, _INF)
+
+
 def _pixel_dirs(size: int, basis: np.ndarray) -> np.ndarray:
+    """(size, size, 3) float32 ray directions through the pixel centres (not normalised)."""
     c = np.arange(size, dtype=np.float64) + 0.5 - size / 2
     f, right, up = basis
-    return (focal_px(size) * f)[None, None] + c[None, :, None] * right + (-c)[:, None, None] * up
+    # the sum of a row term and a column term, in float64, rounded once to float32
+    out = np.empty((size, size, 3), np.float32)
+    np.add((focal_px(size) * f)[None, None] + c[None, :, None] * right, (-c)[:, None, None] * up, out=out)
+    return out
 
 
 def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *, cull: bool = True,
@@ -197,56 +249,64 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     origin = view_coords(view)
     basis = camera_basis(origin, scene.look_at)
     fpx = focal_px(size)
-    dirs = _pixel_dirs(size, basis).astype(np.float32)  # (H, W, 3), not normalised
+    dirs = _pixel_dirs(size, basis)  # (H, W, 3) float32, not normalised
     # ground plane z = 0 (every ray looks down)
     tbest = (-origin[2] / dirs[..., 2]).astype(np.float32)
     kind = np.zeros((size, size), np.int8)  # 0 ground, 1 hull, 2 ellipsoid
     pid = np.zeros((size, size), np.int64)
+    face = np.zeros((size, size), np.int8)  # hulls: the plane the ray enters through
     ttar = np.full((size, size), _INF, np.float32)
-    g_rects = prep.group_rects(origin, basis, size, fpx)
-    e_rects = _rects(prep.e_corners, origin, basis, size, fpx)
-    if not cull:
+    g_rects = prep.group_rects(origin, basis, size, fpx, cull)
+    if cull:
+        e_rects = np.zeros((len(prep.e_c), 4), np.int64)
+        keep = np.flatnonzero(_in_frustum(prep.e_c, prep.e_r, origin, basis, size, fpx))
+        e_rects[keep] = _rects(prep.e_corners[keep], origin, basis, size, fpx)
+    else:
+        e_rects = _rects(prep.e_corners, origin, basis, size, fpx)
         g_rects[:], e_rects[:] = (0, size, 0, size), (0, size, 0, size)
     if len(exclude):
         g_rects[np.isin(p["h_inst"][prep.g_start], exclude)] = 0
         e_rects[np.isin(p["e_inst"], exclude)] = 0
-    for g, (y0, y1, x0, x1) in enumerate(g_rects):
-        if y0 >= y1 or x0 >= x1:
-            continue
+    for g in np.flatnonzero((g_rects[:, 0] < g_rects[:, 1]) & (g_rects[:, 2] < g_rects[:, 3])).tolist():
+        y0, y1, x0, x1 = g_rects[g].tolist()
         a, b = prep.g_start[g], prep.g_end[g]
         pl = p["h_planes"][a:b, :prep.g_k[g]]  # (P, K, 4)
         d = dirs[y0:y1, x0:x1]
         hh, ww = y1 - y0, x1 - x0
         den = (pl[..., :3].reshape(-1, 3) @ d.reshape(-1, 3).T).reshape(b - a, -1, hh * ww)
-        t = _hull_t((pl[..., 3] - pl[..., :3] @ origin).astype(np.float32)[..., None], den, 1)  # (P, M)
+        t, cand = _hull_cast((pl[..., 3] - pl[..., :3] @ origin).astype(np.float32)[..., None], den)  # (P, M)
         if b - a > 1:
-            part = t.argmin(0).reshape(hh, ww)
+            part = t.argmin(0)
             t = t.min(0).reshape(hh, ww)
         else:
-            part = np.zeros((hh, ww), np.int64)
+            part = None
             t = t[0].reshape(hh, ww)
         if prep.g_target[g]:
             np.minimum(ttar[y0:y1, x0:x1], t, out=ttar[y0:y1, x0:x1])
         better = t < tbest[y0:y1, x0:x1]
+        if not better.any():
+            continue
         np.copyto(tbest[y0:y1, x0:x1], t, where=better)
         kind[y0:y1, x0:x1][better] = 1
-        pid[y0:y1, x0:x1][better] = a + part[better]
-    for i, (y0, y1, x0, x1) in enumerate(e_rects):
-        if y0 >= y1 or x0 >= x1:
-            continue
-        t = _ellipsoid_t(origin, dirs[y0:y1, x0:x1], p["e_centre"][i], p["e_radii"][i])
+        m = np.flatnonzero(better)  # the rays this group now owns, in the mask's order
+        pm = part[m] if part is not None else np.zeros(len(m), np.int64)
+        pid[y0:y1, x0:x1][better] = a + pm
+        face[y0:y1, x0:x1][better] = (cand[pm, :, m] == t.ravel()[m, None]).argmax(1)
+    for i in np.flatnonzero((e_rects[:, 0] < e_rects[:, 1]) & (e_rects[:, 2] < e_rects[:, 3])).tolist():
+        y0, y1, x0, x1 = e_rects[i].tolist()
+        t = _ellipsoid_cast(origin, dirs[y0:y1, x0:x1], p["e_centre"][i], p["e_radii"][i])
         better = t < tbest[y0:y1, x0:x1]
         np.copyto(tbest[y0:y1, x0:x1], t, where=better)
         kind[y0:y1, x0:x1][better] = 2
         pid[y0:y1, x0:x1][better] = i
     pts = origin.astype(np.float32) + tbest.reshape(-1, 1) * dirs.reshape(-1, 3)  # (N, 3) hit points
     ground_rgb, seg = lookup(scene.ground_rgb, scene.ground_ids, pts[:, 0], pts[:, 1])
-    kind, pid = kind.ravel(), pid.ravel()
+    kind, pid, face = kind.ravel(), pid.ravel(), face.ravel()
     h, e = np.nonzero(kind == 1)[0], np.nonzero(kind == 2)[0]
     seg[h] = p["h_inst"][pid[h]]
     seg[e] = p["e_inst"][pid[e]]
     seg = seg.reshape(size, size)
-    rgb = _shade(scene, prep, origin, dirs.reshape(-1, 3), pts, ground_rgb, h, e, pid).reshape(size, size, 3)
+    rgb = _shade(scene, prep, pts, ground_rgb, h, e, pid, face).reshape(size, size, 3)
     vis = seg == TARGET_ID
     whole = np.isfinite(ttar)
     full = int(whole.sum())
@@ -291,9 +351,15 @@ class _ShadowMap:
         lit_u = np.cross(sun, [0.0, 0.0, 1.0] if abs(sun[2]) < 0.99 else [1.0, 0.0, 0.0])
         lit_u /= np.linalg.norm(lit_u)
         self.frame = np.stack([lit_u, np.cross(sun, lit_u), sun])  # rows u, v, a
+        self.frame32 = self.frame.astype(np.float32)
         self.sun = sun
         self.cell = cell
-        self.tiles: dict[tuple[int, int], np.ndarray] = {}
+        self.inv_cell = np.float32(1.0 / cell)
+        # computed tiles live in one atlas (rows v, columns u) whose tile (0, 0) is tile
+        # (tu0, tv0); ``done`` marks the computed ones. Grown on demand, never shrunk.
+        self.atlas = np.empty((0, 0), np.float32)
+        self.done = np.zeros((0, 0), bool)
+        self.tu0 = self.tv0 = 0
         self.prims = []  # (kind, index, ulo, uhi, vlo, vhi)
         for kind, corners in (("h", p["h_verts"]), ("e", prep.e_corners)):
             if len(corners):
@@ -327,38 +393,59 @@ class _ShadowMap:
                 np.maximum(sub, (top - t).reshape(sub.shape), out=sub)
         return depth
 
+    def _cover(self, u_lo: int, u_hi: int, v_lo: int, v_hi: int) -> None:
+        """Make sure tiles u_lo..u_hi x v_lo..v_hi are computed and in the atlas."""
+        t, (nv, nu) = self.TILE, self.done.shape
+        if not (self.tu0 <= u_lo and u_hi < self.tu0 + nu and self.tv0 <= v_lo and v_hi < self.tv0 + nv):
+            # grow with a margin of two tiles on each side (views move across the ground)
+            if nu:
+                u_lo2, u_hi2 = min(u_lo, self.tu0) - 2, max(u_hi, self.tu0 + nu - 1) + 2
+                v_lo2, v_hi2 = min(v_lo, self.tv0) - 2, max(v_hi, self.tv0 + nv - 1) + 2
+            else:
+                u_lo2, u_hi2, v_lo2, v_hi2 = u_lo - 2, u_hi + 2, v_lo - 2, v_hi + 2
+            atlas = np.empty(((v_hi2 - v_lo2 + 1) * t, (u_hi2 - u_lo2 + 1) * t), np.float32)
+            done = np.zeros((v_hi2 - v_lo2 + 1, u_hi2 - u_lo2 + 1), bool)
+            du, dv = self.tu0 - u_lo2, self.tv0 - v_lo2
+            atlas[dv * t:(dv + nv) * t, du * t:(du + nu) * t] = self.atlas
+            done[dv:dv + nv, du:du + nu] = self.done
+            self.atlas, self.done, self.tu0, self.tv0 = atlas, done, u_lo2, v_lo2
+        for b, a in zip(*np.nonzero(~self.done[v_lo - self.tv0:v_hi - self.tv0 + 1, u_lo - self.tu0:u_hi - self.tu0 + 1]),
+                        strict=True):
+            a, b = int(a) + u_lo, int(b) + v_lo
+            i, j = (a - self.tu0) * t, (b - self.tv0) * t
+            self.atlas[j:j + t, i:i + t] = self._tile(a, b)
+            self.done[b - self.tv0, a - self.tu0] = True
+
     def shadowed(self, pts: np.ndarray, lam: np.ndarray, bias: np.ndarray) -> np.ndarray:
         """(N,) bool: points (N, 3) hidden from the sun; ``lam`` (N,) their Lambert term (the
         depth bias grows with the grazing angle) and ``bias`` (N,) extra metres of bias."""
-        q = pts.astype(np.float64) @ self.frame.T
-        iu = np.floor(q[:, 0] / self.cell).astype(np.int64)
-        iv = np.floor(q[:, 1] / self.cell).astype(np.int64)
-        tu, tv = iu // self.TILE, iv // self.TILE
+        q = pts @ self.frame32.T  # float32: a cell is >= 2 cm, the depth bias >= 4 cm
+        iu = np.floor(q[:, 0] * self.inv_cell).astype(np.int64)
+        iv = np.floor(q[:, 1] * self.inv_cell).astype(np.int64)
         t = self.TILE
-        u_lo, u_hi, v_lo, v_hi = int(tu.min()), int(tu.max()), int(tv.min()), int(tv.max())
-        atlas = np.empty(((v_hi - v_lo + 1) * t, (u_hi - u_lo + 1) * t), np.float32)
-        for a in range(u_lo, u_hi + 1):
-            for b in range(v_lo, v_hi + 1):
-                tile = self.tiles.get((a, b))
-                if tile is None:
-                    tile = self.tiles[(a, b)] = self._tile(a, b)
-                atlas[(b - v_lo) * t:(b - v_lo + 1) * t, (a - u_lo) * t:(a - u_lo + 1) * t] = tile
-        depth = atlas[iv - v_lo * t, iu - u_lo * t]
+        self._cover(int(iu.min()) // t, int(iu.max()) // t, int(iv.min()) // t, int(iv.max()) // t)
+        iv -= self.tv0 * t
+        iv *= self.atlas.shape[1]
+        iv += iu
+        iv -= self.tu0 * t
+        depth = self.atlas.ravel().take(iv)
         slope = np.sqrt(np.maximum(1.0 - lam * lam, 0.0)) / np.maximum(lam, 0.2)
         return q[:, 2] < depth - (0.04 + bias + 1.5 * self.cell * slope)
 
 
-def _wave_noise(pts: np.ndarray, freq: float) -> np.ndarray:
-    """Cheap deterministic 3D pattern in about [-1, 1], (N, 3) -> (N, 3)."""
+def _wave_noise(pts: np.ndarray, freq: float, comps: tuple[int, ...] = (0, 1, 2)) -> np.ndarray:
+    """Cheap deterministic 3D pattern in about [-1, 1], (N, 3) -> (N, len(comps)); only the
+    components ``comps`` are computed (each costs two sines per point)."""
     x, y, z = pts[:, 0] * freq, pts[:, 1] * freq, pts[:, 2] * freq
-    return np.stack(
-        [np.sin(x * 1.7 + np.sin(y * 2.3 + z)), np.sin(y * 1.9 + np.sin(z * 2.1 + x)),
-         np.sin(z * 2.2 + np.sin(x * 1.3 + y))], 1)
+    f = (lambda: np.sin(x * 1.7 + np.sin(y * 2.3 + z)), lambda: np.sin(y * 1.9 + np.sin(z * 2.1 + x)),
+         lambda: np.sin(z * 2.2 + np.sin(x * 1.3 + y)))
+    return np.stack([f[c]() for c in comps], 1)
 
 
-def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) -> np.ndarray:
+def _shade(scene: Scene, prep: _Prep, pts, ground_rgb, h, e, pid, face) -> np.ndarray:
     """(N, 3) uint8 colours of hit points ``pts`` (N, 3); ``h`` / ``e``: indices of pixels that
-    hit a hull / an ellipsoid (the rest hit the ground, coloured ``ground_rgb``)."""
+    hit a hull / an ellipsoid (the rest hit the ground, coloured ``ground_rgb``); ``pid`` (N,)
+    the primitive hit and ``face`` (N,) the plane of its hull the ray entered through."""
     p = prep.p
     size = int(round(np.sqrt(len(pts))))
     normal = np.zeros(pts.shape, np.float32)
@@ -367,56 +454,79 @@ def _shade(scene: Scene, prep: _Prep, origin, dirs, pts, ground_rgb, h, e, pid) 
     bias = np.zeros(len(pts), np.float32)  # canopies: bumpy normals on a smooth ellipsoid
     if len(h):
         hp = pid[h]
-        hpl = p["h_planes"][hp]
-        normal[h] = hpl[np.arange(len(h)), _entry_plane(hpl, pts[h]), :3]
+        nh = p["h_planes"][hp, face[h], :3]
+        normal[h] = nh
         c = p["h_rgb"][hp]
         mat = p["h_mat"][hp]
-        par = p["h_par"][hp]
-        cab = (mat == M_CABIN) & (normal[h, 2] < 0.9)
-        c[cab] = par[cab, :3]
-        fac = mat == M_FACADE
-        if fac.any():
-            c[fac] = _facade(pts[h[fac]], normal[h[fac]], c[fac], par[fac])
+        cab = np.flatnonzero((mat == M_CABIN) & (nh[:, 2] < 0.9))  # glass
+        if len(cab):
+            c[cab] = p["h_par"][hp[cab], :3]
+        fac = np.flatnonzero(mat == M_FACADE)
+        if len(fac):
+            c[fac] = _facade(pts[h[fac]], nh[fac], c[fac], p["h_par"][hp[fac]])
         col[h] = c
     if len(e):
         ep = pid[e]
-        n = (pts[e] - p["e_centre"][ep]) / p["e_radii"][ep] ** 2
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        c = p["e_rgb"][ep].copy()
+        pe = pts[e]
+        n = (pe - prep.e_c32[ep]) * prep.e_inv_r2[ep]  # gradient of the ellipsoid's equation
+        c = p["e_rgb"][ep]  # a copy (fancy indexing)
         can = p["e_mat"][ep] == M_CANOPY
-        if can.any():
-            wn = _wave_noise(pts[e[can]], 1.6)
-            n[can] += 0.55 * wn
-            n[can] /= np.linalg.norm(n[can], axis=1, keepdims=True)
-            c[can] *= (1.0 + 0.18 * wn[:, :1])
-        normal[e] = n
+        if can.all():
+            can = slice(None)  # woodland: every ellipsoid is a canopy; skip the masking
+        elif not can.any():
+            can = None
+        if can is not None:
+            wn = _wave_noise(pe[can], 1.6)
+            n[can] = _unit(n[can]) + 0.55 * wn
+            c[can] *= 1.0 + 0.18 * wn[:, :1]
+        normal[e] = _unit(n)
         col[e] = c
         bias[e] = 0.6
-    sun = scene.sun_dir
-    lam = np.clip(normal @ sun.astype(np.float32), 0.0, 1.0)
-    lam[prep.shadow_map(sun, size).shadowed(pts, lam, bias)] = 0.0
+    sun = scene.sun_dir.astype(np.float32)
+    lam = normal @ sun
+    np.clip(lam, 0.0, 1.0, out=lam)
+    lam[prep.shadow_map(scene.sun_dir, size).shadowed(pts, lam, bias)] = 0.0
+    # light = ambient * (0.65 + 0.35 n_z) + sun * lambert, as one (N, 3) @ (3, 3) product
     amb, sun_rgb = (scene.ambient_rgb * 255.0).astype(np.float32), (scene.sun_rgb * 255.0).astype(np.float32)
-    light = amb * (0.65 + 0.35 * normal[:, 2:3]) + sun_rgb * lam[:, None]
-    out = col * light
+    terms = np.empty((len(pts), 3), np.float32)
+    terms[:, 0] = 1.0
+    terms[:, 1] = normal[:, 2]
+    terms[:, 2] = lam
+    out = terms @ np.stack([0.65 * amb, 0.35 * amb, sun_rgb])
+    out *= col
     out += 0.5
     return np.clip(out, 0, 255, out=out).astype(np.uint8)
 
 
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` (N, 3) scaled to unit length (in place)."""
+    v /= np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
+    return v
+
+
+_GLASS_BASE = np.array([0.16, 0.19, 0.24], np.float32)
+_GLASS_TINT = np.array([0.08, 0.06, 0.04], np.float32)
+
+
 def _facade(pts, normal, wall, par) -> np.ndarray:
     """Facade texture: window grid on walls (floor height par[:,0], spacing par[:,1], up to
-    the roof height par[:,2]), a darker gravel tone on roofs."""
-    out = wall.copy()
-    wallish = np.abs(normal[:, 2]) < 0.5
-    u = pts[:, 0] * -normal[:, 1] + pts[:, 1] * normal[:, 0]
-    z = pts[:, 2]
-    fu = np.mod(u, par[:, 1]) / par[:, 1]
-    fz = np.mod(z, par[:, 0]) / par[:, 0]
-    win = wallish & (fu > 0.28) & (fu < 0.72) & (fz > 0.35) & (fz < 0.8) & (z > 1.5) & (z < par[:, 2] - 0.8)
-    glass = np.stack([0.16 + 0.08 * par[:, 3], 0.19 + 0.06 * par[:, 3], 0.24 + 0.04 * par[:, 3]], 1)
-    out[win] = glass[win]
-    roof = normal[:, 2] > 0.5
-    grain = 0.035 * _wave_noise(pts[roof], 0.7)[:, :1] + 0.02 * _wave_noise(pts[roof], 3.1)[:, 1:2]
-    out[roof] = out[roof] * 0.62 + 0.12 + grain
+    the roof height par[:,2]), a darker gravel tone on roofs. ``wall`` (N, 3) is changed in
+    place and returned; each pattern is computed only on the pixels it applies to."""
+    out = wall
+    w = np.flatnonzero(np.abs(normal[:, 2]) < 0.5)
+    if len(w):
+        pw, nw, parw = pts[w], normal[w], par[w]
+        u = pw[:, 0] * -nw[:, 1] + pw[:, 1] * nw[:, 0]
+        z = pw[:, 2]
+        fu = np.mod(u, parw[:, 1]) / parw[:, 1]
+        fz = np.mod(z, parw[:, 0]) / parw[:, 0]
+        win = (fu > 0.28) & (fu < 0.72) & (fz > 0.35) & (fz < 0.8) & (z > 1.5) & (z < parw[:, 2] - 0.8)
+        out[w[win]] = parw[win, 3:4] * _GLASS_TINT + _GLASS_BASE
+    r = np.flatnonzero(normal[:, 2] > 0.5)
+    if len(r):
+        pr = pts[r]
+        grain = 0.035 * _wave_noise(pr, 0.7, (0,)) + 0.02 * _wave_noise(pr, 3.1, (1,))
+        out[r] = out[r] * 0.62 + 0.12 + grain
     return out
 
 
