@@ -1,13 +1,22 @@
-"""Quality of the synthetic world (issue 3, part 6): visible-fraction statistics per split
-from a written world, and the contact sheets of ``docs/synthetic_world.md``.
+"""Quality of the synthetic world (issue 3, part 6): visible-fraction statistics per split,
+from a written world or rendered in memory, and the contact sheets of
+``docs/synthetic_world.md``.
 
     python benchmarks/synthetic_quality.py --world DIR [--figures docs/img]
+    python benchmarks/synthetic_quality.py --contexts all --size 48 --workers 2
+    python benchmarks/synthetic_quality.py --contexts 1,2,21,26 --size 48 --compare-sizes 64,128
 
-Reads each scene's ``scene.json`` (visible fraction per view), prints per split: mean
-visible fraction, the share of views with visible >= 0.9, < 0.5 and == 0, and checks the
-stated properties: every training context has >= 10 % of views with visible >= 0.9 and
+``--world`` reads each scene's ``scene.json`` (visible fraction per view); ``--contexts``
+("all" = 1..150, or ids and ranges like 1-20,26) renders those contexts in memory instead
+(``render_context``, world seed ``--seed``, ``--size`` px; the visible fraction hardly
+depends on the size, so a small one keeps this fast). Prints per split: mean visible
+fraction, the share of views with visible >= 0.9, < 0.5 and == 0; then PASS or FAIL for each
+stated property: every training context has >= 10 % of views with visible >= 0.9 and
 >= 10 % with < 0.5; hard-test contexts are more occluded on average than training ones;
-fully occluded views occur. With ``--figures`` it also renders the contact sheets.
+fully occluded views occur; and the ids of the contexts that fail a per-context property.
+Exits 1 when a property fails. ``--compare-sizes`` also renders the contexts at other
+sizes and prints their per-context statistics side by side. With ``--figures`` it also
+renders the contact sheets.
 """
 
 from __future__ import annotations
@@ -15,6 +24,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -23,8 +36,9 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from uevavd.data.grid import NX, NY, view_index  # noqa: E402
-from uevavd.data.splits import SPLITS, TARGETS, split_of  # noqa: E402
-from uevavd.data.synthetic import build_context, build_unoccluded, render_view  # noqa: E402
+from uevavd.data.splits import N_CONTEXTS, SPLITS, TARGETS, split_of  # noqa: E402
+from uevavd.data.synthetic import build_context, build_unoccluded, render_context, render_view  # noqa: E402
+from uevavd.data.synthetic.cli import parse_contexts  # noqa: E402
 from uevavd.data.synthetic.render import _Prep  # noqa: E402
 
 
@@ -38,6 +52,40 @@ def visible_by_context(world: Path) -> dict[int, np.ndarray]:
     return out
 
 
+def _visible(job: tuple[int, int, int]) -> tuple[int, np.ndarray]:
+    cid, size, seed = job
+    return cid, render_context(cid, size=size, seed=seed).visible
+
+
+def render_visible(contexts: list[int], *, size: int, seed: int, workers: int) -> dict[int, np.ndarray]:
+    """Visible fraction (605,) float32 of every view of ``contexts``, rendered in memory."""
+    jobs = [(c, size, seed) for c in contexts]
+    out = {}
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=workers) if workers > 1 else _Serial() as pool:
+        for i, (cid, vis) in enumerate(pool.map(_visible, jobs), 1):
+            out[cid] = vis
+            if i % 10 == 0 or i == len(jobs):
+                print(f"  {i}/{len(jobs)} contexts at {size} px, {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    return out
+
+
+class _Serial:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def map(self, fn, jobs):
+        return map(fn, jobs)
+
+
+def _stats(v: np.ndarray) -> tuple[float, float, float, float]:
+    """mean visible, share >= 0.9, share < 0.5, share == 0."""
+    return float(v.mean()), float(np.mean(v >= 0.9)), float(np.mean(v < 0.5)), float(np.mean(v == 0))
+
+
 def report(vis: dict[int, np.ndarray]) -> tuple[str, bool]:
     lines = ["| split | contexts | views | mean visible | >= 0.9 | < 0.5 | = 0 (fully occluded) |",
              "|---|---|---|---|---|---|---|"]
@@ -47,26 +95,61 @@ def report(vis: dict[int, np.ndarray]) -> tuple[str, bool]:
         if not cs:
             continue
         v = np.concatenate([vis[c] for c in cs])
-        means[split] = float(v.mean())
-        lines.append(f"| {split} | {len(cs)} | {len(v)} | {v.mean():.3f} | {np.mean(v >= 0.9):.1%} | "
-                     f"{np.mean(v < 0.5):.1%} | {np.mean(v == 0):.1%} |")
-    ok = True
+        mean, clear, hidden, zero = _stats(v)
+        means[split] = mean
+        lines.append(f"| {split} | {len(cs)} | {len(v)} | {mean:.3f} | {clear:.1%} | {hidden:.1%} | {zero:.1%} |")
     checks = []
-    train = [c for c in vis if split_of(c) == "train"]
-    hi = min(float(np.mean(vis[c] >= 0.9)) for c in train) if train else float("nan")
-    lo = min(float(np.mean(vis[c] < 0.5)) for c in train) if train else float("nan")
-    checks.append((f"every training context: >= 10% views visible >= 0.9 (lowest {hi:.1%})", hi >= 0.1))
-    checks.append((f"every training context: >= 10% views visible < 0.5 (lowest {lo:.1%})", lo >= 0.1))
+    failing = []
+    train = sorted(c for c in vis if split_of(c) == "train")
+    if train:
+        clear = {c: float(np.mean(vis[c] >= 0.9)) for c in train}
+        hidden = {c: float(np.mean(vis[c] < 0.5)) for c in train}
+        for share, what in ((clear, ">= 0.9"), (hidden, "< 0.5")):
+            low = min(share, key=share.get)
+            bad = [c for c in train if share[c] < 0.1]
+            checks.append((f"every training context ({len(train)}): >= 10% views visible {what} "
+                           f"(lowest: context {low:03d}, {share[low]:.1%})", not bad))
+            failing += [f"context {c:03d} ({split_of(c)}): {share[c]:.1%} of views visible {what}" for c in bad]
     if "hard" in means and "train" in means:
         checks.append((f"hard test more occluded than train (mean visible {means['hard']:.3f} < "
                        f"{means['train']:.3f})", means["hard"] < means["train"]))
     n_zero = int(sum((v == 0).sum() for v in vis.values()))
-    checks.append((f"fully occluded views occur ({n_zero})", n_zero > 0))
+    n_all = int(sum(len(v) for v in vis.values()))
+    with_zero = sum(bool((v == 0).any()) for v in vis.values())
+    checks.append((f"fully occluded views occur ({n_zero:,} of {n_all:,} views, in {with_zero} of {len(vis)} contexts)",
+                   n_zero > 0))
     lines.append("")
+    ok = True
     for text, good in checks:
         ok &= good
-        lines.append(f"- [{'x' if good else ' '}] {text}")
+        lines.append(f"- {'PASS' if good else 'FAIL'}: {text}")
+    lines.append("")
+    lines.append("failing contexts: " + ("none" if not failing else ""))
+    lines += [f"- {f}" for f in failing]
     return "\n".join(lines), ok
+
+
+def compare_sizes(contexts: list[int], sizes: list[int], *, seed: int, workers: int,
+                  first: dict[int, np.ndarray]) -> str:
+    """Per-context statistics at several sizes side by side (``first``: at ``sizes[0]``)."""
+    by_size = {sizes[0]: first}
+    for size in sizes[1:]:
+        by_size[size] = render_visible(contexts, size=size, seed=seed, workers=workers)
+    lines = ["| context | split | size | mean visible | >= 0.9 | < 0.5 | = 0 | mean abs diff per view |",
+             "|---|---|---|---|---|---|---|---|"]
+    worst = np.zeros(4)
+    for c in contexts:
+        ref = _stats(by_size[sizes[0]][c])
+        for size in sizes:
+            st = _stats(by_size[size][c])
+            worst = np.maximum(worst, np.abs(np.subtract(st, ref)))
+            diff = float(np.abs(by_size[size][c] - by_size[sizes[0]][c]).mean())
+            lines.append(f"| {c:03d} | {split_of(c)} | {size} | {st[0]:.3f} | {st[1]:.1%} | {st[2]:.1%} | {st[3]:.1%} | "
+                         f"{diff:.3f} |")
+    lines.append("")
+    lines.append(f"largest difference from {sizes[0]} px over these contexts: mean visible {worst[0]:.3f}, "
+                 f">= 0.9 {worst[1]:.1%}, < 0.5 {worst[2]:.1%}, = 0 {worst[3]:.1%}")
+    return "\n".join(lines)
 
 
 def _sheet(tiles: list[np.ndarray], cols: int, pad: int = 2) -> np.ndarray:
@@ -134,17 +217,35 @@ def histogram(vis: dict[int, np.ndarray], path: Path) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--world", type=Path, required=True)
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--world", type=Path, help="a written world (reads scene.json of each context)")
+    src.add_argument("--contexts", help="render these contexts in memory instead: all, or ids like 1-20,26")
     ap.add_argument("--figures", type=Path, help="folder for the contact sheets and the histogram")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--size", type=int, default=64, help="crop size of --contexts and of the figures")
+    ap.add_argument("--workers", type=int, default=1, help="processes rendering contexts (--contexts)")
+    ap.add_argument("--compare-sizes", help="with --contexts: also these sizes, per context, e.g. 64,128")
     args = ap.parse_args()
-    vis = visible_by_context(args.world)
+    t0, c0 = time.perf_counter(), time.process_time()
+    if args.world:
+        vis = visible_by_context(args.world)
+        print(f"{len(vis)} contexts read from {args.world}")
+    else:
+        contexts = list(range(1, N_CONTEXTS + 1)) if args.contexts == "all" else parse_contexts(args.contexts)
+        vis = render_visible(contexts, size=args.size, seed=args.seed, workers=args.workers)
+        print(f"{len(vis)} contexts rendered in memory at {args.size} px, seed {args.seed}")
     text, ok = report(vis)
     print(text)
+    if args.compare_sizes and not args.world:
+        sizes = [args.size] + [int(x) for x in args.compare_sizes.split(",")]
+        print()
+        print(compare_sizes(sorted(vis), sizes, seed=args.seed, workers=args.workers, first=vis))
     if args.figures:
         histogram(vis, args.figures / "synthetic_visible_hist.png")
         figures(args.figures, args.seed, args.size)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    print(f"\n{time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0 + kids.ru_utime + kids.ru_stime:.0f} s CPU "
+          f"(this process and its workers)")
     raise SystemExit(0 if ok else 1)
 
 

@@ -5,12 +5,14 @@ projected onto the image plane; focal length ``f = 8 * size`` px (a 256 px crop 
 4096 px wide, 90 degree frame is f = 2048 px at 256 px). Pixel (u, v) has its centre at
 (u + 0.5, v + 0.5); u grows to the right, v downwards.
 
-Method (measured in ``benchmarks/bench_render.py``): every primitive is projected to the
-screen once per view (its vertices, or the corners of its box for ellipsoids) and ray-cast
-only over the pixel rectangle it covers, so the narrow view frustum culls almost the whole
-world. The ground plane is intersected analytically for every pixel. Shadow rays towards
-the sun are cast from every hit point against the primitives whose bounding sphere can
-shade the visible footprint, each over just the pixels inside its shadow cylinder.
+Method (measured in ``benchmarks/bench_render.py``): per view, primitives whose bounding
+sphere lies outside the view frustum are dropped; the others are projected to the screen
+(their vertices, or the corners of their boxes for ellipsoids) and each is ray-cast only over
+the pixel rectangle it covers, so the narrow frustum culls almost the whole world. The
+ground plane is intersected analytically for every pixel. Shadows: one lookup per pixel in
+a shadow map cast from the sun, built tile by tile the first time a view needs a tile and
+kept for the scene (see :class:`_ShadowMap`). Per-pixel shading works on index arrays
+(``take`` / ``put``), and each texture only on the pixels it applies to.
 Shading: Lambert with the sun (coloured) and a sky-weighted ambient term, procedural
 textures for facades (windows), canopies (leaf clumps), glass and the ground map.
 """
