@@ -145,15 +145,24 @@ class GreedyPolicy:
     """A Q network acting greedily over allowed actions (optionally epsilon-greedy).
 
     ``act(obs)`` takes the environment's batched obs dict ("features" (N, D) f32, "box"
-    (N, 4), "mask" (N, 7, A) bool, "t" (N,), "scene" (N,) table index, "view" (N,)) and
-    returns (a_type, a_range), (N,) int64. A recurrent network's memory restarts wherever
-    ``obs["t"] == 0``.
+    (N, 4), "mask" (N, 7, A) bool, "t" (N,), "scene" (N,) table index, "view" (N,), and
+    optionally "done" (N,) bool) and returns (a_type, a_range), (N,) int64. A recurrent
+    network's memory restarts wherever ``obs["t"] == 0``.
+
+    Rows with ``obs["done"]`` True (episodes the evaluator has ended) are not computed:
+    their memory is left as it was and their action is a placeholder stop, which
+    :func:`~uevavd.env.evaluate.evaluate_policy` ignores. Trained policies stop after about
+    two of the T_max = 5 decisions, so most rows of the later steps are skipped.
 
     With ``features`` (the whole table's (S, 605, D) features) and a built-in estimator,
     the policy projects every view of a scene once, when the scene is first seen, and reads those
     projections by ``obs["scene"], obs["view"]``; it then sets ``needs_features = False``
     so the evaluator skips gathering (N, D) features every step (several times faster on
-    exhaustive evaluations, same actions).
+    exhaustive evaluations, same actions). With the built-in GRU estimator it caches one
+    step further: g_t depends only on the (scene, view) and the box observed there, so the
+    GRU's input gates W_ih g_t + b_ih are computed once per (scene, view) and gathered per
+    step, and the cell is evaluated from them (ATen's CPU GRU cell arithmetic, operation for
+    operation, so on CPU the actions are bit for bit those of ``nn.GRU``).
     """
 
     def __init__(self, net: QNetwork, *, device: torch.device | str = "cpu", epsilon: float = 0.0,
@@ -167,6 +176,9 @@ class GreedyPolicy:
         est = net.estimator
         self._features = features if features is not None and hasattr(est, "step_encoded") else None
         self._proj: torch.Tensor | None = None
+        self._gates: torch.Tensor | None = None  # (S * 605, 3H) W_ih g + b_ih per (scene, view)
+        self._gates_box: torch.Tensor | None = None  # (S * 605, 4) the box each row was computed with
+        self._gru = self._features is not None and _plain_gru(est)
         self.needs_features = self._features is None
 
     @torch.no_grad()
@@ -184,34 +196,113 @@ class GreedyPolicy:
             self._have[idx] = True
         return self._proj
 
+    @torch.no_grad()
+    def _input_gates(self, flat: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        """(N, 3H) GRU input gates W_ih g_t + b_ih of the rows at ``flat`` = scene * 605 + view
+        with ``boxes`` (N, 4); a row is computed the first time it is seen with that box."""
+        est = self.net.estimator
+        f = self._features
+        if self._gates is None:
+            rows = f.shape[0] * f.shape[1]
+            self._gates = torch.empty(rows, est.gru.weight_ih_l0.shape[0], device=self.device)
+            self._gates_box = torch.full((rows, 4), float("nan"), device=self.device)
+        new = (self._gates_box.index_select(0, flat) != boxes).any(1)  # NaN: never computed
+        if bool(new.any()):
+            idx, box = flat[new], boxes[new]
+            f = f.reshape(-1, f.shape[-1])
+            for i in range(0, len(idx), 4096):  # bounds the float32 copy of the features
+                j = idx[i:i + 4096]
+                g = est.encoder(f[j.cpu()].to(self.device).float(), box[i:i + 4096])
+                self._gates[j] = F.linear(g, est.gru.weight_ih_l0, est.gru.bias_ih_l0)
+            self._gates_box[idx] = box
+        return self._gates.index_select(0, flat)
+
+    def _gru_step(self, flat: torch.Tensor, boxes: torch.Tensor, t: torch.Tensor,
+                  hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """GRUState.step_encoded from cached input gates: s_t (N, state_dim), h_t (N, H)."""
+        est = self.net.estimator
+        gru = est.gru
+        gi = self._input_gates(flat, boxes)  # a fresh (N, 3H) tensor: updated in place below
+        i_r, i_z, i_n = gi.chunk(3, -1)
+        if bool((t == 0).all()):  # h = 0: W_hh h + b_hh is b_hh exactly, skip the product
+            h_r, h_z, h_n = gru.bias_hh_l0.chunk(3)
+        else:
+            h_r, h_z, h_n = F.linear(hidden, gru.weight_hh_l0, gru.bias_hh_l0).chunk(3, -1)
+        # ATen's CPU GRU cell, operation for operation and on the same (N, 3H) row layout:
+        # sigmoid and tanh round differently in their vectorised and scalar loops, so other
+        # layouts (e.g. contiguous (N, H) copies) can change the last bit of h_t
+        r = i_r.add_(h_r).sigmoid_()
+        z = i_z.add_(h_z).sigmoid_()
+        cand = i_n.add(h_n * r).tanh_()
+        h = (hidden - cand).mul_(z).add_(cand)
+        return torch.relu(est.out(h)), h
+
     def reset(self, n: int) -> None:
         self.hidden = self.net.initial_hidden(n, self.device)
 
     @torch.no_grad()
     def act(self, obs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        from ..data.grid import N_VIEWS, STOP
+
         boxes = torch.as_tensor(obs["box"], device=self.device, dtype=torch.float32)
-        mask = torch.as_tensor(obs["mask"], device=self.device).bool()
-        t = torch.as_tensor(obs["t"], device=self.device)
+        full_mask = torch.as_tensor(obs["mask"], device=self.device).bool()
         n = boxes.shape[0]
         if self.hidden.shape[0] != n:
             self.reset(n)
-        hidden = self.hidden * (t != 0)[:, None].to(self.hidden.dtype)
-        if self._features is not None:
+        live = None  # None: every row is live
+        if obs.get("done") is not None:
+            done = torch.as_tensor(obs["done"], device=self.device)
+            if bool(done.any()):
+                live = torch.nonzero(~done)[:, 0]
+
+        def rows(x: Any) -> torch.Tensor:
+            x = torch.as_tensor(x, device=self.device)
+            return x if live is None else x.index_select(0, live)
+
+        a_type = torch.full((n,), STOP, dtype=torch.int64, device=self.device)
+        a_range = torch.zeros(n, dtype=torch.int64, device=self.device)
+        if live is None or len(live):
+            boxes, mask, t = rows(boxes), rows(full_mask), rows(obs["t"])
+            hidden = rows(self.hidden)
+            hidden = hidden * (t != 0)[:, None].to(hidden.dtype)
             est = self.net.estimator
-            scene = torch.as_tensor(obs["scene"], device=self.device)
-            img = self._projections(scene)[scene, torch.as_tensor(obs["view"], device=self.device)]
-            s, self.hidden = est.step_encoded(est.encoder.combine(img, boxes), hidden)
-            q = self.net.head(s)
-        else:
-            feats = torch.as_tensor(obs["features"], device=self.device, dtype=torch.float32)
-            q, self.hidden = self.net.step(feats, boxes, hidden)
-        a_type, a_range = self.net.head.greedy(q, mask)
-        if self.epsilon > 0:
+            if self._features is not None:
+                flat = rows(obs["scene"]) * N_VIEWS + rows(obs["view"])
+                if self._gru:
+                    s, hidden = self._gru_step(flat, boxes, t, hidden)
+                else:
+                    proj = self._projections(rows(obs["scene"]))
+                    img = proj.view(-1, proj.shape[-1]).index_select(0, flat)
+                    s, hidden = est.step_encoded(est.encoder.combine(img, boxes), hidden)
+                q = self.net.head(s)
+            else:
+                feats = rows(obs["features"]).float()
+                q, hidden = self.net.step(feats, boxes, hidden)
+            greedy_type, greedy_range = self.net.head.greedy(q, mask)
+            if live is None:
+                self.hidden, a_type, a_range = hidden, greedy_type, greedy_range
+            else:
+                self.hidden.index_copy_(0, live, hidden)
+                a_type.index_copy_(0, live, greedy_type)
+                a_range.index_copy_(0, live, greedy_range)
+        if self.epsilon > 0:  # drawn for all n rows, so the random stream does not depend on "done"
             explore = torch.rand(n, generator=self.generator, device=self.device) < self.epsilon
-            r_type, r_range = random_actions(mask, self.generator)
+            r_type, r_range = random_actions(full_mask, self.generator)
             a_type = torch.where(explore, r_type, a_type)
             a_range = torch.where(explore, r_range, a_range)
         return a_type, a_range
+
+
+def _plain_gru(est: Any) -> bool:
+    """True for the built-in :class:`~uevavd.state.gru.GRUState` (or a subclass that keeps its
+    step): one unidirectional layer with biases, whose cell ``GreedyPolicy`` can evaluate
+    from cached input gates."""
+    from ..state.gru import GRUState
+
+    gru = getattr(est, "gru", None)
+    return (isinstance(est, GRUState) and type(est).step_encoded is GRUState.step_encoded
+            and isinstance(gru, torch.nn.GRU) and gru.num_layers == 1 and not gru.bidirectional
+            and gru.bias and getattr(gru, "proj_size", 0) == 0)
 
 
 def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "checkpoint.pt",
