@@ -183,6 +183,7 @@ class GreedyPolicy:
         self._gates: torch.Tensor | None = None  # (S * 605, 3H) W_ih g + b_ih per (scene, view)
         self._gates_box: torch.Tensor | None = None  # (S * 605, 4) the box each row was computed with
         self._gru = self._features is not None and _plain_gru(est)
+        self._buffers: dict[str, torch.Tensor] = {}
         self.needs_features = self._features is None
 
     @torch.no_grad()
@@ -219,27 +220,40 @@ class GreedyPolicy:
                 g = est.encoder(f[j.cpu()].to(self.device).float(), box[i:i + 4096])
                 self._gates[j] = F.linear(g, est.gru.weight_ih_l0, est.gru.bias_ih_l0)
             self._gates_box[idx] = box
-        return self._gates.index_select(0, flat)
+        return torch.index_select(self._gates, 0, flat, out=self._buffer("gi", len(flat), self._gates.shape[1]))
+
+    def _buffer(self, name: str, rows: int, width: int) -> torch.Tensor:
+        """A (rows, width) float32 work tensor reused across steps. On CPU a fresh 100 MB
+        tensor costs tens of ms in page faults, about as much as the gather that fills it."""
+        buf = self._buffers.get(name)
+        if buf is None or buf.shape[0] < rows or buf.shape[1] != width:
+            buf = self._buffers[name] = torch.empty(rows, width, device=self.device)
+        return buf[:rows]
 
     def _gru_step(self, flat: torch.Tensor, boxes: torch.Tensor, t: torch.Tensor,
                   hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """GRUState.step_encoded from cached input gates: s_t (N, state_dim), h_t (N, H)."""
         est = self.net.estimator
         gru = est.gru
-        gi = self._input_gates(flat, boxes)  # a fresh (N, 3H) tensor: updated in place below
+        n, width = hidden.shape
+        gi = self._input_gates(flat, boxes)  # a work buffer: updated in place below
         i_r, i_z, i_n = gi.chunk(3, -1)
         if bool((t == 0).all()):  # h = 0: W_hh h + b_hh is b_hh exactly, skip the product
             h_r, h_z, h_n = gru.bias_hh_l0.chunk(3)
-        else:
-            h_r, h_z, h_n = F.linear(hidden, gru.weight_hh_l0, gru.bias_hh_l0).chunk(3, -1)
+        else:  # addmm is what F.linear runs; out= only reuses the memory
+            gh = torch.addmm(gru.bias_hh_l0, hidden, gru.weight_hh_l0.t(), out=self._buffer("gh", n, 3 * width))
+            h_r, h_z, h_n = gh.chunk(3, -1)
         # ATen's CPU GRU cell, operation for operation and on the same (N, 3H) row layout:
         # sigmoid and tanh round differently in their vectorised and scalar loops, so other
         # layouts (e.g. contiguous (N, H) copies) can change the last bit of h_t
         r = i_r.add_(h_r).sigmoid_()
         z = i_z.add_(h_z).sigmoid_()
-        cand = i_n.add(h_n * r).tanh_()
-        h = (hidden - cand).mul_(z).add_(cand)
-        return torch.relu(est.out(h)), h
+        cand = torch.add(i_n, torch.mul(h_n, r, out=self._buffer("h_n r", n, width)),
+                         out=self._buffer("cand", n, width)).tanh_()
+        h = (hidden - cand).mul_(z).add_(cand)  # a fresh tensor: it becomes the stored memory
+        out = est.out
+        s = torch.addmm(out.bias, h, out.weight.t(), out=self._buffer("s", n, out.weight.shape[0]))
+        return s.relu_(), h
 
     def reset(self, n: int) -> None:
         self.hidden = self.net.initial_hidden(n, self.device)
@@ -268,7 +282,9 @@ class GreedyPolicy:
         if live is None or len(live):
             boxes, mask, t = rows(boxes), rows(full_mask), rows(obs["t"])
             hidden = rows(self.hidden)
-            hidden = hidden * (t != 0)[:, None].to(hidden.dtype)
+            keep = t != 0
+            if not bool(keep.all()):  # x * 1 is x: skip the copy where no episode restarts
+                hidden = hidden * keep[:, None].to(hidden.dtype)
             est = self.net.estimator
             if self._features is not None:
                 flat = rows(obs["scene"]) * N_VIEWS + rows(obs["view"])
@@ -306,7 +322,8 @@ def _plain_gru(est: Any) -> bool:
     gru = getattr(est, "gru", None)
     return (isinstance(est, GRUState) and type(est).step_encoded is GRUState.step_encoded
             and isinstance(gru, torch.nn.GRU) and gru.num_layers == 1 and not gru.bidirectional
-            and gru.bias and getattr(gru, "proj_size", 0) == 0)
+            and gru.bias and getattr(gru, "proj_size", 0) == 0
+            and isinstance(est.out, torch.nn.Linear) and est.out.bias is not None)
 
 
 def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "checkpoint.pt",
