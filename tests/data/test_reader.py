@@ -344,3 +344,23 @@ def test_synthetic_round_trip_with_unoccluded_scenes(tmp_path):
     assert len(m) == 2 * N_VIEWS + 2 * len(TARGETS) * N_VIEWS
     assert [r.target for r in m.select(scenes="train_605")][::N_VIEWS] == list(TARGETS)
     _check_round_trip(tmp_path, m)
+
+
+def test_a_second_read_sees_every_change(tmp_path, write_scene_fn):
+    """read_dataset serves an unchanged root from memory; any change under it is read."""
+    files = write_scene_fn(tmp_path / "001", target="sedan", token="001")
+    first = read_dataset(tmp_path)
+    assert read_dataset(tmp_path) is first  # unchanged: the same (immutable) manifest
+    stem = Path(files[300][0]).stem
+    ann = tmp_path / "001" / (stem + ".txt")
+    old = ann.read_text()
+    new = "1 1 4 4\n"
+    ann.write_text(new)  # edited in place
+    assert read_dataset(tmp_path).select(scenes="001")[300].box == (1, 1, 4, 4)
+    ann.unlink()
+    with pytest.raises(DatasetError, match="no box annotation"):
+        read_dataset(tmp_path)
+    ann.write_text(old)
+    assert read_dataset(tmp_path).select(scenes="001")[300].box == first.select(scenes="001")[300].box
+    relative = read_dataset(tmp_path)
+    assert read_dataset(tmp_path, check=False).records == relative.records

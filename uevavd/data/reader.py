@@ -487,6 +487,52 @@ def scan(root: str | Path, *, check: bool = True) -> tuple[Manifest, list[Proble
     return Manifest(root, records, image_hw, scene_dirs=scene_dirs, problems=problems), problems
 
 
+#: (root as given, cwd when relative, check) -> (tree signature, manifest, problems); the
+#: few roots read last (see read_dataset).
+_READ_CACHE: dict[tuple[str, str, bool], tuple[str, Manifest, list[Problem]]] = {}
+_READ_CACHE_SIZE = 4
+
+
+def _tree_signature(root: Path) -> str:
+    """A digest of (path, inode, size, mtime, ctime) of every entry under ``root``: it
+    changes when a file is added, removed, replaced, renamed, resized or written."""
+    import hashlib
+
+    entries = []
+    stack = [str(root)]
+    while stack:
+        folder = stack.pop()
+        try:
+            with os.scandir(folder) as it:
+                for e in it:
+                    st = e.stat()
+                    if e.is_dir():
+                        stack.append(e.path)
+                    entries.append(f"{e.path}\0{st.st_ino}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ctime_ns}")
+        except OSError as err:  # unreadable folder: no caching, the scan reports it
+            entries.append(f"{folder}\0error {err}")
+    entries.sort()
+    return hashlib.sha1("\n".join(entries).encode("utf-8", "surrogateescape")).hexdigest()
+
+
+def _scan_cached(root: str | Path, check: bool) -> tuple[Manifest, list[Problem]]:
+    path = Path(root).expanduser()
+    if not path.is_dir():
+        return scan(root, check=check)  # raises, naming the root
+    key = (str(path), "" if path.is_absolute() else os.getcwd(), check)
+    signature = _tree_signature(path)
+    hit = _READ_CACHE.get(key)
+    if hit is not None and hit[0] == signature:
+        return hit[1], list(hit[2])
+    manifest, problems = scan(root, check=check)
+    if _tree_signature(path) == signature:  # unchanged while it was read
+        _READ_CACHE.pop(key, None)
+        _READ_CACHE[key] = (signature, manifest, list(problems))
+        while len(_READ_CACHE) > _READ_CACHE_SIZE:
+            _READ_CACHE.pop(next(iter(_READ_CACHE)))
+    return manifest, problems
+
+
 def read_dataset(root: str | Path, *, check: bool = True) -> Manifest:
     """Read a UEVAVD-layout root into a :class:`Manifest` (no image decoding).
 
@@ -496,7 +542,7 @@ def read_dataset(root: str | Path, *, check: bool = True) -> Manifest:
     listing every problem. ``check=False`` returns whatever parsed (``manifest.problems``
     holds what did not).
     """
-    manifest, problems = scan(root, check=check)
+    manifest, problems = _scan_cached(root, check)
     if check and any(p.kind not in UNUSED_FILE_KINDS for p in problems):
         raise DatasetError(manifest.root, problems)
     unused = [p for p in problems if p.kind in UNUSED_FILE_KINDS]
