@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     # Only the chosen subcommand's module is imported: parse once to find it, then let it
     # add its own arguments and parse again.
     if argv and argv[0] in COMMANDS:
+        from .runtime import tune_malloc
+
+        tune_malloc()  # uevavd's own process: reuse freed memory (see uevavd/runtime.py)
         name = argv[0]
         module, func = COMMANDS[name][0].split(":")
         sub = argparse.ArgumentParser(prog=f"uevavd {name}", description=COMMANDS[name][1])

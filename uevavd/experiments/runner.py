@@ -324,7 +324,9 @@ def run_job(job: Job) -> str:
     import torch
 
     from ..policy.trainer import train
+    from ..runtime import tune_malloc
 
+    tune_malloc()  # a spawned worker: reuse freed memory as the CLI's process does
     torch.set_num_threads(max(1, job.threads))
     spec = load_method(job.spec_path)
     train(spec, Path(job.table), out=Path(job.out), seed=job.seed, device=job.device, progress=False)
