@@ -33,11 +33,16 @@ class GRUState(nn.Module):
         """s_t of the observations episodes really had: ``seen`` (B, T) bool, True on a
         prefix of each row (o_0..o_L); ``features`` (N, D) / ``boxes`` (N, 4) those rows in
         ``seen.nonzero()`` order -> (N, state_dim), same order. Equals ``forward`` on the
-        padded batch at the seen positions, without computing the padding."""
+        padded batch at the seen positions, without computing the padding (and, with the
+        built-in GRU, without W_hh h_0 = 0: see :mod:`uevavd.state.packed_gru`)."""
+        from .packed_gru import packed_gru, supports_packed
+
+        g = self.encoder(features, boxes)
+        if supports_packed(self.gru):
+            return torch.relu(self.out(packed_gru(self.gru, g, seen)))
         from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
 
         b, t = seen.shape
-        g = self.encoder(features, boxes)
         padded = g.new_zeros(b, t, g.shape[-1])
         padded[seen] = g
         lengths = seen.sum(1).cpu()
