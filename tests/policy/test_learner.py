@@ -154,7 +154,28 @@ def test_update_matches_padded_reference_and_ignores_padding(table, method, head
     la = Learner(net_a, lr=1e-3, gamma=0.9, grad_clip=0.0)
     lb = Learner(net_b, lr=1e-3, gamma=0.9, grad_clip=0.0)
     lb.target.load_state_dict(la.target.state_dict())
-    assert la.update(batch, lookup)[0] == pytest.approx(lb.update(junk, lookup)[0], rel=1e-6)
+    la_loss = la.update(batch, lookup)[0]
+    assert la_loss == pytest.approx(lb.update(junk, lookup)[0], rel=1e-6)
+
+    # every episode ends with a termination, so its final observation o_L is never read
+    # (the update does not encode it): changing it changes nothing
+    last = copy.copy(batch)
+    last.views = batch.views.clone()
+    ends = batch.valid.sum(1)
+    last.views[torch.arange(16), ends] = 604 - batch.views[torch.arange(16), ends]
+    lc = Learner(copy.deepcopy(ref_net), lr=1e-3, gamma=0.9, grad_clip=0.0)
+    lc.target.load_state_dict(la.target.state_dict())
+    assert lc.update(last, lookup)[0] == pytest.approx(la_loss, rel=1e-6)
+
+    # a last decision that did not end its episode (not produced by this environment, but
+    # allowed by the batch format) bootstraps from o_L, and the update still matches
+    open_end = copy.copy(batch)
+    open_end.done = torch.zeros_like(batch.done)
+    lo = Learner(copy.deepcopy(ref_net), lr=1e-3, gamma=0.9, grad_clip=0.0)
+    lo.target.load_state_dict(la.target.state_dict())
+    ref_open = _reference_loss(copy.deepcopy(ref_net), lo.target, open_end, lookup, 0.9)
+    assert lo.update(open_end, lookup)[0] == pytest.approx(float(ref_open.detach()), rel=1e-5, abs=1e-7)
+    assert float(ref_open.detach()) != pytest.approx(la_loss, rel=1e-4)
 
     # the discount reaches the loss (bootstrapped targets), for every head
     l0 = Learner(copy.deepcopy(ref_net), lr=1e-3, gamma=0.0, grad_clip=0.0)

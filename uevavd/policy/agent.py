@@ -76,11 +76,13 @@ class Learner:
     def update(self, batch: EpisodeBatch, lookup: TableLookup) -> tuple[float, torch.Tensor]:
         """One gradient step. Returns (loss, per-episode mean |TD error| (B,))."""
         head = self.net.head
-        # Only the observations an episode really had (o_0..o_L, L = its decisions) are
-        # encoded: padding is neither computed nor gathered (see episode_q). One unroll over
-        # o_0..o_L from the episode start serves Q(s_t, .) and, shifted by one, the online
-        # argmax at s_{t+1} (double DQN); the target net evaluates the same observations.
-        seen = observed(batch)  # (B, T+1)
+        # Only the observations the loss reads are encoded (see needed_observations): o_0..o_L
+        # of an episode of L decisions, less o_L when its last decision ended it (always, in
+        # this environment), since a terminal transition bootstraps nothing. Padding is
+        # neither computed nor gathered (see episode_q). One unroll from the episode start
+        # serves Q(s_t, .) and, shifted by one, the online argmax at s_{t+1} (double DQN);
+        # the target net evaluates the same observations.
+        seen = needed_observations(batch)  # (B, T+1)
         feats, boxes, mask = lookup.gather_rows(batch.scene, batch.views, seen)
         q_all = episode_q(self.net, feats, boxes, seen)
         with torch.no_grad():
@@ -109,6 +111,21 @@ def observed(batch: EpisodeBatch) -> torch.Tensor:
     """(B, T+1) bool: observation t belongs to the episode (t <= its number of decisions)."""
     length = batch.valid.sum(1)
     return torch.arange(batch.views.shape[1], device=length.device)[None] <= length[:, None]
+
+
+def needed_observations(batch: EpisodeBatch) -> torch.Tensor:
+    """(B, T+1) bool, a prefix of each row: the observations a TD update reads.
+
+    Q(o_t, .) is read at every decision t < L (the taken action's value and, for t >= 1,
+    the double-DQN bootstrap of decision t - 1). The final observation o_L is read only to
+    bootstrap a last decision that did not end the episode; the environment ends every
+    episode with a termination (stop, or the move at T_max - 1), so o_L is never read and
+    a batch encodes about a quarter fewer observations. The loss is the same as over all
+    of o_0..o_L (``tests/policy/test_learner.py``)."""
+    length = batch.valid.sum(1)
+    last_done = batch.done.gather(1, (length - 1).clamp_min(0)[:, None])[:, 0] & (length > 0)
+    upto = length - last_done.to(length.dtype)
+    return torch.arange(batch.views.shape[1], device=length.device)[None] <= upto[:, None]
 
 
 def episode_q(net: QNetwork, feats: torch.Tensor, boxes: torch.Tensor, seen: torch.Tensor,
