@@ -35,7 +35,7 @@ def test_matches_nn_gru_outputs_and_gradients(lengths):
 
     assert torch.allclose(out, ref, atol=1e-12)
     names = ["x"] + [n for n, _ in gru.named_parameters()]
-    for name, g, r in zip(names, grads, grads_ref):
+    for name, g, r in zip(names, grads, grads_ref, strict=True):
         assert torch.allclose(g, r, atol=1e-12), f"gradient of {name} differs by {(g - r).abs().max():.2e}"
 
 

@@ -62,7 +62,7 @@ class _PackedGRUFunction(torch.autograd.Function):
         n_all = gi.new_empty(n_rows, hid)
         ghn_all = gi.new_empty(n_rows, hid)
         w_t = w_hh.t()
-        for t, (s, bs) in enumerate(zip(layout.starts, layout.batch_sizes)):
+        for t, (s, bs) in enumerate(zip(layout.starts, layout.batch_sizes, strict=True)):
             g_t = gi_tm[s:s + bs]
             if t == 0:  # h_0 = 0: W_hh h_0 vanishes, only b_hh remains
                 gh = b_hh.expand(bs, h3)
