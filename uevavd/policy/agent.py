@@ -335,11 +335,10 @@ def _plain_gru(est: Any) -> bool:
     step): one unidirectional layer with biases, whose cell ``GreedyPolicy`` can evaluate
     from cached input gates."""
     from ..state.gru import GRUState
+    from ..state.packed_gru import supports_packed
 
-    gru = getattr(est, "gru", None)
     return (isinstance(est, GRUState) and type(est).step_encoded is GRUState.step_encoded
-            and isinstance(gru, torch.nn.GRU) and gru.num_layers == 1 and not gru.bidirectional
-            and gru.bias and getattr(gru, "proj_size", 0) == 0
+            and supports_packed(est.gru)
             and isinstance(est.out, torch.nn.Linear) and est.out.bias is not None)
 
 

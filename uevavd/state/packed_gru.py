@@ -138,6 +138,8 @@ def packed_gru(gru: nn.GRU, x: torch.Tensor, seen: torch.Tensor) -> torch.Tensor
 
 
 def supports_packed(gru: nn.Module) -> bool:
-    """Whether :func:`packed_gru` computes this module's recurrence."""
+    """Whether ``gru`` is a plain one-layer, unidirectional, biased ``nn.GRU`` (not a
+    subclass, which may compute something else): the recurrence :func:`packed_gru` and
+    ``GreedyPolicy``'s cached-gate cell reproduce."""
     return (type(gru) is nn.GRU and gru.num_layers == 1 and not gru.bidirectional and gru.bias
             and gru.batch_first and getattr(gru, "proj_size", 0) == 0)
