@@ -30,6 +30,9 @@ class _Payload:
         return (open, (self.sentinel, "w"))
 
 
+# torch warns that the weights-only unpickler meets protocol 4 (plain pickle's default);
+# the warning is torch's own and expected here, the refusal is what is tested.
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol:UserWarning")
 def test_pickle_that_runs_code_is_refused_not_executed(tmp_path):
     sentinel = tmp_path / "pwned"
     bad = tmp_path / "evil.pth"
