@@ -109,6 +109,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="network-policy timings: best of this many runs")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    from uevavd.runtime import tune_malloc
+
+    tune_malloc()  # as `uevavd train` does (and every side measured here); UEVAVD_MALLOC_TUNING=0 turns it off
     if args.only == "network":
         bench_network_policy(args.device, EnvConfig(), repeat=args.repeat)
         return

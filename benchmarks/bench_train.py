@@ -33,6 +33,9 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    from uevavd.runtime import tune_malloc
+
+    tune_malloc()  # as `uevavd train` does (and every side measured here); UEVAVD_MALLOC_TUNING=0 turns it off
 
     from uevavd.config import load_method, parse_override
     from uevavd.env.aod_env import load_table

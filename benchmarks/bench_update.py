@@ -35,6 +35,9 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=64)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    from uevavd.runtime import tune_malloc
+
+    tune_malloc()  # as `uevavd train` does (and every side measured here); UEVAVD_MALLOC_TUNING=0 turns it off
 
     import uevavd.policy.agent as agent
     import uevavd.state.packed_gru as packed
