@@ -247,8 +247,9 @@ def test_files_the_reader_cannot_use_are_named(tmp_path, write_scene_fn, encoded
     (d / "labels" / "annotations.csv").write_text("image,x1,y1,x2,y2\n")
     (d / "labels" / "x-15_y+10_z070_sedan_001.xml").write_text("<annotation/>")
     (d / "extra").mkdir()
-    (d / "annotations.csv").write_text("image,x1,y1,x2,y2\nx+50_y+50_z100_sedan_001.png,1,1,3,3\n"
-                                      "garbage.png,1,1,3,3\n")
+    kept = next(fb for fb in files.values() if fb[0] == "x+50_y+50_z100_sedan_001.png")
+    (d / "annotations.csv").write_text("image,x1,y1,x2,y2\nx+50_y+50_z100_sedan_001.png," + ",".join(map(str, kept[1]))
+                                      + "\ngarbage.png,1,1,3,3\n")
     problems = scan(tmp_path)[1]
     got = {(p.kind, p.path) for p in problems}
     expected = {
@@ -268,7 +269,7 @@ def test_files_the_reader_cannot_use_are_named(tmp_path, write_scene_fn, encoded
     assert "without its image" in msgs["orphan_annotation"] and ".png" in msgs["unknown_file"] + str(problems)
     rows = [p for p in problems if p.path == d / "annotations.csv"]
     assert "garbage" in rows[0].message
-    # the row for an existing image is used, and no orphan is reported for it
+    # the row for an existing image agrees with its .txt: no orphan and no conflict is reported for it
     assert not any("x+50_y+50_z100" in p.message for p in problems)
     # read_dataset raises for the missing view, and lists the unused files with it
     with pytest.raises(DatasetError, match="notes.docx"):
@@ -364,3 +365,35 @@ def test_a_second_read_sees_every_change(tmp_path, write_scene_fn):
     assert read_dataset(tmp_path).select(scenes="001")[300].box == first.select(scenes="001")[300].box
     relative = read_dataset(tmp_path)
     assert read_dataset(tmp_path, check=False).records == relative.records
+
+
+def test_second_annotations_must_agree(tmp_path, write_scene_fn):
+    files = write_scene_fn(tmp_path / "001", target="sedan", token="001")  # .txt beside every image
+    d = tmp_path / "001"
+    (a_name, a_box), (b_name, b_box), (c_name, c_box) = files[10], files[20], files[30]
+    a, b, c = (Path(n).stem for n in (a_name, b_name, c_name))
+    # agreeing duplicates are fine: a .json and a table row giving the .txt's box
+    (d / (a + ".json")).write_text(json.dumps(list(a_box)))
+    (d / "annotations.csv").write_text(f"image,x1,y1,x2,y2\n{a_name}," + ",".join(map(str, a_box)) + "\n")
+    assert scan(tmp_path)[1] == []
+    # a VOC file in labels/ that moves the box, a table row that does, a .json that does not parse
+    moved = (b_box[0] + 1, *b_box[1:])
+    (d / "labels").mkdir()
+    (d / "labels" / (b + ".xml")).write_text(
+        "<annotation><object><name>sedan</name><bndbox><xmin>{}</xmin><ymin>{}</ymin><xmax>{}</xmax>"
+        "<ymax>{}</ymax></bndbox></object></annotation>".format(*moved))
+    (d / "annotations.csv").write_text(f"image,x1,y1,x2,y2\n{a_name},0,0,0,0\n")
+    (d / (c + ".json")).write_text("{not json")
+    problems = scan(tmp_path)[1]
+    conflicts = {p.path: p.message for p in problems if p.kind == "conflicting_annotation"}
+    assert set(conflicts) == {d / "labels" / (b + ".xml"), d / "annotations.csv", d / (c + ".json")}
+    assert str(moved) in conflicts[d / "labels" / (b + ".xml")] and str(b_box) in conflicts[d / "labels" / (b + ".xml")]
+    assert b + ".txt" in conflicts[d / "labels" / (b + ".xml")]
+    assert repr(a_name) in conflicts[d / "annotations.csv"] and "(0, 0, 0, 0)" in conflicts[d / "annotations.csv"]
+    assert "cannot be parsed" in conflicts[d / (c + ".json")]
+    with pytest.raises(DatasetError, match="conflicting_annotation|disagree|prefers"):
+        read_dataset(tmp_path)
+    # without checks the preferred .txt is used and the others are not read
+    m = read_dataset(tmp_path, check=False)
+    boxes = {r.image.name: r.box for r in m}
+    assert boxes[a_name] == a_box and boxes[b_name] == b_box and boxes[c_name] == c_box

@@ -16,6 +16,12 @@ problems for ``uevavd validate`` but only logged as a warning by :func:`read_dat
 since the views it did read are complete without them. Obvious non-data files (README,
 LICENSE, ``scene.json``, ``manifest.json``, ``uevavd.json``, ``seg/``, hidden files) are
 ignored.
+
+An image may carry more than one annotation (``.txt``, ``.json``, ``.xml`` beside it or
+in an annotation folder, a row of the scene's table). The reader uses the first of
+``.txt``, ``.json``, ``.xml``, then the table row; with ``check=True`` it also reads the
+others, and any that gives another box, or does not parse, is a
+``conflicting_annotation`` problem naming both files.
 """
 
 from __future__ import annotations
@@ -304,6 +310,29 @@ def _unused_files(scene_dir: Path, files: list[str], ann_files: dict[str, tuple[
                                    f"row {stem!r} has no image: expected {stem}{IMAGE_EXTS[0]} in {scene_dir}"))
 
 
+def _agreeing_duplicates(name: str, used: str, ann: BoxAnnotation, others, row, problems: list[Problem]) -> bool:
+    """Whether every other annotation of image ``name`` (files the reader ranks lower, and
+    a table row ``(annotation, table path)``) gives the box of the one used; each that
+    does not, or cannot be parsed, is a ``conflicting_annotation`` problem."""
+    ok = True
+    alts = [(Path(p), None) for p in others] + ([(row[1], row[0])] if row is not None else [])
+    for where, alt in alts:
+        what = f"the row for {name!r}" if alt is not None else "this annotation"
+        try:
+            alt = alt if alt is not None else read_box_file(where)
+        except AnnotationError as e:
+            msg = f"cannot be parsed ({str(e).removeprefix(f'{where}: ')})"
+        else:
+            if alt.box == ann.box:
+                continue
+            msg = f"says box {alt.box}"
+        problems.append(Problem("conflicting_annotation", where, f"{what} {msg}, but {Path(used).name} "
+                                f"(which the reader prefers) says {ann.box} for image {name!r}; keep one "
+                                "annotation per image, or make them agree"))
+        ok = False
+    return ok
+
+
 def _imageless(stem: str, where: Path, unparsed: str, orphan: str) -> Problem:
     """The problem of an annotation (file or table row) that no image of the scene uses:
     its name does not parse, or it parses and the image is missing."""
@@ -319,6 +348,7 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
     files = _list_files(scene_dir)
     # Plain strings in this loop: pathlib costs more than the parsing at 10^5 files.
     ann_files: dict[str, tuple[int, str]] = {}  # stem -> (preference rank, path)
+    ann_others: dict[str, list[str]] = defaultdict(list)  # stem -> the other annotation files
     ann_dir_files: dict[str, list[str]] = {}
     base = str(scene_dir)
     for sub in ("", *ANNOTATION_DIRS):
@@ -334,6 +364,10 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
                 prev = ann_files.get(stem)
                 if prev is None or rank < prev[0]:
                     ann_files[stem] = (rank, os.path.join(d, name))
+                    if prev is not None:
+                        ann_others[stem].append(prev[1])
+                else:
+                    ann_others[stem].append(os.path.join(d, name))
     table_origin: dict[str, Path] = {}
     table = _load_tables(scene_dir, files, problems, table_origin)
     seg_names = {n.rpartition(".")[0]: n for n in _list_files(scene_dir / SEG_DIR) if n.lower().endswith(".png")}
@@ -393,6 +427,11 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
                 where = Path(ann_entry[1]) if ann_entry is not None else path
                 problems.append(Problem("label_mismatch", where, f"annotation class {ann.label!r} "
                                         f"disagrees with the target {target!r} in the image name {name!r}"))
+                continue
+        if check and ann_entry is not None and (stem in ann_others or stem in table):
+            if not _agreeing_duplicates(name, ann_entry[1], ann, ann_others.get(stem, ()),
+                                        (table[stem], table_origin.get(stem, scene_dir)) if stem in table else None,
+                                        problems):
                 continue
         seg = seg_dir / seg_names[stem] if stem in seg_names else None
         records.append(ViewRecord(
