@@ -4,8 +4,8 @@ Images are fed at their own size (the crops are 64-256 px; no resize), normalise
 the ImageNet mean/std the torchvision weights use, channels-last, under
 ``torch.inference_mode``; on a GPU with bf16 autocast. Batch norms are folded into the
 convolutions before them (``torch.fx.experimental.optimization.fuse``; the same function
-up to float rounding; the ResNet18 forward at 64 px was 13-24 % faster on the development CPU). ``torch.set_num_threads`` is left to the
-caller.
+up to float rounding; the ResNet18 forward at 64 px was 13-24 % faster on the development
+CPU). ``torch.set_num_threads`` is left to the caller.
 """
 
 from __future__ import annotations
