@@ -10,10 +10,10 @@ from a written world or rendered in memory, and the contact sheets of
 ("all" = 1..150, or ids and ranges like 1-20,26) renders those contexts in memory instead
 (``render_context``, world seed ``--seed``, ``--size`` px; the visible fraction hardly
 depends on the size, so a small one keeps this fast). Prints per split: mean visible
-fraction, the share of views with visible >= 0.9, < 0.5 and == 0; then PASS or FAIL for each
-stated property: every training context has >= 10 % of views with visible >= 0.9 and
->= 10 % with < 0.5; hard-test contexts are more occluded on average than training ones;
-fully occluded views occur; and the ids of the contexts that fail a per-context property.
+fraction, the share of views with visible >= 0.9, < 0.5 and == 0 (per terrain too); then
+PASS or FAIL for each stated property: every context of every split passes the validity rule
+(``uevavd.data.synthetic.world.VALIDITY``); hard-test contexts are more occluded on average
+than training ones; fully occluded views occur; and the ids of the contexts that fail.
 Exits 1 when a property fails. ``--compare-sizes`` also renders the contexts at other
 sizes and prints their per-context statistics side by side. With ``--figures`` it also
 renders the contact sheets.
@@ -87,29 +87,17 @@ def _stats(v: np.ndarray) -> tuple[float, float, float, float]:
 
 
 def report(vis: dict[int, np.ndarray]) -> tuple[str, bool]:
-    lines = ["| split | contexts | views | mean visible | >= 0.9 | < 0.5 | = 0 (fully occluded) |",
-             "|---|---|---|---|---|---|---|"]
-    means = {}
-    for split in SPLITS:
-        cs = [c for c in vis if split_of(c) == split]
-        if not cs:
-            continue
-        v = np.concatenate([vis[c] for c in cs])
-        mean, clear, hidden, zero = _stats(v)
-        means[split] = mean
-        lines.append(f"| {split} | {len(cs)} | {len(v)} | {mean:.3f} | {clear:.1%} | {hidden:.1%} | {zero:.1%} |")
-    checks = []
-    failing = []
-    train = sorted(c for c in vis if split_of(c) == "train")
-    if train:
-        clear = {c: float(np.mean(vis[c] >= 0.9)) for c in train}
-        hidden = {c: float(np.mean(vis[c] < 0.5)) for c in train}
-        for share, what in ((clear, ">= 0.9"), (hidden, "< 0.5")):
-            low = min(share, key=share.get)
-            bad = [c for c in train if share[c] < 0.1]
-            checks.append((f"every training context ({len(train)}): >= 10% views visible {what} "
-                           f"(lowest: context {low:03d}, {share[low]:.1%})", not bad))
-            failing += [f"context {c:03d} ({split_of(c)}): {share[c]:.1%} of views visible {what}" for c in bad]
+    """The per-split (and per-terrain) table of :mod:`uevavd.data.synthetic.quality`, then
+    PASS/FAIL for: every context of every split passes the validity rule; hard-test
+    contexts are more occluded on average than training ones; fully occluded views occur."""
+    from uevavd.data.synthetic.quality import format_rows, split_rows
+    from uevavd.data.synthetic.world import VALIDITY
+
+    rows = split_rows(vis)
+    lines = [format_rows(rows), ""]
+    means = {r["split"]: r["mean"] for r in rows if r["terrain"] == "all"}
+    bad = [c for c in sorted(vis) if not VALIDITY.passes(vis[c])]
+    checks = [(f"every context ({len(vis)}) passes the validity rule: {VALIDITY.describe()}", not bad)]
     if "hard" in means and "train" in means:
         checks.append((f"hard test more occluded than train (mean visible {means['hard']:.3f} < "
                        f"{means['train']:.3f})", means["hard"] < means["train"]))
@@ -118,14 +106,12 @@ def report(vis: dict[int, np.ndarray]) -> tuple[str, bool]:
     with_zero = sum(bool((v == 0).any()) for v in vis.values())
     checks.append((f"fully occluded views occur ({n_zero:,} of {n_all:,} views, in {with_zero} of {len(vis)} contexts)",
                    n_zero > 0))
-    lines.append("")
     ok = True
     for text, good in checks:
         ok &= good
         lines.append(f"- {'PASS' if good else 'FAIL'}: {text}")
     lines.append("")
-    lines.append("failing contexts: " + ("none" if not failing else ""))
-    lines += [f"- {f}" for f in failing]
+    lines.append("failing contexts: " + ("none" if not bad else ", ".join(f"{c:03d} ({split_of(c)})" for c in bad)))
     return "\n".join(lines), ok
 
 
@@ -173,7 +159,7 @@ def _with_box(view) -> np.ndarray:
 def figures(out_dir: Path, seed: int, size: int) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     iz = 2  # z = 80 m
-    for cid, name in ((1, "train"), (26, "hard")):
+    for cid, name in ((1, "train"), (26, "hard"), (56, "hard")):
         scene = build_context(cid, seed=seed)
         prep = _Prep(scene)
         # rows: north (y = +50) at the top; columns: west (x = -50) on the left
@@ -201,12 +187,17 @@ def histogram(vis: dict[int, np.ndarray], path: Path) -> None:
 
     path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6, 3.2), dpi=110)
+    from uevavd.data.synthetic.world import terrain_of
+
     bins = np.linspace(0, 1, 21)
-    for split in SPLITS:
-        cs = [c for c in vis if split_of(c) == split]
+    groups = [(s, None) for s in SPLITS if s != "hard"] + [("hard", t) for t in (("urban", "shifted"),
+                                                                               ("woodland", "training"))]
+    for split, terrain in groups:
+        cs = [c for c in vis if split_of(c) == split and (terrain is None or terrain_of(c) == terrain)]
         if cs:
             v = np.concatenate([vis[c] for c in cs])
-            ax.hist(v, bins=bins, histtype="step", density=True, lw=1.6, label=f"{split} ({len(cs)} contexts)")
+            name = split if terrain is None else f"hard, {terrain[0]}" + (" (shifted)" if terrain[1] == "shifted" else "")
+            ax.hist(v, bins=bins, histtype="step", density=True, lw=1.6, label=f"{name} ({len(cs)} contexts)")
     ax.set_xlabel("visible fraction of the target")
     ax.set_ylabel("density of views")
     ax.legend()

@@ -39,6 +39,7 @@ def test_layout_and_annotations(world):
     meta = json.loads((folder / layout.SCENE_META).read_text())
     assert (meta["scene"], meta["context"], meta["split"], meta["target"], meta["terrain"]) == (
         "005", 5, "train", "hatchback", "urban")
+    assert meta["placement"] == "training" and meta["draw"] == 0 and "visible >= 0.9" in meta["validity"]
     assert (meta["size"], meta["seed"]) == (SIZE, 3)
     assert len(meta["visible"]) == N_VIEWS
     stem = layout.view_stem(-50, 40, 80, "hatchback", "005")

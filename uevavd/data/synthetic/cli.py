@@ -64,4 +64,9 @@ def _run(args: argparse.Namespace) -> int:
         print(f"uevavd synth: {err}", file=sys.stderr)
         return 2
     print(f"wrote {len(contexts)} contexts at {size} px (seed {seed}) to {out} in {time.perf_counter() - t0:.1f} s")
+    from .quality import format_rows, read_visible, split_rows
+    from .world import VALIDITY
+
+    print(f"\nvisibility per split (validity rule: {VALIDITY.describe()}):")
+    print(format_rows(split_rows(read_visible(out))))
     return 0

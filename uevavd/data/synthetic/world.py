@@ -1,19 +1,27 @@
 """Procedural scene generation: one :class:`Scene` per (seed, context id).
 
 The target stands at the origin heading +y (the same orientation in every context), parked
-on a street next to buildings and street trees (urban: train and simple-test contexts), or
-in a clearing of a wood beside a dirt track, facing across it (woodland: hard-test
-contexts, further from the training distribution and more occluded). Everything is drawn
-from ``numpy.random.default_rng([seed, context_id])``; the same inputs give the same scene.
+on a street next to buildings and street trees (urban), or in a clearing of a wood beside a
+dirt track, facing across it (woodland). Training and simple-test contexts are urban with
+the training placement; the hard test set holds both terrains, as the paper's Table 1 says:
+urban contexts whose placement and surroundings are drawn from ranges outside the training
+ones (``placement = "shifted"``), and woodland contexts (:func:`terrain_of`).
+
+Every context of every split obeys one validity rule (:data:`VALIDITY`, checked by
+:func:`context_draw`): a draw that breaks it is replaced by the next draw of the same
+context, deterministically. Draw 0 comes from ``numpy.random.default_rng([seed,
+context_id])``, draw k > 0 from ``default_rng([seed, context_id, k])``; the same inputs give
+the same scene.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..splits import TARGETS, block_of, check_context, scene_name, split_of
+from ..splits import BLOCK, TARGETS, block_of, check_context, scene_name, split_of
 from .geometry import M_BARK, M_CANOPY, M_FACADE, M_FLAT, Primitives, box
 from .ground import Strip, build_ground
 from .vehicles import MODELS, add_vehicle, vehicle_height, vehicle_length
@@ -55,11 +63,60 @@ class Scene:
     sun_rgb: np.ndarray
     ambient_rgb: np.ndarray
     look_at: np.ndarray
+    placement: str = "training"  #: "training" or "shifted" (hard-test urban contexts)
+    draw: int = 0  #: which draw of the context passed the validity rule (0 = the first)
+
+
+@dataclass(frozen=True)
+class ValidityRule:
+    """The rule every context of every split obeys: at least ``min_clear_share`` of its 605
+    views show the target with visible fraction >= ``clear_at``, and at least ``min_full``
+    views show it whole (visible >= ``full_at``). It is checked on the views rendered at
+    ``check_size`` px, so that the chosen draw does not depend on the crop size a world is
+    written at; ``margin`` is added to ``min_clear_share`` there because the visible fraction
+    moves by up to 0.7 points between 48 and 256 px (docs/synthetic_world.md), so the rule
+    holds at every written size."""
+
+    clear_at: float = 0.9
+    min_clear_share: float = 0.10
+    full_at: float = 0.99
+    min_full: int = 1
+    check_size: int = 48
+    margin: float = 0.02
+    max_draws: int = 64
+
+    def passes(self, visible: np.ndarray, *, margin: float = 0.0) -> bool:
+        """True when (605,) visible fractions satisfy the rule (with an extra ``margin``)."""
+        v = np.asarray(visible, np.float64)
+        return bool(np.mean(v >= self.clear_at) >= self.min_clear_share + margin
+                    and int(np.sum(v >= self.full_at)) >= self.min_full)
+
+    def describe(self) -> str:
+        return (f">= {self.min_clear_share:.0%} of views with visible >= {self.clear_at} and >= {self.min_full} "
+                f"view(s) with visible >= {self.full_at}")
+
+
+#: Fixed before any learning run (see docs/synthetic_world.md); never tuned to results.
+VALIDITY = ValidityRule()
 
 
 def target_of(context_id: int) -> str:
     """The synthetic world's target in a context's block."""
     return BLOCK_TARGETS[block_of(context_id)]
+
+
+def terrain_of(context_id: int) -> tuple[str, str]:
+    """``(terrain, placement)`` of a context. Training and simple-test contexts: urban with
+    the training placement. Hard-test contexts (5 per block, positions j = 0..4): woodland
+    where ``(j + block) % 2 == 1``, else urban with the shifted placement, so that the
+    paper's 25 hard contexts hold 12 woodland and 13 shifted-urban ones, every target meets
+    both terrains, and a world with one hard context per block (the quick preset) holds
+    both too (blocks 0, 2, 4 urban; 1, 3 woodland)."""
+    cid = check_context(context_id)
+    if split_of(cid) != "hard":
+        return "urban", "training"
+    j = (cid - 1) % BLOCK - 25
+    return ("woodland", "training") if (j + block_of(cid)) % 2 == 1 else ("urban", "shifted")
 
 
 class _Ids:
@@ -119,14 +176,27 @@ def _add_building(prims: Primitives, ids: _Ids, rng, cx, cy, size_x, size_y, hei
                        (0.55, 0.56, 0.57))
 
 
-def _urban(prims: Primitives, ids: _Ids, rng, half_t: float):
+#: Ranges of the urban generator, for the training placement and the shifted one of the
+#: hard-test urban contexts. Every shifted range lies outside (or at the edge of) the
+#: training range: a narrower street, the target parked closer to a taller anchor building,
+#: taller and denser surroundings, more street trees (docs/synthetic_world.md says why).
+URBAN_RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "training": {"road_w": (7.0, 12.0), "curb": (1.1, 1.6), "pavement": (2.0, 4.0), "anchor_offset": (0.0, 2.0),
+                 "anchor_height": (12.0, 30.0), "p_tree": (0.3, 0.9), "height_base": (5.0, 5.0)},
+    "shifted": {"road_w": (5.0, 7.0), "curb": (0.8, 1.1), "pavement": (1.2, 2.0), "anchor_offset": (0.0, 0.0),
+                "anchor_height": (30.0, 42.0), "p_tree": (0.9, 1.0), "height_base": (12.0, 12.0)},
+}
+
+
+def _urban(prims: Primitives, ids: _Ids, rng, half_t: float, placement: str = "training"):
     """Street scene in a local frame mirrored by (mx, my); the target (``half_t``: half its
-    length) is not mirrored."""
+    length) is not mirrored. ``placement`` picks the ranges of :data:`URBAN_RANGES`."""
+    rg = URBAN_RANGES[placement]
     mx = float(rng.choice([-1.0, 1.0]))
     my = float(rng.choice([-1.0, 1.0]))
-    road_w = rng.uniform(7.0, 12.0)
-    curb = rng.uniform(1.1, 1.6)
-    pw_near, pw_far = rng.uniform(2.0, 4.0), rng.uniform(2.0, 4.0)
+    road_w = rng.uniform(*rg["road_w"])
+    curb = rng.uniform(*rg["curb"])
+    pw_near, pw_far = rng.uniform(*rg["pavement"]), rng.uniform(*rg["pavement"])
     near_edge = -curb - pw_near  # local x where the near lots begin
     far_edge = road_w - curb + pw_far
     yc = my * rng.uniform(14.0, 40.0)
@@ -145,14 +215,14 @@ def _urban(prims: Primitives, ids: _Ids, rng, half_t: float):
         Strip("x", cross_lo, cross_hi, "pavement"),
     ]
     footprints: list[tuple[float, float, float, float]] = []
-    p_tree = rng.uniform(0.3, 0.9)
+    p_tree = rng.uniform(*rg["p_tree"])
     # the target stands next to a building: an anchor on the near side spanning y = 0
     a_front = rng.uniform(10.0, 24.0)
     a_y0 = -rng.uniform(3.0, a_front - 3.0)
-    a_lx0 = near_edge - rng.uniform(0.0, 2.0)
+    a_lx0 = near_edge - rng.uniform(*rg["anchor_offset"])
     a_depth = rng.uniform(8.0, 20.0)
     _add_building(prims, ids, rng, mx * (a_lx0 - a_depth / 2), a_y0 + a_front / 2, a_depth, a_front,
-                  rng.uniform(12.0, 30.0))
+                  rng.uniform(*rg["anchor_height"]))
     anchor = (a_y0 - 1.0, a_y0 + a_front + 1.0)
     # building rows on both sides of the street, y from -70 to 70
     for side, edge in ((-1.0, near_edge), (1.0, far_edge)):
@@ -166,7 +236,7 @@ def _urban(prims: Primitives, ids: _Ids, rng, half_t: float):
                 continue
             depth = rng.uniform(8.0, 22.0)
             setback = rng.uniform(0.0, 3.0) if rng.random() > 0.25 else rng.uniform(3.0, 8.0)
-            height = 5.0 + 35.0 * rng.beta(1.6, 2.4)
+            height = rg["height_base"][0] + 35.0 * rng.beta(1.6, 2.4)
             if rng.random() < 0.12 and not (y0 < 3.0 and y1 > -3.0):
                 # a small park instead of a building
                 for _ in range(rng.integers(2, 6)):
@@ -247,7 +317,8 @@ def _woodland(prims: Primitives, ids: _Ids, rng, target: str):
     return strips
 
 
-def _finish(name, context, split, terrain, target, prims, ids, strips, rng, ground_first, elev) -> Scene:
+def _finish(name, context, split, terrain, target, prims, ids, strips, rng, ground_first, elev,
+            placement: str = "training") -> Scene:
     sun, sun_rgb, amb = _light(rng, elev)
     grgb, gids, gcats = build_ground(rng, strips, terrain, ground_first)
     cats = {0: "none", **ids.categories, **gcats}
@@ -255,12 +326,12 @@ def _finish(name, context, split, terrain, target, prims, ids, strips, rng, grou
         name=name, context=context, split=split, terrain=terrain, target=target,
         prims=prims.arrays(), ground_rgb=grgb, ground_ids=gids,
         categories=dict(sorted(cats.items())), sun_dir=sun, sun_rgb=sun_rgb, ambient_rgb=amb,
-        look_at=np.array([0.0, 0.0, vehicle_height(target) / 2]),
+        look_at=np.array([0.0, 0.0, vehicle_height(target) / 2]), placement=placement,
     )
 
 
 def _build(name: str, context: int | None, split: str, terrain: str, target: str, rng,
-           half_length: float | None = None) -> Scene:
+           half_length: float | None = None, placement: str = "training") -> Scene:
     """A context-like scene around ``target`` (urban street or woodland clearing); parked cars
     keep clear of a target ``half_length`` long (default: the target's own half length)."""
     prims = Primitives()
@@ -269,24 +340,48 @@ def _build(name: str, context: int | None, split: str, terrain: str, target: str
     ids = _Ids({TARGET_ID: "target", **{TARGET_ID + 1 + k: "ground" for k in range(n_ground)}})
     add_vehicle(prims, target, centre=(0.0, 0.0), yaw=TARGET_YAW, instance=TARGET_ID)
     if terrain == "urban":
-        strips = _urban(prims, ids, rng, vehicle_length(target) / 2 if half_length is None else half_length)
+        strips = _urban(prims, ids, rng, vehicle_length(target) / 2 if half_length is None else half_length,
+                        placement)
     else:
         strips = _woodland(prims, ids, rng, target)
     for k in range(n_ground):  # drop the reserved ids; build_ground names the ones it uses
         ids.categories.pop(TARGET_ID + 1 + k)
     return _finish(name, context, split, terrain, target, prims, ids, strips, rng, TARGET_ID + 1,
-                   SUN_ELEVATION[terrain])
+                   SUN_ELEVATION[terrain], placement)
+
+
+def draw_context(context_id: int, *, seed: int, draw: int, target: str | None = None) -> Scene:
+    """Draw number ``draw`` of a context's scene, valid or not (:func:`build_context` gives
+    the first valid one)."""
+    cid = check_context(context_id)
+    terrain, placement = terrain_of(cid)
+    rng = np.random.default_rng([int(seed), cid] if draw == 0 else [int(seed), cid, int(draw)])
+    scene = _build(scene_name(cid), cid, split_of(cid), terrain, target or target_of(cid), rng,
+                   placement=placement)
+    return replace(scene, draw=int(draw))
+
+
+@functools.lru_cache(maxsize=512)
+def context_draw(context_id: int, *, seed: int) -> int:
+    """The first draw of a context that passes :data:`VALIDITY` at its check size (with the
+    block's own target). Rendering 605 small views per draw tried; cached per process."""
+    from .render import render_views
+
+    for draw in range(VALIDITY.max_draws):
+        scene = draw_context(context_id, seed=seed, draw=draw)
+        if VALIDITY.passes(render_views(scene, VALIDITY.check_size).visible, margin=VALIDITY.margin):
+            return draw
+    raise RuntimeError(f"context {context_id} (seed {seed}): no draw among {VALIDITY.max_draws} passes the "
+                       f"validity rule ({VALIDITY.describe()}); the generator's ranges are broken")
 
 
 def build_context(context_id: int, *, seed: int, target: str | None = None) -> Scene:
-    """The scene of context ``context_id`` (1..150) for a world seed; ``target`` overrides
-    the block's target (tests use this to place another model in the same context)."""
+    """The scene of context ``context_id`` (1..150) for a world seed: its first draw that
+    passes the validity rule. ``target`` overrides the block's target (tests use this to
+    place another model in the same context; the draw is the one chosen for the block's
+    target)."""
     cid = check_context(context_id)
-    target = target or target_of(cid)
-    split = split_of(cid)
-    rng = np.random.default_rng([int(seed), cid])
-    terrain = "woodland" if split == "hard" else "urban"
-    return _build(scene_name(cid), cid, split, terrain, target, rng)
+    return draw_context(cid, seed=seed, draw=context_draw(cid, seed=int(seed)), target=target)
 
 
 def training_stage_terrain(stage: int) -> str:

@@ -33,6 +33,7 @@ from .world import (
     BLOCK_TARGETS,
     TARGET_ID,
     TRAIN_STAGES,
+    VALIDITY,
     Scene,
     build_context,
     build_training_stage,
@@ -44,7 +45,8 @@ from .world import (
 FORMAT = "uevavd-synthetic"
 #: Generator version: bump it whenever the world or the renderer changes what they write,
 #: so that resumed or cached worlds written by an older generator are redone.
-VERSION = 3
+#: 4: the hard split holds shifted-urban and woodland contexts; the validity rule.
+VERSION = 4
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
@@ -179,6 +181,8 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
         "target": None if unocc else first.target,
         "targets": list(TARGETS) if unocc else [first.target],
         "terrain": first.terrain,
+        **({} if unocc else {"placement": first.placement, "draw": first.draw,
+                             "validity": VALIDITY.describe()}),
         "size": size,
         "seed": seed,
         "focal_px": focal_px(size),
