@@ -37,6 +37,7 @@ from uevavd.data.grid import N_VIEWS, view_coords
 from uevavd.data.layout import view_stem
 from uevavd.data.splits import TARGETS
 from uevavd.perception.classifier import load_classifier, write_classifier_file
+from uevavd.perception.efficientnet import build_efficientnet_lite0
 from uevavd.perception.encoders import build_resnet18, build_resnet50
 from uevavd.perception.images import Decoder
 from uevavd.perception.prepare import plan_table, prepare_table
@@ -78,8 +79,9 @@ def write_standin(root: Path, n_scenes: int, size: int) -> None:
 
 def bare_forward(arch: str, images: np.ndarray, device: str, batch: int, clf_path: Path, repeats: int = 2):
     """Images/s of encoder + classifier, and of the encoder alone (best of ``repeats``)."""
-    enc = (build_resnet18 if arch == "resnet18" else build_resnet50)(weights="random", device=device,
-                                                                       batch_size=batch)
+    builders = {"resnet18": build_resnet18, "resnet50": build_resnet50,
+                "efficientnet_lite0": build_efficientnet_lite0}
+    enc = builders[arch](weights="random", device=device, batch_size=batch)
     clf = load_classifier(clf_path, device=device, batch_size=batch)
     enc.encode(images[:batch])
     clf.predict_proba(images[:batch])  # warm-up
@@ -112,7 +114,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=256)
     ap.add_argument("--repeats", type=int, default=1, help="bare-forward repeats (best is kept)")
     ap.add_argument("--config", action="append", default=None, metavar="ARCH:SIZE",
-                    help="encoder and image size (repeatable; default resnet18:128 and resnet50:256)")
+                    help="encoder and image size (repeatable; default resnet18:128 and resnet50:256; "
+                         "efficientnet_lite0:64 is the quick preset's)")
     ap.add_argument("--decompose", action="store_true", help="also pre-decompose (gt segmenter)")
     ap.add_argument("--data", default=None, help="time this dataset instead of a stand-in (its own size)")
     args = ap.parse_args(argv)

@@ -342,3 +342,63 @@ def test_setup_says_which_rows_are_exhaustive(tmp_path):
     old.mkdir()
     make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)
     assert "flags each run's last per-epoch evaluation" in write_report(old).read_text(encoding="utf-8")
+
+
+def test_nested_bootstrap_spans_the_recognizers_and_stays_in_range():
+    """Two recognizers whose runs differ by 0.2 and agree within: the interval covers both
+    recognizer means (recognizer variance counts), and never leaves the values' range."""
+    from uevavd.experiments.stats import nested_bootstrap
+
+    values = np.array([0.40, 0.41, 0.39, 0.60, 0.61, 0.59])
+    groups = np.array([0, 0, 0, 1, 1, 1])
+    e = nested_bootstrap(values, groups)
+    assert e.mean == pytest.approx(0.5)
+    assert e.lo <= 0.41 and e.hi >= 0.59  # a t-interval over the 6 runs would be [0.39, 0.61] only by luck
+    assert values.min() <= e.lo and e.hi <= values.max()
+    plain = Estimate.of(values)  # the iid t-interval ignores the nesting
+    assert Estimate.of(values, groups=groups).lo == e.lo and plain.lo != e.lo
+
+
+def test_differences_of_nested_estimates_are_paired_by_recognizer():
+    """Two methods that share each recognizer's offset differ by a constant 0.05: their
+    difference is exact whatever the recognizers do."""
+    from uevavd.experiments.stats import nested_bootstrap
+
+    groups = np.array([0, 0, 1, 1])
+    a = nested_bootstrap(np.array([0.30, 0.30, 0.70, 0.70]), groups)
+    b = nested_bootstrap(np.array([0.25, 0.25, 0.65, 0.65]), groups)
+    d = difference(a, b)
+    assert d.mean == pytest.approx(0.05) and (d.lo, d.hi) == pytest.approx((0.05, 0.05))
+    assert a.hi - a.lo > 0.3
+
+
+def test_results_with_two_recognizers_use_the_nested_interval(tmp_path):
+    from uevavd.experiments.report_data import estimate, final_rows, load_results
+
+    rows = []
+    for r, base in ((0, 0.3), (1, 0.6)):
+        for s in range(3):
+            rows.append({"method": "map", "recognizer": r, "seed": s, "setting": "default", "thre": 0.2, "C": 0.02,
+                         "episodes": 100, "final": True, "split": "hard", "return": base + 0.01 * s,
+                         "accuracy": 0.5, "recognition": 0.5, "path_m": 10.0, "path_steps": 1.0, "stop_rate": 1.0,
+                         "steps": 2.0, "wall_s": 1.0})
+        rows.append({**rows[-1], "method": "passive", "seed": 0, "episodes": -1, "return": base})
+    pd.DataFrame(rows).to_csv(tmp_path / "results.csv", index=False)
+    df = load_results(tmp_path / "results.csv")
+    final = final_rows(df)
+    e = estimate(final, "map", "hard", "return", "default")
+    assert e.n == 6 and e.boot is not None and e.lo < 0.35 and e.hi > 0.6
+    p = estimate(final, "passive", "hard", "return", "default")  # one value per recognizer: not exact
+    assert p.n == 2 and p.hi - p.lo > 0.2
+    d = difference(e, p)  # paired by recognizer: map is passive + 0.01 on average
+    assert d.mean == pytest.approx(0.01) and d.hi - d.lo < 0.03
+
+
+def test_curve_bands_stay_in_the_metrics_range():
+    from uevavd.experiments.figures import curve_bands
+
+    data = pd.DataFrame({"method": "map", "split": "train", "eval_point": 0, "episodes": 100.0,
+                         "seed": [0, 1], "recognition": [0.99, 0.2], "path_m": [0.0, 30.0]})
+    rec = curve_bands(data, "recognition").iloc[0]
+    assert 0.0 <= rec["lo"] and rec["hi"] <= 1.0
+    assert curve_bands(data, "path_m").iloc[0]["lo"] >= 0.0

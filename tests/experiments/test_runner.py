@@ -99,7 +99,7 @@ def ablation(tiny) -> dict:
 def test_results_are_tidy_and_complete(ablation):
     df = pd.read_csv(ablation["results"])
     assert list(df.columns) == RESULT_COLUMNS
-    assert set(df["method"]) == {"map", "ibe_map", "random", "passive", "oracle"}
+    assert set(df["method"]) == {"map", "ibe_map", "random", "passive", "visibility_oracle", "oracle"}
     assert set(df["split"]) == {"train", "hard"}
     for method in ("map", "ibe_map"):
         rows = df[df["method"] == method]
@@ -224,7 +224,8 @@ def test_report_and_trajectories(ablation):
     out = ablation["plan"].out
     report = (out / "report" / "report.md").read_text()
     for section in ("## Results at the final evaluation point", "## Generalisation gap", "## Learning curves",
-                    "## Observation sequences", "## Claims checked", "| MAP |", "| IBE-MAP |", "| Oracle |"):
+                    "## Observation sequences", "## Claims checked", "| MAP |", "| IBE-MAP |", "| Class-knowing oracle (upper bound) |",
+                    "| Visibility oracle |"):
         assert section in report
     assert (out / "report" / "fig9_curves.png").stat().st_size > 0
     meta = json.loads((out / "ablation.json").read_text())
@@ -351,3 +352,37 @@ def test_unknown_preset_keys_are_refused(tmp_path):
     bad.write_text('name = "bad"\n[worlds]\nsize = 3\n')
     with pytest.raises(AblationError, match=r"unknown section\(s\) \['worlds'\]"):
         make_plan(preset=str(bad), out=tmp_path / "a", data=tmp_path)
+
+
+def test_per_context_rows_and_the_recognizer_audit(ablation):
+    """contexts.csv holds one row per (policy, run, split, context) of the final evaluations,
+    whose means over contexts are the results' final rows; recognizer_audit.json holds the
+    clear-view accuracy per split and context."""
+    out = ablation["results"].parent
+    ctx = pd.read_csv(out / "contexts.csv")
+    res = pd.read_csv(ablation["results"])
+    final = res[res["final"] & (res["method"] == "map") & (res["split"] == "hard")]
+    rows = ctx[(ctx["method"] == "map") & (ctx["split"] == "hard")]
+    assert sorted(rows["context"]) == [26, 56]
+    assert rows["return"].mean() == pytest.approx(float(final["return"].iloc[0]))
+    assert {"visibility_oracle", "passive", "oracle"} <= set(ctx["method"])
+    audit = json.loads((out / "recognizer_audit.json").read_text())
+    hard = audit["0"]["splits"]["hard"]
+    assert [c["context"] for c in hard["contexts"]] == [26, 56] and 0 <= hard["accuracy"] <= 1
+    assert audit["0"]["classifier"]["arch"] == "resnet18"
+    report = (out / "report" / "report.md").read_text()
+    assert "## Recognizer audit" in report and report.index("## Recognizer audit") < report.index("## Results")
+
+
+def test_two_recognizers_give_their_own_classifiers_tables_and_runs(tiny):
+    """Recognizer seeds train separate classifiers with separate tables; a job per
+    (method, setting, recognizer, seed)."""
+    plan = _plan(tiny, "two-rec", recognizers=2)
+    data = stage_world(plan, print)
+    classifiers = stage_classifier(plan, data, print)
+    assert sorted(classifiers) == [0, 1] and classifiers[0] != classifiers[1]
+    tables = stage_tables(plan, data, classifiers, print)
+    assert tables[0]["map"] != tables[1]["map"]
+    jobs = plan_jobs(plan, tables)
+    assert sorted({(j.method, j.recognizer) for j in jobs}) == [("ibe_map", 0), ("ibe_map", 1), ("map", 0), ("map", 1)]
+    assert len({j.out for j in jobs}) == len(jobs)

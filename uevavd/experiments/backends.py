@@ -23,8 +23,11 @@ def run_jobs(jobs: Sequence[Job], *, backend: str = "local", workers: int = 1, l
              ray_address: str | None = None, gpus_per_job: float = 0.0) -> list[str]:
     if not jobs:
         return []
+    # threads from the workers asked for, not from the runs left: a resumed ablation gives
+    # its last runs the same thread count as an uninterrupted one (results depend on it)
+    threads = _threads(workers)
     workers = max(1, min(workers, len(jobs)))
-    jobs = [dataclasses.replace(j, threads=_threads(workers)) for j in jobs]
+    jobs = [dataclasses.replace(j, threads=threads) for j in jobs]
     if backend == "ray":
         return run_ray(jobs, workers=workers, log=log, address=ray_address, gpus_per_job=gpus_per_job)
     return run_local(jobs, workers=workers, log=log)

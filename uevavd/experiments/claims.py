@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import pandas as pd
 
 from .report_data import (
+    BASELINES,
     SPLITS,
     curve_rows,
     default_setting,
@@ -206,13 +207,13 @@ def diagnose(results: pd.DataFrame, claims: list[Claim]) -> list[str]:
     final = final_rows(results)
     setting = default_setting(final)
     notes: list[str] = []
-    runs = final[~final["method"].isin(("random", "passive", "oracle")) & (final["episodes"] >= 0)]
+    runs = final[~final["method"].isin(BASELINES) & (final["episodes"] >= 0)]
     if any(c.verdict != AGREES for c in claims):
         n_seeds = runs.groupby("method")["seed"].nunique()
         if len(n_seeds) and n_seeds.min() < 5:
             span = f"{n_seeds.min()}" if n_seeds.min() == n_seeds.max() else f"{n_seeds.min()} to {n_seeds.max()}"
-            notes.append(f"Seeds: {span} per method (the paper uses 5); with few seeds "
-                         "the t-intervals are wide and small differences cannot be told apart.")
+            notes.append(f"Runs: {span} per method (the paper uses 5 seeds); with few runs "
+                         "the intervals are wide and small differences cannot be told apart.")
         if len(runs):
             ep = int(runs["episodes"].max())
             notes.append(f"Training length: {ep:,} episodes at the final point, {ep / 300_000:.1%} of the paper's "
@@ -223,17 +224,22 @@ def diagnose(results: pd.DataFrame, claims: list[Claim]) -> list[str]:
                 notes.append(f"{label(m)}'s hard-test return is still rising over the second half of training "
                              f"(slope {_ci(t, 4)} per 10^4 episodes): not converged, train longer.")
         passive = estimate(final, "passive", "hard", "return", setting)
-        oracle = estimate(final, "oracle", "hard", "return", setting)
-        if passive.n and oracle.n:
+        for ref, what in (("visibility_oracle", "flying to the most visible reachable view (the visibility "
+                                                "oracle: what finding the target alone gives)"),
+                          ("oracle", "the class-knowing oracle (an upper bound no image-only policy reaches)")):
+            oracle = estimate(final, ref, "hard", "return", setting)
+            if not (passive.n and oracle.n):
+                continue
             room = oracle.mean - passive.mean
             parts = []
             for m in learned(runs["method"].unique()):
                 e = estimate(final, m, "hard", "return", setting)
                 if e.n and room > 0:
                     parts.append(f"{label(m)} {(e.mean - passive.mean) / room:+.0%}")
-            notes.append(f"Room for active viewing on the hard-test contexts: oracle {oracle.mean:.3f} minus passive "
-                         f"{passive.mean:.3f} = {room:.3f}; share of it recovered: "
-                         f"{', '.join(parts) or 'n/a'}. A small room means the world leaves little to gain by moving.")
+            notes.append(f"Room for active viewing on the hard-test contexts by {what}: {oracle.mean:.3f} minus "
+                         f"passive {passive.mean:.3f} = {room:.3f}; share of it recovered: "
+                         f"{', '.join(parts) or 'n/a'}. A small or negative room means the world leaves little "
+                         "to gain by moving.")
         pg = gengap_estimate(final, "passive", setting)
         if pg.n:
             notes.append(f"The world's own train − hard difference (passive's GenGap) is {pg.mean:.3f}: this part "

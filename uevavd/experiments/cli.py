@@ -25,6 +25,9 @@ def add_ablate(parser: argparse.ArgumentParser):
     parser.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
                         help="methods to compare (default: the preset's, map memo_map ibe_map)")
     parser.add_argument("--seeds", type=int, default=None, help="seeds per method and setting (default: the preset's)")
+    parser.add_argument("--recognizers", type=int, default=None,
+                        help="recognizers (seeds of the classifier, each with its own tables) crossed with the "
+                             "seeds (default: the preset's)")
     parser.add_argument("--sweep", action="append", default=None, metavar="KEY=V1,V2,...",
                         help="sweep a reward setting, e.g. --sweep thre=0.2,0.4,0.6,0.8 --sweep C=0,0.02,0.04,0.06")
     parser.add_argument("--sweep-methods", nargs="+", default=None, metavar="METHOD",
@@ -48,7 +51,7 @@ def run_ablate(args: argparse.Namespace) -> int:
                          sweeps=parse_sweeps(args.sweep) if args.sweep else None,
                          sweep_methods=args.sweep_methods, data=args.data, workers=args.workers,
                          backend=args.backend, device=args.device, episodes=args.episodes,
-                         gpus_per_run=args.gpus_per_run)
+                         gpus_per_run=args.gpus_per_run, recognizers=args.recognizers)
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("ablate", exc)
@@ -63,12 +66,14 @@ def print_results(results: Path) -> None:
     df = pd.read_csv(results)
     final = df[df["final"] & (df["setting"] == "default")]
     cols = ["return", "accuracy", "recognition", "path_m", "steps"]
-    several = final.groupby("method")["seed"].nunique().max() > 1
+    if "recognizer" not in final:
+        final = final.assign(recognizer=0)
+    several = final.groupby("method")[["recognizer", "seed"]].apply(lambda g: len(g.drop_duplicates())).max() > 1
     table = final.groupby(["split", "method"], sort=False)[cols].agg(["mean", "std"] if several else "mean")
     table = table.rename(columns={"steps": "decisions"})  # decisions per episode (path_m is the flight)
     with pd.option_context("display.width", 160, "display.max_columns", 20, "display.precision", 3):
         for split in [s for s in ("train", "simple", "hard") if s in set(final["split"])]:
-            how = "mean / std over seeds" if several else "one seed"
+            how = "mean / std over recognizers x seeds" if several else "one seed"
             print(f"\n{split} contexts (final evaluation, {how}):")
             print(table.loc[split].to_string(float_format=lambda v: f"{v:.3f}", na_rep="-"))
 
@@ -76,6 +81,9 @@ def print_results(results: Path) -> None:
 def add_demo(parser: argparse.ArgumentParser):
     parser.add_argument("--out", default="uevavd-demo", help="results directory (default: ./uevavd-demo)")
     parser.add_argument("--seeds", type=int, default=None, help="seeds per method (default: the quick preset's)")
+    parser.add_argument("--recognizers", type=int, default=1,
+                        help="recognizers crossed with the seeds (default 1, to keep the demo short; the quick "
+                             "preset's ablation uses 2, so that intervals include recognizer variance)")
     _common(parser)
     return run_demo
 
@@ -87,7 +95,7 @@ def run_demo(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         plan = make_plan(preset="quick", out=args.out, seeds=args.seeds, workers=args.workers,
-                         device=args.device)
+                         device=args.device, recognizers=args.recognizers)
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("demo", exc)

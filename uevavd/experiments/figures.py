@@ -21,7 +21,7 @@ import seaborn as sns  # noqa: E402
 
 from ..data.grid import ACTION_TYPES, STOP, XS, YS, ZS, view_coords  # noqa: E402
 from .report_data import BASELINES, label, order_methods  # noqa: E402
-from .stats import Estimate, smooth  # noqa: E402
+from .stats import smooth  # noqa: E402
 
 #: Fig. 9 panels: (column, y-axis label).
 CURVE_METRICS: tuple[tuple[str, str], ...] = (
@@ -30,7 +30,8 @@ CURVE_METRICS: tuple[tuple[str, str], ...] = (
     ("path_m", "movement distance (m)"),
 )
 CURVE_SPLITS: tuple[tuple[str, str], ...] = (("train", "training contexts"), ("hard", "hard-test contexts"))
-_BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "oracle": "black"}
+_BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "visibility_oracle": "tab:purple",
+                     "oracle": "black"}
 
 
 def _save(fig, path: Path) -> Path:
@@ -70,17 +71,30 @@ def smoothed_curves(curves: pd.DataFrame, window: int) -> pd.DataFrame:
     return data
 
 
+#: The range a metric can take; a band is clipped to it (a t-interval over few seeds can
+#: otherwise claim a recognition rate of 1.5 or a negative distance).
+METRIC_RANGE: dict[str, tuple[float, float]] = {
+    "accuracy": (0.0, 1.0), "recognition": (0.0, 1.0), "stop_rate": (0.0, 1.0),
+    "path_m": (0.0, np.inf), "path_steps": (0.0, np.inf), "steps": (0.0, np.inf),
+}
+
+
 def curve_bands(data: pd.DataFrame, col: str) -> pd.DataFrame:
-    """Mean and 95% band over seeds of the smoothed curves (:func:`smoothed_curves`) at
+    """Mean and 95% band over runs of the smoothed curves (:func:`smoothed_curves`) at
     each evaluation point: one row per (method, split, eval_point) with ``episodes``,
-    ``mean``, ``lo``, ``hi`` and ``n`` (seeds). The band is the Student-t interval of
-    :class:`uevavd.experiments.stats.Estimate` (mean ± t(0.975, n-1) · sd / √n), the
-    same as the tables'; NaN (no band) with fewer than two seeds."""
+    ``mean``, ``lo``, ``hi`` and ``n`` (runs). The band is the tables' interval
+    (:func:`uevavd.experiments.report_data.estimate_units`): with one recognizer the Student-t
+    interval over seeds (mean ± t(0.975, n-1) · sd / √n; NaN, no band, with fewer than two
+    seeds), with several the nested bootstrap; clipped to :data:`METRIC_RANGE`."""
+    from .report_data import estimate_units
+
+    lo_b, hi_b = METRIC_RANGE.get(col, (-np.inf, np.inf))
     rows = []
     for (m, split, k), g in data.groupby(["method", "split", "eval_point"], sort=True):
-        e = Estimate.of(g[col].to_numpy(dtype=np.float64))
+        e = estimate_units(g["seed"].to_numpy(), g[col].to_numpy(dtype=np.float64))
         rows.append({"method": m, "split": split, "eval_point": int(k), "episodes": float(g["episodes"].mean()),
-                     "mean": e.mean, "lo": e.lo, "hi": e.hi, "n": e.n})
+                     "mean": e.mean, "lo": float(np.clip(e.lo, lo_b, hi_b)), "hi": float(np.clip(e.hi, lo_b, hi_b)),
+                     "n": e.n})
     return pd.DataFrame(rows, columns=["method", "split", "eval_point", "episodes", "mean", "lo", "hi", "n"])
 
 

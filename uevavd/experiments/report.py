@@ -37,12 +37,14 @@ from .report_data import (
     curve_rows,
     default_setting,
     estimate,
+    estimate_units,
     final_rows,
     gengap_estimate,
     is_baseline,
     label,
     learned,
     load_results,
+    md_table,
     order_methods,
     sweep_methods,
     sweep_rows,
@@ -90,10 +92,7 @@ def _cell(e: Estimate, digits: int) -> str:
     return f"{e.mean:.{digits}f} ± {e.std:.{digits}f}<br>[{e.lo:.{digits}f}, {e.hi:.{digits}f}]"
 
 
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    out = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
-    out += ["| " + " | ".join(r) + " |" for r in rows]
-    return out
+_table = md_table
 
 
 def summary_table(final: pd.DataFrame) -> pd.DataFrame:
@@ -107,8 +106,8 @@ def summary_table(final: pd.DataFrame) -> pd.DataFrame:
         row = {"setting": setting, "method": m, "split": split, "thre": float(sel["thre"].iloc[0]),
                "C": float(sel["C"].iloc[0]), "n": int(sel["seed"].nunique()), "episodes": int(sel["episodes"].max())}
         for metric in METRICS:
-            v = sel[metric].to_numpy(dtype=np.float64)
-            e = Estimate.exact(float(v.mean())) if m in DETERMINISTIC else Estimate.of(v)
+            sel = sel.sort_values("seed")
+            e = estimate_units(sel["seed"].to_numpy(), sel[metric].to_numpy(dtype=np.float64), m in DETERMINISTIC)
             row.update({f"{metric}_mean": e.mean, f"{metric}_std": e.std,
                         f"{metric}_ci_lo": e.lo, f"{metric}_ci_hi": e.hi})
         rows.append(row)
@@ -128,16 +127,19 @@ def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame
         notes.append(f"ablation.json lists {', '.join(label(m) for m in absent)} but results.csv has no rows for "
                      "them (the run was interrupted or is still going).")
     # ablation.json may list the seeds or give their number; the results say which ran
-    seeds = sorted(results.loc[~is_baseline(results), "seed"].unique().tolist())
+    runs_all = results.loc[~is_baseline(results)]
+    seeds = sorted(runs_all["rl_seed"].unique().tolist())
     if isinstance(meta.get("seeds"), list) and meta["seeds"]:
         seeds = list(meta["seeds"])
+    recognizers = sorted(results["recognizer"].unique().tolist())
     runs = final[~is_baseline(final)]
     episodes = sorted(runs["episodes"].unique().tolist())
     out += [
         f"- Preset: `{meta.get('preset', 'unknown')}`",
         f"- Methods: {', '.join(label(m) for m in methods)}; references: "
         f"{', '.join(label(m) for m in BASELINES if m in set(results['method']))}",
-        f"- Seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)})",
+        f"- Seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)}) on each of {len(recognizers)} recognizer(s) "
+        f"({', '.join(str(r) for r in recognizers)}): {len(seeds) * len(recognizers)} runs per method and setting",
         f"- Sweeps: {json.dumps(meta.get('sweeps', {}))}; default thre = {DEFAULT_THRE}, C = {DEFAULT_C}",
         f"- Training episodes at the final evaluation point: {', '.join(str(e) for e in episodes) or 'n/a'}"
         " (the paper trains 300,000)",
@@ -195,8 +197,10 @@ def _evaluation_text(results: pd.DataFrame) -> str:
 
 def _results_section(final: pd.DataFrame, setting: str) -> list[str]:
     out = ["## Results at the final evaluation point", "",
-           f"Setting `{setting}`. Cells: mean ± std over seeds, and the 95% confidence interval "
-           "(Student t over seeds) below it; passive and oracle are deterministic (one exact value). "
+           f"Setting `{setting}`. Cells: mean ± std over runs, and the 95% confidence interval below it: "
+           "with one recognizer a Student-t interval over seeds (the deterministic baselines exact); with several, "
+           "a two-stage bootstrap (recognizers with replacement, then seeds within each; the baselines vary "
+           "with the recognizer) whose std is the bootstrap standard error. "
            "Learned methods: their final policies evaluated on every context of the split x 605 start views, "
            "like the baselines (see Setup). "
            "All values per episode: return is discounted (gamma = 0.9), accuracy is argmax == true "
@@ -211,7 +215,7 @@ def _results_section(final: pd.DataFrame, setting: str) -> list[str]:
             n = int(sel.loc[sel["method"] == m, "seed"].nunique())
             rows.append([label(m), str(n)] + [_cell(estimate(final, m, split, c, setting), d)
                                               for c, _, d in TABLE_METRICS])
-        out += _table(["Policy", "seeds", *[h for _, h, _ in TABLE_METRICS]], rows) + [""]
+        out += _table(["Policy", "runs", *[h for _, h, _ in TABLE_METRICS]], rows) + [""]
     out += ["All settings, splits and metrics with their intervals: [`summary.csv`](summary.csv).", ""]
     return out
 
@@ -278,7 +282,9 @@ def _sweep_section(final: pd.DataFrame, param: str, table_no: int, ablation_dir:
         out += [f"{label(m)} on the hard-test contexts, mean ± std over seeds (best in bold).", ""]
         table = []
         for col, name, d, best in rows_spec:
-            ests = [Estimate.of(rows.loc[np.isclose(rows[param], v), col]) for v in values]
+            ests = [estimate_units(rows.loc[np.isclose(rows[param], v), "seed"].to_numpy(),
+                                   rows.loc[np.isclose(rows[param], v), col].to_numpy(dtype=np.float64))
+                    for v in values]
             top = best(e.mean for e in ests)
             cells = []
             for e in ests:
@@ -361,6 +367,12 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     title = f"# Ablation report: preset `{(meta or {}).get('preset', 'unknown')}`"
     lines = [title, "", f"Generated by `uevavd report {ablation_dir}` from the files in that directory.", ""]
     lines += _setup_section(meta, results, final, notes)
+    audit = _read_json(ablation_dir / "recognizer_audit.json", notes) if (
+        ablation_dir / "recognizer_audit.json").is_file() else None
+    if audit:
+        from .audit import audit_markdown
+
+        lines += audit_markdown(audit)
     lines += _results_section(final, setting)
     lines += _gengap_section(final, setting)
     lines += _curves_section(results, final, setting, out_dir, window)

@@ -22,19 +22,24 @@ import pandas as pd
 from .stats import Estimate
 
 #: Reference policies: constant lines/rows, not learning curves.
-BASELINES: tuple[str, ...] = ("random", "passive", "oracle")
-#: Baselines that are deterministic (one row, seed 0): their value is exact.
-DETERMINISTIC: tuple[str, ...] = ("passive", "oracle")
+BASELINES: tuple[str, ...] = ("random", "passive", "visibility_oracle", "oracle")
+#: Baselines that are deterministic (one row per recognizer, seed 0): exact with one recognizer.
+DETERMINISTIC: tuple[str, ...] = ("passive", "visibility_oracle", "oracle")
 #: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "oracle")
+METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
     "memo_map": "Memo-MAP",
     "ibe_map": "IBE-MAP",
     "random": "Random",
     "passive": "Passive",
-    "oracle": "Oracle",
+    "visibility_oracle": "Visibility oracle",
+    "oracle": "Class-knowing oracle (upper bound)",
 }
+#: A run's unit id in the loaded results: ``recognizer * UNIT + seed`` in column ``seed``
+#: (the RL seed alone in ``rl_seed``), so that every grouping by seed keeps the runs of
+#: different recognizers apart; ``seed // UNIT`` is the recognizer.
+UNIT = 1000
 SPLITS: tuple[str, ...] = ("train", "simple", "hard")
 #: The paper's defaults: thre = 0.2, C = 0.02 (DESIGN.md section 2).
 DEFAULT_THRE = 0.2
@@ -47,6 +52,13 @@ REQUIRED_COLUMNS: tuple[str, ...] = (
 )
 #: Sweep name -> (column, the setting-name prefix of its rows).
 SWEEPS: dict[str, str] = {"thre": "thre", "C": "C"}
+
+
+def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    """Lines of a Markdown table."""
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return out
 
 
 def label(method: str) -> str:
@@ -112,7 +124,22 @@ def load_results(path: str | Path) -> pd.DataFrame:
             raise ValueError(f"{path}: column {col!r} must hold numbers") from None
     df["final"] = _as_bool(df["final"], path)
     df["setting"] = df["setting"].fillna("default").astype(str)
+    if "recognizer" not in df.columns:  # files of one recognizer before the column existed
+        df["recognizer"] = 0
+    try:
+        df["recognizer"] = pd.to_numeric(df["recognizer"], errors="raise").astype(np.int64)
+    except (ValueError, TypeError):
+        raise ValueError(f"{path}: column 'recognizer' must hold integers") from None
+    if ((df["seed"] < 0) | (df["seed"] >= UNIT) | (df["recognizer"] < 0)).any():
+        raise ValueError(f"{path}: seeds must lie in 0..{UNIT - 1} and recognizers be >= 0")
+    df["rl_seed"] = df["seed"]
+    df["seed"] = df["recognizer"] * UNIT + df["seed"]
     return df
+
+
+def groups_of(units) -> np.ndarray:
+    """The recognizer of each unit id (column ``seed`` of loaded results)."""
+    return np.asarray(units, dtype=np.int64) // UNIT
 
 
 def is_baseline(df: pd.DataFrame) -> pd.Series:
@@ -200,30 +227,49 @@ def sweep_methods(final: pd.DataFrame, param: str) -> list[str]:
 
 
 def per_seed(final: pd.DataFrame, method: str, split: str, metric: str, setting: str) -> np.ndarray:
-    """(n_seeds,) float64 values of ``metric`` at the final point, ordered by seed."""
+    """(n_units,) float64 values of ``metric`` at the final point, ordered by unit
+    (recognizer, then seed)."""
+    return _per_unit(final, method, split, metric, setting)[1]
+
+
+def _per_unit(final: pd.DataFrame, method: str, split: str, metric: str, setting: str):
     sel = final[(final["method"] == method) & (final["split"] == split) & (final["setting"] == setting)]
-    return sel.sort_values("seed")[metric].to_numpy(dtype=np.float64)
+    sel = sel.sort_values("seed")
+    return sel["seed"].to_numpy(dtype=np.int64), sel[metric].to_numpy(dtype=np.float64)
+
+
+def estimate_units(units, values, deterministic: bool = False) -> Estimate:
+    """The estimate of a mean over runs: the nested bootstrap when the units span several
+    recognizers; else a t-interval over seeds, or exact for a deterministic baseline."""
+    groups = groups_of(units)
+    if np.unique(groups).size >= 2:
+        return Estimate.of(values, groups=groups)
+    if deterministic and np.size(values):
+        return Estimate.exact(float(np.mean(values)))
+    return Estimate.of(values)
 
 
 def estimate(final: pd.DataFrame, method: str, split: str, metric: str, setting: str) -> Estimate:
-    """Mean/std/t-CI over seeds; exact for a deterministic baseline (passive, oracle)."""
-    v = per_seed(final, method, split, metric, setting)
-    if method in DETERMINISTIC and v.size:
-        return Estimate.exact(float(v.mean()))
-    return Estimate.of(v)
+    """Mean and 95 % interval over runs (:func:`estimate_units`); exact for a deterministic
+    baseline (passive, the oracles) with one recognizer."""
+    units, v = _per_unit(final, method, split, metric, setting)
+    return estimate_units(units, v, method in DETERMINISTIC)
 
 
-def gengap(final: pd.DataFrame, method: str, setting: str, test: str = "hard") -> np.ndarray:
-    """(n,) per-seed GenGap = return(train) - return(``test``), seeds present in both."""
+def _gengap_units(final: pd.DataFrame, method: str, setting: str, test: str):
     sel = final[(final["method"] == method) & (final["setting"] == setting)]
     wide = sel.pivot_table(index="seed", columns="split", values="return", aggfunc="mean")
     if "train" not in wide or test not in wide:
-        return np.zeros(0)
-    return (wide["train"] - wide[test]).dropna().to_numpy(dtype=np.float64)
+        return np.zeros(0, np.int64), np.zeros(0)
+    g = (wide["train"] - wide[test]).dropna()
+    return g.index.to_numpy(dtype=np.int64), g.to_numpy(dtype=np.float64)
+
+
+def gengap(final: pd.DataFrame, method: str, setting: str, test: str = "hard") -> np.ndarray:
+    """(n,) per-run GenGap = return(train) - return(``test``), runs present in both."""
+    return _gengap_units(final, method, setting, test)[1]
 
 
 def gengap_estimate(final: pd.DataFrame, method: str, setting: str, test: str = "hard") -> Estimate:
-    v = gengap(final, method, setting, test)
-    if method in DETERMINISTIC and v.size:
-        return Estimate.exact(float(v.mean()))
-    return Estimate.of(v)
+    units, v = _gengap_units(final, method, setting, test)
+    return estimate_units(units, v, method in DETERMINISTIC)

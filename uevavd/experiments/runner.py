@@ -29,15 +29,20 @@ from .io import atomic_write_text, write_csv
 DEFAULT_SETTING = {"thre": 0.2, "C": 0.02}
 SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
 RESULT_COLUMNS = [
-    "method", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return", "accuracy",
-    "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
+    "method", "recognizer", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return",
+    "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
+]
+#: Per-context rows of every final evaluation (``contexts.csv``).
+CONTEXT_COLUMNS = [
+    "method", "recognizer", "seed", "setting", "split", "context", "target", "terrain", "return", "accuracy",
+    "recognition", "path_m", "stop_rate", "steps",
 ]
 #: A finished run's exhaustive evaluation of its final policy (every context x 605 starts).
 FINAL_EVAL = "final_eval.json"
-BASELINES = ("random", "passive", "oracle")
+BASELINES = ("random", "passive", "visibility_oracle", "oracle")
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
 SECTION_KEYS = {"world": {"seed", "size", "per_block"},
-                "ablation": {"methods", "seeds", "sweeps", "sweep_methods"}}
+                "ablation": {"methods", "seeds", "recognizers", "sweeps", "sweep_methods"}}
 
 
 class AblationError(ValueError):
@@ -46,7 +51,7 @@ class AblationError(ValueError):
 
 @dataclass(frozen=True)
 class Job:
-    """One training run: a method at one setting and seed."""
+    """One training run: a method at one setting and seed, on one recognizer's table."""
 
     method: str
     setting: str
@@ -56,10 +61,11 @@ class Job:
     out: str  #: run directory
     threads: int = 1
     device: str = "cpu"
+    recognizer: int = 0  #: which recognizer (its training seed) the table's probabilities come from
 
     @property
     def key(self) -> str:
-        return f"{self.method}/{self.setting}/seed{self.seed}"
+        return f"{self.method}/{self.setting}/rec{self.recognizer}/seed{self.seed}"
 
 
 @dataclass
@@ -79,6 +85,9 @@ class Plan:
     episodes: int | None = None
     gpus_per_run: float = 0.0
     stages: dict[str, float] = field(default_factory=dict)
+    #: recognizer seeds: each trains its own recognizer and builds its own tables; every
+    #: method x setting x RL seed runs on each, so intervals include recognizer variance
+    recognizers: list[int] = field(default_factory=lambda: [0])
 
     def settings(self, method: str) -> list[tuple[str, dict[str, float]]]:
         """(name, {thre, C}) of each setting this method runs: "default" plus its sweeps."""
@@ -101,7 +110,8 @@ class Plan:
     def fingerprint(self) -> dict[str, Any]:
         """What makes two ablations comparable: the preset's content and the data source."""
         preset = {k: v for k, v in self.preset.items() if k not in ("ablation", "description")}
-        return {"preset": preset, "data": str(self.data) if self.data else None, "episodes": self.episodes}
+        return {"preset": preset, "data": str(self.data) if self.data else None, "episodes": self.episodes,
+                "workers": self.workers}
 
 
 def parse_sweeps(items: Sequence[str] | None) -> dict[str, list[float]]:
@@ -137,6 +147,7 @@ def make_plan(
     device: str = "cpu",
     episodes: int | None = None,
     gpus_per_run: float = 0.0,
+    recognizers: int | None = None,
 ) -> Plan:
     from ..config import known_methods
 
@@ -163,6 +174,9 @@ def make_plan(
     n_seeds = int(seeds if seeds is not None else abl.get("seeds", 1))
     if n_seeds < 1:
         raise AblationError(f"--seeds {n_seeds}: expected at least 1")
+    n_rec = int(recognizers if recognizers is not None else abl.get("recognizers", 1))
+    if n_rec < 1:
+        raise AblationError(f"--recognizers {n_rec}: expected at least 1")
     sweeps = dict(sweeps if sweeps is not None else {k: list(v) for k, v in abl.get("sweeps", {}).items()})
     for key in sweeps:
         if key not in SWEEPABLE:
@@ -202,6 +216,7 @@ def make_plan(
         device=device,
         episodes=episodes,
         gpus_per_run=float(gpus_per_run),
+        recognizers=list(range(n_rec)),
     )
 
 
@@ -247,23 +262,32 @@ def stage_world(plan: Plan, log) -> Path:
     root = cache_dir() / "worlds" / f"{plan.preset.get('name', 'world')}-{_digest(world)}"
     write_world(root, contexts=contexts, size=int(world["size"]), seed=int(world["seed"]),
                 workers=plan.workers, progress=True)
+    from ..data.synthetic.quality import format_rows, read_visible, split_rows
+
+    log("  visibility per split:\n" + format_rows(split_rows(read_visible(root))))
     return root
 
 
-def stage_classifier(plan: Plan, data: Path, log) -> Path:
-    """The recognizer, cached by (hash of the dataset's train_605 images, training settings):
-    a regenerated world under the same path never reuses an old classifier."""
+def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
+    """The recognizers, one per recognizer seed (``TrainSettings.seed``: its initialisation of
+    the head, held-out viewpoints and augmentation), each cached by (hash of the dataset's
+    train_605 images, training settings): a regenerated world under the same path never
+    reuses an old classifier."""
     from ..data.reader import read_dataset
     from ..perception.classifier import classifiers_dir, data_hash, train_records
     from ..perception.train import TrainSettings, train_classifier
 
-    settings = TrainSettings(**plan.preset.get("classifier", {}))
     digest = data_hash(train_records(read_dataset(data)))
-    path = classifiers_dir() / f"{digest}-{_digest(settings.__dict__)}.safetensors"
-    if path.is_file():
-        log(f"  reusing classifier {path}")
-        return path
-    return train_classifier(data, path, settings=settings, workers=plan.workers, progress=True)
+    out = {}
+    for r in plan.recognizers:
+        settings = TrainSettings(**{**plan.preset.get("classifier", {}), "seed": r})
+        path = classifiers_dir() / f"{digest}-{_digest(settings.__dict__)}.safetensors"
+        if path.is_file():
+            log(f"  reusing classifier {path}")
+        else:
+            train_classifier(data, path, settings=settings, workers=plan.workers, progress=True)
+        out[r] = path
+    return out
 
 
 def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
@@ -284,8 +308,13 @@ def env_config(plan: Plan, setting: dict[str, float]):
     return make_config(dict(spec.get("env", {}) or {}))
 
 
-def stage_tables(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
-    """One table per distinct perception config among the methods (MAP and Memo-MAP share)."""
+def stage_tables(plan: Plan, data: Path, classifiers: dict[int, Path], log) -> dict[int, dict[str, Path]]:
+    """``{recognizer: {method: table}}``: per recognizer, one table per distinct perception
+    config among the methods (MAP and Memo-MAP share)."""
+    return {r: _tables_of(plan, data, path, log) for r, path in classifiers.items()}
+
+
+def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
     from ..perception.prepare import prepare_table, prepare_table_ray
 
     tables: dict[str, Path] = {}
@@ -303,7 +332,7 @@ def stage_tables(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Pat
     return tables
 
 
-def plan_jobs(plan: Plan, tables: dict[str, Path]) -> list[Job]:
+def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
     jobs = []
     for m in plan.methods:
         for setting_name, setting in plan.settings(m):
@@ -311,10 +340,11 @@ def plan_jobs(plan: Plan, tables: dict[str, Path]) -> list[Job]:
             spec_path = plan.out / "specs" / f"{m}-{setting_name}.toml"
             if not spec_path.is_file() or load_method(spec_path).hash != spec.hash:
                 spec.save(spec_path)
-            for seed in plan.seeds:
-                out = plan.out / "runs" / m / setting_name / f"seed{seed}"
-                jobs.append(Job(m, setting_name, seed, str(spec_path), str(tables[m]), str(out),
-                                device=plan.device))
+            for r in plan.recognizers:
+                for seed in plan.seeds:
+                    out = plan.out / "runs" / m / setting_name / f"rec{r}" / f"seed{seed}"
+                    jobs.append(Job(m, setting_name, seed, str(spec_path), str(tables[r][m]), str(out),
+                                    device=plan.device, recognizer=r))
     return jobs
 
 
@@ -377,7 +407,8 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
             cached = json.loads(path.read_text(encoding="utf-8"))
         except ValueError:
             cached = None  # a damaged cache is recomputed
-        if isinstance(cached, dict) and cached.get("key") == key:
+        if isinstance(cached, dict) and cached.get("key") == key and all(
+                "per_context" in v for v in cached.get("splits", {}).values()):
             return cached
     table = ObservationTable.load(Path(job.table))
     if table.key != key["table_key"]:
@@ -389,13 +420,37 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
     splits = {}
     for split in key["splits"]:
         res = evaluate_policy(table, split, policy, config, device=dev)
-        splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size)}
+        splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
+                         "per_context": _per_context(res)}
     out = {"key": key, "splits": splits}
     atomic_write_text(path, json.dumps(out, indent=1))
     return out
 
 
 # -- results --------------------------------------------------------------------------------
+def _per_context(res) -> list[dict[str, Any]]:
+    """One record per context of an evaluation: context, target and the summary's means."""
+    df = res.per_context()
+    return [{"context": int(r["context"]), "target": str(r["target"]), **_metric_row(r)}
+            for r in df.to_dict(orient="records")]
+
+
+def context_terrains(data: Path | None) -> dict[int, str]:
+    """``{context: "urban (training)" | "urban (shifted)" | "woodland (training)"}`` from the
+    scenes' ``scene.json`` (synthetic worlds); empty where the data does not record it."""
+    out: dict[int, str] = {}
+    if data is None:
+        return out
+    for meta_path in Path(data).glob("[0-9][0-9][0-9]/scene.json"):
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if isinstance(meta, dict) and meta.get("context") is not None and meta.get("terrain"):
+            out[int(meta["context"])] = f"{meta['terrain']} ({meta.get('placement', 'training')})"
+    return out
+
+
 def _metric_row(summary: dict[str, Any]) -> dict[str, Any]:
     return {
         "return": summary["mean_return"],
@@ -423,7 +478,7 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
     ``final=True``, at the run's last episode count)."""
     path = Path(job.out) / "evals.jsonl"
     rows = []
-    base = {"method": job.method, "seed": job.seed, "setting": job.setting, **setting}
+    base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting, **setting}
     if path.is_file():
         for line in path.read_text().splitlines():
             if not line.strip():
@@ -441,33 +496,43 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
     return rows
 
 
-def baseline_rows(plan: Plan, table: Path, splits: Sequence[str], log) -> list[dict[str, Any]]:
-    """Random (one per seed), passive and oracle under every setting, on every split."""
+def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], log
+                  ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Random (one per seed), passive, the visibility oracle (where the table has visible
+    fractions) and the class-knowing oracle under every setting, on every split, on each
+    recognizer's table. Returns (result rows, per-context rows)."""
     from ..env.baselines import PassivePolicy, RandomPolicy
     from ..env.evaluate import evaluate_policy
     from ..env.oracle import OraclePolicy
+    from ..env.visibility_oracle import VisibilityOraclePolicy
     from ..perception.table import ObservationTable
 
     cache = plan.out / "baselines.json"
     done = json.loads(cache.read_text()) if cache.is_file() else {}
-    tbl = ObservationTable.load(table)
-    rows = []
-    for setting_name, setting in plan.all_settings():
-        config = env_config(plan, setting)
-        for split in splits:
-            policies = [("passive", 0, PassivePolicy()), ("oracle", 0, OraclePolicy(tbl, config))]
-            policies += [("random", s, RandomPolicy(seed=s)) for s in plan.seeds]
-            for name, seed, policy in policies:
-                key = f"{setting_name}|{split}|{name}|{seed}"
-                if key not in done:
-                    done[key] = evaluate_policy(tbl, split, policy, config).summary()
-                rows.append({
-                    "method": name, "seed": seed, "setting": setting_name, **setting, "episodes": -1,
-                    "final": True, "split": split, "eval_contexts": _contexts(done[key]),
-                    **_metric_row(done[key]), "wall_s": 0.0,
-                })
+    rows, ctx_rows = [], []
+    for r, table in tables.items():
+        tbl = ObservationTable.load(table)
+        has_visible = not bool(np.isnan(tbl.visible).all())
+        for setting_name, setting in plan.all_settings():
+            config = env_config(plan, setting)
+            policies = {"passive": PassivePolicy, "oracle": lambda t=tbl, c=config: OraclePolicy(t, c)}
+            if has_visible:
+                policies["visibility_oracle"] = lambda t=tbl, c=config: VisibilityOraclePolicy(t, c)
+            for split in splits:
+                todo = [(name, 0, make) for name, make in policies.items()]
+                todo += [("random", s, lambda s=s: RandomPolicy(seed=s)) for s in plan.seeds]
+                for name, seed, make in todo:
+                    key = f"{tbl.key}|{setting_name}|{split}|{name}|{seed}"
+                    if key not in done or "per_context" not in done[key]:
+                        res = evaluate_policy(tbl, split, make(), config)
+                        done[key] = {**res.summary(), "contexts": int(np.unique(res.context).size),
+                                     "per_context": _per_context(res)}
+                    base = {"method": name, "recognizer": r, "seed": seed, "setting": setting_name}
+                    rows.append({**base, **setting, "episodes": -1, "final": True, "split": split,
+                                 "eval_contexts": _contexts(done[key]), **_metric_row(done[key]), "wall_s": 0.0})
+                    ctx_rows += [{**base, "split": split, **c} for c in done[key]["per_context"]]
     atomic_write_text(cache, json.dumps(done, indent=1))
-    return rows
+    return rows, ctx_rows
 
 
 def pick_trajectory_start(table, config) -> tuple[int, int]:
@@ -506,8 +571,8 @@ def pick_trajectory_start(table, config) -> tuple[int, int]:
 
 
 def trajectory_rows(plan: Plan, jobs: list[Job], tables: dict[str, Path]) -> list[dict[str, Any]]:
-    """The greedy episode of each final default-setting policy (seed 0), random and oracle,
-    from the same hard-test start."""
+    """The greedy episode of each final default-setting policy (first recognizer, seed 0),
+    random and oracle, from the same hard-test start; ``tables``: the first recognizer's."""
     from ..env.baselines import RandomPolicy
     from ..env.evaluate import evaluate_policy
     from ..env.oracle import OraclePolicy
@@ -532,7 +597,7 @@ def trajectory_rows(plan: Plan, jobs: list[Job], tables: dict[str, Path]) -> lis
         })
 
     for job in jobs:
-        if job.setting == "default" and job.seed == 0 and is_done(job):
+        if job.setting == "default" and job.seed == 0 and job.recognizer == plan.recognizers[0] and is_done(job):
             one(job.method, 0, load_policy(job.out), Path(job.table))
     tbl = ObservationTable.load(first)
     one("random", 0, RandomPolicy(seed=0), first)
@@ -566,6 +631,7 @@ def write_meta(plan: Plan, data: Path | None, status: str) -> None:
         "fingerprint": plan.fingerprint(),
         "methods": plan.methods,
         "seeds": len(plan.seeds),
+        "recognizers": len(plan.recognizers),
         "sweeps": plan.sweeps,
         "sweep_methods": plan.sweep_methods,
         "backend": plan.backend,
@@ -586,9 +652,9 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
     with _Stage(plan, "world", log):
         data = stage_world(plan, log)
     with _Stage(plan, "classifier", log):
-        classifier = stage_classifier(plan, data, log)
+        classifiers = stage_classifier(plan, data, log)
     with _Stage(plan, "tables", log):
-        tables = stage_tables(plan, data, classifier, log)
+        tables = stage_tables(plan, data, classifiers, log)
     write_meta(plan, data, "training")
     jobs = plan_jobs(plan, tables)
     with _Stage(plan, "training", log):
@@ -597,14 +663,27 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
             f"on the {plan.backend} backend with {plan.workers} worker(s)")
         run_jobs(todo, backend=plan.backend, workers=plan.workers, log=log, gpus_per_job=plan.gpus_per_run)
     with _Stage(plan, "evaluation", log):
-        rows = []
+        rows, ctx_rows = [], []
         for job in jobs:
             setting = dict(plan.settings(job.method))[job.setting]
             rows += run_rows(job, setting, device=plan.device)
+            final = final_eval(job, device=plan.device)
+            base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting}
+            for split, summary in (final or {}).get("splits", {}).items():
+                ctx_rows += [{**base, "split": split, **c} for c in summary["per_context"]]
         splits = sorted({r["split"] for r in rows}) or ["train", "hard"]
-        rows += baseline_rows(plan, tables[plan.methods[0]], splits, log)
+        base_rows, base_ctx = baseline_rows(plan, {r: t[plan.methods[0]] for r, t in tables.items()}, splits, log)
+        rows += base_rows
+        terrains = context_terrains(data)
+        ctx_rows = [{**c, "terrain": terrains.get(int(c["context"]), "")} for c in ctx_rows + base_ctx]
+        from .audit import audit_table, classifier_summary
+
+        audit = {str(r): {"classifier": classifier_summary(classifiers[r]),
+                          "splits": audit_table(tables[r][plan.methods[0]], terrains)} for r in plan.recognizers}
+        atomic_write_text(plan.out / "recognizer_audit.json", json.dumps(audit, indent=1))
         results = write_csv(plan.out / "results.csv", rows, RESULT_COLUMNS)
-        traj = trajectory_rows(plan, jobs, tables)
+        write_csv(plan.out / "contexts.csv", ctx_rows, CONTEXT_COLUMNS)
+        traj = trajectory_rows(plan, jobs, tables[plan.recognizers[0]])
         atomic_write_text(plan.out / "trajectories.json", json.dumps(traj, indent=1))
     write_meta(plan, data, "reporting")
     with _Stage(plan, "report", log):

@@ -1,16 +1,24 @@
-"""Statistics over seeds for the ablation report: t-based 95% confidence intervals,
-differences of means (Welch), linear trends, and the sliding-window smoothing of
-learning curves.
+"""Statistics over runs for the ablation report: 95% confidence intervals, differences of
+means, linear trends, and the sliding-window smoothing of learning curves.
 
-Every interval here is a two-sided Student-t interval over independent seeds; with
-fewer than two seeds an interval is undefined and comes back as NaN, which the claims
-turn into "cannot be judged".
+With one recognizer, the units are independent RL seeds and an interval is a two-sided
+Student-t interval over them (Welch for differences); with fewer than two seeds it is
+undefined (NaN), which the claims turn into "cannot be judged".
+
+With several recognizers (each trained with its own seed, with its own tables, and every RL
+seed run on each), runs are nested: seeds within recognizers. Then an interval is a
+two-stage percentile bootstrap (:func:`nested_bootstrap`): resample the recognizers with
+replacement, then the seeds within each drawn recognizer, and take the mean of the
+recognizer means; 95 % of :data:`BOOTSTRAP_SAMPLES` resamples. Every estimate draws the
+recognizers with the same random stream, so two methods' bootstrap means are paired by
+recognizer (their difference keeps the recognizer they share), and a percentile interval
+never leaves the range of the values it resamples.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
@@ -18,6 +26,9 @@ from scipy import stats as _st
 
 #: Confidence level of every interval in the report.
 LEVEL = 0.95
+#: Resamples of the nested bootstrap, and the seed of its random stream.
+BOOTSTRAP_SAMPLES = 4000
+BOOTSTRAP_SEED = 20261124
 
 
 @dataclass(frozen=True)
@@ -33,9 +44,16 @@ class Estimate:
     n: int
     lo: float
     hi: float
+    #: bootstrap means (nested over recognizers and seeds), when the estimate came from
+    #: :func:`nested_bootstrap`; differences between two such estimates use them
+    boot: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @classmethod
-    def of(cls, values, level: float = LEVEL) -> Estimate:
+    def of(cls, values, level: float = LEVEL, *, groups=None) -> Estimate:
+        """Estimate of the mean of ``values``; with ``groups`` (the recognizer of each value)
+        holding two or more distinct groups, the nested bootstrap, else the t-interval."""
+        if groups is not None and np.unique(np.asarray(groups)).size >= 2:
+            return nested_bootstrap(values, groups, level)
         x = np.asarray(values, dtype=np.float64).ravel()
         x = x[np.isfinite(x)]
         n = int(x.size)
@@ -71,6 +89,28 @@ class Estimate:
         return s
 
 
+def nested_bootstrap(values, groups, level: float = LEVEL) -> Estimate:
+    """Two-stage percentile bootstrap of the mean of ``values`` nested in ``groups``
+    (recognizers): the point estimate is the mean of the group means; each resample draws
+    the groups with replacement, then the values within each drawn group with replacement.
+    ``std`` is the bootstrap standard error; ``boot`` holds the resampled means."""
+    x = np.asarray(values, dtype=np.float64).ravel()
+    g = np.asarray(groups).ravel()
+    ok = np.isfinite(x)
+    x, g = x[ok], g[ok]
+    if x.size == 0:
+        return Estimate(math.nan, math.nan, 0, math.nan, math.nan)
+    labels = np.unique(g)
+    members = [x[g == k] for k in labels]
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    pick = rng.integers(0, len(labels), size=(BOOTSTRAP_SAMPLES, len(labels)))  # the same for every estimate
+    inner = np.stack([m[rng.integers(0, m.size, size=(BOOTSTRAP_SAMPLES, m.size))].mean(1) for m in members])
+    boot = inner[pick, np.arange(BOOTSTRAP_SAMPLES)[:, None]].mean(1)
+    mean = float(np.mean([m.mean() for m in members]))
+    lo, hi = np.quantile(boot, [0.5 - level / 2, 0.5 + level / 2])
+    return Estimate(mean, float(boot.std(ddof=1)), int(x.size), float(lo), float(hi), boot)
+
+
 def difference(a, b, level: float = LEVEL) -> Estimate:
     """Estimate of ``mean(a) - mean(b)`` for independent samples (Welch's t interval).
 
@@ -86,6 +126,14 @@ def difference(a, b, level: float = LEVEL) -> Estimate:
     n = min(ea.n, eb.n)
     if ea.n == 0 or eb.n == 0:
         return Estimate(math.nan, math.nan, 0, math.nan, math.nan)
+    if ea.boot is not None or eb.boot is not None:  # nested bootstrap: paired by recognizer draws
+        da = ea.boot if ea.boot is not None else np.full(BOOTSTRAP_SAMPLES, ea.mean)
+        db = eb.boot if eb.boot is not None else np.full(BOOTSTRAP_SAMPLES, eb.mean)
+        if (ea.boot is None and ea.std != 0.0) or (eb.boot is None and eb.std != 0.0):
+            return Estimate(d, math.nan, n, math.nan, math.nan)  # one side nested, the other not: no interval
+        boot = da - db
+        lo, hi = np.quantile(boot, [0.5 - level / 2, 0.5 + level / 2])
+        return Estimate(d, float(boot.std(ddof=1)), n, float(lo), float(hi), boot)
     parts = []  # (variance of the mean, degrees of freedom) of each side that varies
     for e in (ea, eb):
         if e.std == 0.0:

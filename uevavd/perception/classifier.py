@@ -117,11 +117,20 @@ class ResNetClassifier:
         self.classes = tuple(classes)
         self.weights_hash = weights_hash
         self.meta = dict(meta or {})
+        lite = arch == "efficientnet_lite0"
+        if lite:  # torch.fx cannot fold its batch norms: fold them here
+            from .efficientnet import fold_lite0
+
+            model = fold_lite0(model)
         self.runner = BatchRunner(model, device=device, batch_size=batch_size, mean=tuple(mean), std=tuple(std),
-                                  post=lambda y: torch.softmax(y, dim=1))
+                                  post=lambda y: torch.softmax(y, dim=1), fold=not lite)
 
     def predict_proba(self, images: np.ndarray) -> np.ndarray:
         images = check_images(images, f"{self.arch} classifier")
+        if self.arch == "efficientnet_lite0":
+            from .efficientnet import check_size
+
+            check_size(images, f"{self.arch} classifier")
         if len(images) == 0:
             return np.zeros((0, len(self.classes)), np.float32)
         p = self.runner(images)
@@ -145,7 +154,7 @@ class ResNetClassifier:
     def proba_from_features(self, features: np.ndarray) -> np.ndarray:
         """(N, D) float pooled backbone features -> (N, K) float32 probabilities through
         this classifier's ``fc`` (what :meth:`predict_proba` computes after the backbone)."""
-        fc = self.runner.model.fc
+        fc = self.runner.model.fc if hasattr(self.runner.model, "fc") else self.runner.model._fc
         with torch.inference_mode():
             x = torch.as_tensor(np.asarray(features, np.float32), device=fc.weight.device)
             p = torch.softmax(fc(x), dim=1).cpu().numpy().astype(np.float32, copy=False)
@@ -155,11 +164,28 @@ class ResNetClassifier:
         return f"ResNetClassifier({self.arch}, classes={self.classes}, device={self.runner.device})"
 
 
+def make_recognizer(arch: str, *, num_classes: int, seed: int = 0, empty: bool = False) -> torch.nn.Module:
+    """An untrained recognizer network of a supported architecture (a torchvision ResNet or
+    EfficientNet-Lite0), ``num_classes`` outputs."""
+    if arch == "efficientnet_lite0":
+        from .efficientnet import make_lite0
+
+        return make_lite0(num_classes=num_classes, seed=seed)
+    return make_resnet(arch, num_classes=num_classes, seed=seed, empty=empty)
+
+
 def load_classifier(path: str | os.PathLike[str], *, device: str = "auto", batch_size: int = 256) -> ResNetClassifier:
     sd, meta = read_classifier_file(path)
     arch = meta["arch"]
-    model = make_resnet(arch, num_classes=len(meta["classes"]), empty=True)
-    load_strict(model, sd, arch=arch, source=str(path))
+    model = make_recognizer(arch, num_classes=len(meta["classes"]), empty=True)
+    if arch == "efficientnet_lite0":
+        try:
+            model.load_state_dict(sd, strict=True)
+        except RuntimeError as exc:
+            raise WeightsError(f"{path}: cannot load into {arch} ({str(exc).splitlines()[0]})") from None
+        model.eval()
+    else:
+        load_strict(model, sd, arch=arch, source=str(path))
     return ResNetClassifier(model, arch=arch, classes=tuple(meta["classes"]), mean=meta["mean"], std=meta["std"],
                             weights_hash=state_dict_hash(sd), device=device, batch_size=batch_size, meta=meta)
 
@@ -168,10 +194,20 @@ def build_resnet18_classifier(*, path: str | None = None, device: str = "auto", 
                               data: str | None = None) -> ResNetClassifier:
     """The trained ResNet18 recognizer from ``path``; ``path=None`` means the default
     location for dataset ``data`` (``uevavd prepare`` passes it)."""
+    return _build_classifier("resnet18", path, device, batch_size, data)
+
+
+def build_efficientnet_lite0_classifier(*, path: str | None = None, device: str = "auto", batch_size: int = 256,
+                                        data: str | None = None) -> ResNetClassifier:
+    """The trained EfficientNet-Lite0 recognizer from ``path`` (as :func:`build_resnet18_classifier`)."""
+    return _build_classifier("efficientnet_lite0", path, device, batch_size, data)
+
+
+def _build_classifier(arch: str, path: str | None, device: str, batch_size: int, data: str | None):
     if path is None:
         if data is None:
             raise WeightsError(
-                "classifier resnet18: no path given and no dataset to find the default one; pass "
+                f"classifier {arch}: no path given and no dataset to find the default one; pass "
                 "path=FILE (from `uevavd train-classifier DATA --out FILE`)"
             )
         default = default_classifier_path(data)
@@ -182,6 +218,7 @@ def build_resnet18_classifier(*, path: str | None = None, device: str = "auto", 
             )
         path = str(default)
     clf = load_classifier(path, device=device, batch_size=batch_size)
-    if clf.arch != "resnet18":
-        raise WeightsError(f"{path}: a {clf.arch} classifier, but the 'resnet18' classifier was asked for")
+    if clf.arch != arch:
+        raise WeightsError(f"{path}: a {clf.arch} classifier, but the {arch!r} classifier was asked for; set "
+                           f"[perception.classifier] name = {clf.arch!r} (--set perception.classifier.name={clf.arch})")
     return clf

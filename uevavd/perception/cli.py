@@ -18,6 +18,11 @@ def add_train_classifier(p: argparse.ArgumentParser):
     p.add_argument("--out", default=None,
                    help="output .safetensors (default: <cache>/classifiers/<data hash>.safetensors, "
                         "where `uevavd prepare` looks)")
+    p.add_argument("--arch", default=d.arch, choices=["resnet18", "efficientnet_lite0"],
+                   help="recognizer network (the paper's is resnet18)")
+    p.add_argument("--init", default=d.init, choices=["imagenet", "random"],
+                   help="initial weights: ImageNet (resnet18: torch's cache or --imagenet, else random with a "
+                        "warning; efficientnet_lite0: its installed package) or random")
     p.add_argument("--epochs", type=int, default=d.epochs)
     p.add_argument("--batch-size", type=int, default=d.batch_size)
     p.add_argument("--lr", type=float, default=d.lr)
@@ -39,7 +44,7 @@ def add_train_classifier(p: argparse.ArgumentParser):
             import torch
 
             torch.set_num_threads(args.threads)
-        s = TrainSettings(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        s = TrainSettings(arch=args.arch, init=args.init, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, seed=args.seed, max_views=args.max_views)
         path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers)
         print(path)

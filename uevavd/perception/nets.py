@@ -66,12 +66,13 @@ class BatchRunner:
 
     def __init__(self, model: torch.nn.Module, *, device: str = "auto", batch_size: int = 256,
                  mean: tuple[float, ...] = IMAGENET_MEAN, std: tuple[float, ...] = IMAGENET_STD,
-                 post=None):
+                 post=None, fold: bool = True):
         if int(batch_size) < 1:
             raise ValueError(f"batch_size={batch_size}: expected a positive integer")
         self.device = resolve_device(device)
         self.batch_size = int(batch_size)
-        self.model = fold_batchnorm(model.eval()).to(self.device, memory_format=torch.channels_last)
+        model = fold_batchnorm(model.eval()) if fold else model.eval()
+        self.model = model.to(self.device, memory_format=torch.channels_last)
         for p in self.model.parameters():
             p.requires_grad_(False)
         shape = (1, 3, 1, 1)

@@ -215,23 +215,36 @@ def _probs_path(probs_dir: Path | None, manifest, scene: str, recs: list) -> Pat
     return probs_dir / f"{scene}-{dataset_fingerprint(manifest, [(scene, recs)])}.npy"
 
 
-def _cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
+def _features_dir(out_dir: Path, parts: Mapping[str, Any]) -> Path:
+    """Where encoder features of scenes are cached: keyed by everything that makes them
+    (segmenter, decomposition, gray seed, encoder; not the classifier), so the tables of
+    several recognizers over the same views encode each view once."""
+    keep = {k: parts[k] for k in ("schema_version", "segmenter", "decompose", "gray_seed", "encoder")}
+    return out_dir / "features" / hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarray | None:
     if path is None or not path.is_file():
         return None
     try:
-        probs = np.load(path, allow_pickle=False)
+        arr = np.load(path, allow_pickle=False)
     except Exception:  # noqa: BLE001 - unreadable: recomputed
         return None
-    ok = probs.shape == (N_VIEWS, n_classes) and probs.dtype == np.float32 and bool(np.isfinite(probs).all())
-    return probs if ok else None
+    ok = arr.shape == shape and arr.dtype == dtype and bool(np.isfinite(arr).all())
+    return arr if ok else None
 
 
-def _save_probs(path: Path, probs: np.ndarray) -> None:
+def _cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
+    return _cached_array(path, (N_VIEWS, n_classes), np.float32)
+
+
+def _save_array(path: Path, array: np.ndarray) -> None:
+    """``np.save`` written atomically (temp file, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
-            np.save(fh, probs)
+            np.save(fh, array)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -239,7 +252,15 @@ def _save_probs(path: Path, probs: np.ndarray) -> None:
 
 
 def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw,
-                   probs_path: Path | None = None):
+                   probs_path: Path | None = None, features_path: Path | None = None):
+    features = _cached_array(features_path, (N_VIEWS, encoder.feature_dim), np.float16)
+    if features is not None:
+        probs = _cached_probs(probs_path, len(classifier.classes))
+        if probs is None:
+            probs = classifier.predict_proba(loaded[0]).astype(np.float32)
+            if probs_path is not None:
+                _save_array(probs_path, probs)
+        return _scene_arrays(recs, features, probs, image_hw)
     images, decomposed, maps, cats = loaded
     boxes_px = np.array([r.box for r in recs], np.float32).reshape(-1, 4)
     enc_in = images if decomposed is None else decomposed
@@ -259,7 +280,14 @@ def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_
         if probs is None:
             probs = classifier.predict_proba(images).astype(np.float32)
     if probs_path is not None and not probs_path.is_file():
-        _save_probs(probs_path, probs.astype(np.float32))
+        _save_array(probs_path, probs.astype(np.float32))
+    if features_path is not None and not features_path.is_file():
+        _save_array(features_path, features.astype(np.float16))
+    return _scene_arrays(recs, features, probs, image_hw)
+
+
+def _scene_arrays(recs, features, probs, image_hw) -> dict[str, np.ndarray]:
+    boxes_px = np.array([r.box for r in recs], np.float32).reshape(-1, 4)
     h, w = image_hw
     return {
         "features": features.astype(np.float16),
@@ -360,6 +388,7 @@ def prepare_table(
     partial = out_dir / f"{key}.partial"
     partial.mkdir(parents=True, exist_ok=True)
     probs_dir = out_dir / "probs" / hashlib.sha256(classifier.identity().encode()).hexdigest()[:16]
+    features_dir = _features_dir(out_dir, parts)
     (partial / "key.json").write_text(json.dumps(parts, indent=1, sort_keys=True), encoding="utf-8")
     k = len(TARGETS)
     shards: dict[str, dict[str, np.ndarray]] = {}
@@ -380,7 +409,8 @@ def prepare_table(
             nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], segmenter, gray_seed) if i + 1 < len(todo) else None
             arrays = _compute_scene(scene, recs, loaded, segmenter=segmenter, encoder=encoder,
                                     classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size,
-                                    probs_path=_probs_path(probs_dir, manifest, scene, recs))
+                                    probs_path=_probs_path(probs_dir, manifest, scene, recs),
+                                    features_path=_probs_path(features_dir, manifest, scene, recs))
             _write_shard(partial / f"{scene}.npz", arrays)
             shards[scene] = arrays
             bar.update(N_VIEWS)

@@ -36,7 +36,7 @@ def _atomic_write_text(path: Path, text: str) -> None:
 def visibility_report(model, manifest, weights_path: Path, info: dict, *, decoder, max_views: int = 3000,
                       seed: int = 0) -> tuple[Path, Path | None]:
     """Write ``<weights>.md`` (and ``<weights>.png`` when there are training contexts)."""
-    from .train import predict
+    from .train import input_norm, predict
 
     recs = [r for r in manifest.records if r.split == "train" and r.visible is not None]
     rng = np.random.default_rng(seed)
@@ -60,7 +60,7 @@ def visibility_report(model, manifest, weights_path: Path, info: dict, *, decode
         images = decoder.images([r.image for r in recs])
         labels = np.array([TARGETS.index(r.target) for r in recs])
         visible = np.array([r.visible for r in recs], np.float64)
-        correct = predict(model, images).argmax(1) == labels
+        correct = predict(model, images, norm=input_norm(info["settings"].get("arch", "resnet18"))).argmax(1) == labels
         rows = accuracy_by_visibility(correct, visible)
         lines += [
             f"## Accuracy against visible fraction (training contexts, {len(recs)} views)",

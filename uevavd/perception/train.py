@@ -1,11 +1,13 @@
 """Training the recognition classifier (``uevavd train-classifier``).
 
-A torchvision ResNet18 on the unoccluded ``train_605`` crops of the five targets. A share
+A torchvision ResNet18 (the paper's recognizer) or an EfficientNet-Lite0 on the unoccluded
+``train_605`` crops of the five targets (``TrainSettings.arch``). A share
 of the *viewpoints* (the same views for every target) is held out for validation.
 Augmentation keeps the task honest: photometric jitter (brightness, contrast,
 saturation), small shifts and scale; no flips or rotations (orientation is fixed by the
-camera model). Initial weights: ImageNet when the user names a file or torch's cache has
-it, else random (with a logged warning).
+camera model). Initial weights (``TrainSettings.init``): ImageNet (ResNet18: when the user
+names a file or torch's cache has it, else random with a logged warning; Lite0: from its
+installed package), or random.
 """
 
 from __future__ import annotations
@@ -34,8 +36,13 @@ from .weights import (
 log = logging.getLogger(__name__)
 
 
+ARCHS = ("resnet18", "efficientnet_lite0")
+
+
 @dataclass
 class TrainSettings:
+    arch: str = "resnet18"  #: "resnet18" (the paper's) or "efficientnet_lite0"
+    init: str = "imagenet"  #: "imagenet" or "random"
     epochs: int = 12
     batch_size: int = 32
     lr: float = 3e-3
@@ -50,6 +57,10 @@ class TrainSettings:
     max_views: int | None = None  #: use only this many viewpoints (seeded sample) for train + val
 
     def check(self) -> None:
+        if self.arch not in ARCHS:
+            raise ValueError(f"arch={self.arch!r}: expected one of {list(ARCHS)}")
+        if self.init not in ("imagenet", "random"):
+            raise ValueError(f"init={self.init!r}: expected 'imagenet' or 'random'")
         if self.epochs < 1 or self.batch_size < 1:
             raise ValueError(f"epochs={self.epochs}, batch_size={self.batch_size}: expected positive integers")
         if not 0.0 < self.val_fraction < 1.0:
@@ -74,9 +85,28 @@ def sample_views(views: np.ndarray, settings: TrainSettings) -> np.ndarray:
     return np.sort(rng.choice(views, settings.max_views, replace=False))
 
 
-def initial_model(imagenet: str | None, n_classes: int, seed: int) -> tuple[torch.nn.Module, str]:
-    """ResNet18 with a fresh ``n_classes`` head; backbone from ImageNet when available."""
+def input_norm(arch: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The (mean, std) an architecture's ImageNet weights expect, on [0, 1] RGB."""
+    if arch == "efficientnet_lite0":
+        from .efficientnet import LITE_MEAN, LITE_STD
+
+        return LITE_MEAN, LITE_STD
+    return IMAGENET_MEAN, IMAGENET_STD
+
+
+def initial_model(imagenet: str | None, n_classes: int, seed: int, *, arch: str = "resnet18",
+                  init: str = "imagenet") -> tuple[torch.nn.Module, str]:
+    """A recognizer with a fresh ``n_classes`` head; backbone from ImageNet when asked and
+    available (ResNet18: ``imagenet`` file or torch's cache; Lite0: its package)."""
+    if arch == "efficientnet_lite0":
+        from .efficientnet import LITE0_FILE, imagenet_backbone, make_lite0
+
+        if init == "random":
+            return make_lite0(num_classes=n_classes, seed=seed), f"random:{seed}"
+        return imagenet_backbone(num_classes=n_classes, seed=seed), f"imagenet:{LITE0_FILE}"
     model = make_resnet("resnet18", num_classes=n_classes, seed=seed)
+    if init == "random":
+        return model, f"random:{seed}"
     path: Path | None = Path(imagenet) if imagenet else None
     if path is None:
         try:
@@ -113,9 +143,9 @@ def augment(x: torch.Tensor, s: TrainSettings, gen: torch.Generator) -> torch.Te
     return F.grid_sample(x, grid, mode="bilinear", padding_mode="border", align_corners=False)
 
 
-def _normalise(x: torch.Tensor) -> torch.Tensor:
-    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+def _normalise(x: torch.Tensor, norm=(IMAGENET_MEAN, IMAGENET_STD)) -> torch.Tensor:
+    mean = torch.tensor(norm[0]).view(1, 3, 1, 1)
+    std = torch.tensor(norm[1]).view(1, 3, 1, 1)
     return ((x - mean) / std).contiguous(memory_format=torch.channels_last)
 
 
@@ -124,10 +154,12 @@ def _to_float(images: np.ndarray) -> torch.Tensor:
 
 
 @torch.inference_mode()
-def predict(model: torch.nn.Module, images: np.ndarray, batch_size: int = 256) -> np.ndarray:
-    """(N, H, W, 3) uint8 -> (N, K) float32 probabilities (CPU, eval mode)."""
+def predict(model: torch.nn.Module, images: np.ndarray, batch_size: int = 256, *,
+            norm=(IMAGENET_MEAN, IMAGENET_STD)) -> np.ndarray:
+    """(N, H, W, 3) uint8 -> (N, K) float32 probabilities (CPU, eval mode); ``norm``: the
+    (mean, std) of :func:`input_norm`."""
     model.eval()
-    out = [torch.softmax(model(_normalise(_to_float(images[i : i + batch_size]))), 1)
+    out = [torch.softmax(model(_normalise(_to_float(images[i : i + batch_size]), norm)), 1)
            for i in range(0, len(images), batch_size)]
     return torch.cat(out).numpy() if out else np.zeros((0, 0), np.float32)
 
@@ -143,6 +175,10 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tra
 
     settings.check()
     images, labels, views = np.asarray(images), np.asarray(labels, np.int64), np.asarray(views, np.int64)
+    if settings.arch == "efficientnet_lite0":
+        from .efficientnet import check_size
+
+        check_size(images, "train-classifier")
     all_views = sample_views(np.unique(views), settings)
     val_views = all_views[split_views(len(all_views), settings.val_fraction, settings.seed)]
     is_val = np.isin(views, val_views)
@@ -150,7 +186,8 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tra
     tr, va = np.flatnonzero(used & ~is_val), np.flatnonzero(is_val)
     if len(tr) == 0 or len(va) == 0:
         raise ValueError(f"{len(images)} crops leave {len(tr)} for training and {len(va)} for validation")
-    model, init = initial_model(imagenet, n_classes, settings.seed)
+    model, init = initial_model(imagenet, n_classes, settings.seed, arch=settings.arch, init=settings.init)
+    norm = input_norm(settings.arch)
     model = model.to(memory_format=torch.channels_last)
     gen = torch.Generator().manual_seed(settings.seed)
     steps_per_epoch = math.ceil(len(tr) / settings.batch_size)
@@ -166,7 +203,7 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tra
         losses = []
         for i in range(0, len(order), settings.batch_size):
             idx = order[i : i + settings.batch_size]
-            x = _normalise(augment(_to_float(images[idx]), settings, gen))
+            x = _normalise(augment(_to_float(images[idx]), settings, gen), norm)
             loss = F.cross_entropy(model(x), torch.from_numpy(labels[idx]))
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -175,7 +212,7 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tra
             losses.append(loss.item())
             bar.update(1)
             bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.3f}")
-        acc = float((predict(model, images[va]).argmax(1) == labels[va]).mean())
+        acc = float((predict(model, images[va], norm=norm).argmax(1) == labels[va]).mean())
         history.append({"epoch": epoch + 1, "loss": float(np.mean(losses)), "val_accuracy": acc})
         bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses):.3f}", val_acc=f"{acc:.3f}")
     bar.close()
@@ -220,11 +257,11 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
         views = np.array([r.view for r in recs], np.int64)
         model, info = fit(images, labels, views, settings, imagenet=imagenet, progress=progress)
         meta = {
-            "arch": "resnet18",
+            "arch": settings.arch,
             "classes": list(TARGETS),
             "input_size": list(images.shape[1:3]),
-            "mean": list(IMAGENET_MEAN),
-            "std": list(IMAGENET_STD),
+            "mean": list(input_norm(settings.arch)[0]),
+            "std": list(input_norm(settings.arch)[1]),
             "data_hash": digest,
             "data_root": str(Path(data).resolve()),
             "train": {k: v for k, v in info.items() if k != "val_views"},

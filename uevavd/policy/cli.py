@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 #: What bad input raises (ConfigError, TableError, RunDirError, CheckpointError are ValueErrors).
 BAD_INPUT = (ValueError, FileNotFoundError, NotADirectoryError)
 
@@ -133,16 +135,21 @@ def _evaluate(args: argparse.Namespace) -> int:
     cfg = EnvConfig().replace(**settings["env"])
     policies = {
         settings["method"]: load_policy(args.run_dir, device=args.device),
-        "random": RandomPolicy(0), "passive": PassivePolicy(), "oracle": OraclePolicy(table, cfg),
+        "random": RandomPolicy(0), "passive": PassivePolicy(),
     }
+    if not np.isnan(table.visible).all():  # the visibility oracle needs visible fractions
+        from ..env.visibility_oracle import VisibilityOraclePolicy
+
+        policies["visibility_oracle"] = VisibilityOraclePolicy(table, cfg)
+    policies["oracle"] = OraclePolicy(table, cfg)  # knows the class: an upper bound
     results = {name: evaluate_policy(table, args.split, pol, cfg, device=args.device)
                for name, pol in policies.items()}
     cols = ["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"]
     print(f"{args.run_dir} on split {args.split!r} ({len(next(iter(results.values())))} episodes)")
-    print(f"{'policy':<12}" + "".join(f"{c:>18}" for c in cols))
+    print(f"{'policy':<18}" + "".join(f"{c:>18}" for c in cols))
     for name, res in results.items():
         s = res.summary()
-        print(f"{name:<12}" + "".join(f"{s[c]:>18.4f}" for c in cols))
+        print(f"{name:<18}" + "".join(f"{s[c]:>18.4f}" for c in cols))
     path = args.json or args.run_dir / f"eval_{args.split}.json"
     from .trainer import _write_json
 

