@@ -4,6 +4,7 @@ imported only when invoked, so ``uevavd --help`` stays fast."""
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import sys
@@ -33,6 +34,17 @@ def bad_input_types() -> tuple[type[BaseException], ...]:
     from .plugins.registry import UnknownComponentError
 
     return (ValueError, FileNotFoundError, UnknownComponentError)
+
+
+#: OS faults that are the machine's state, not a bug: a full disk, a read-only or forbidden
+#: folder, a path that is a file where a folder is needed (and the reverse).
+OS_FAULTS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.EISDIR,
+                       errno.ENOTDIR, errno.EEXIST})
+
+
+def os_fault(exc: BaseException) -> bool:
+    """True for an :data:`OS_FAULTS` ``OSError``: reported in one line like bad input."""
+    return isinstance(exc, OSError) and exc.errno in OS_FAULTS
 
 
 def error(command: str, exc: BaseException) -> int:
@@ -79,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
             print("interrupted; finished work is kept and a rerun resumes", file=sys.stderr)
             return 130
         except Exception as exc:  # noqa: BLE001 - bad input is one line; anything else propagates
-            if isinstance(exc, bad_input_types()):
+            if isinstance(exc, bad_input_types()) or os_fault(exc):
                 return error(name, exc)
             raise
     args = parser.parse_args(argv)

@@ -120,3 +120,22 @@ def test_synthetic_world_validates_and_hashes(synthetic_root, tmp_path):
     problems = validate(root, progress=False).problems
     assert victim in {p.path for p in problems if p.kind == "hash_mismatch"}
     assert all(p.path == victim for p in problems)
+
+
+def test_a_listed_scene_folder_that_is_missing_is_named_once(synthetic_root, tmp_path, capsys):
+    """The dataset card and manifest.json list scene 026: without its folder, read_dataset
+    (and so prepare and ablate --data) refuses the root naming the scene, and validate says
+    so once instead of a line per missing file (it used to drop the scene silently)."""
+    import shutil
+
+    from uevavd.data.reader import DatasetError, read_dataset
+
+    root = tmp_path / "copy"
+    shutil.copytree(synthetic_root, root)
+    (root / "027").mkdir()  # an empty second scene keeps the root a dataset
+    shutil.rmtree(root / "026")
+    with pytest.raises(DatasetError, match="scene 026 is listed in uevavd.json but its folder is missing"):
+        read_dataset(root)
+    problems = validate(root, progress=False).problems
+    assert [p.kind for p in problems].count("missing_scene") == 1
+    assert not [p for p in problems if "026" in str(p.path) and p.kind != "missing_scene"]

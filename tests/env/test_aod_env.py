@@ -191,3 +191,21 @@ def test_env_section_of_method_configs_is_envconfig():
         validate({"name": "m", "env": {"tmax": 3}})
     uevavd.env.register()  # idempotent
     assert "uevavd/AOD-v0" in gym.registry
+
+
+@pytest.mark.filterwarnings("ignore:.*different from the unwrapped version")
+def test_check_env_passes_on_a_table_without_visible_fractions_and_through_gym_make(table):
+    """The real release (and from_arrays' default) has no visible fractions: the env used to
+    put NaN in info, and NaN != NaN failed Gymnasium's determinism check. DiscreteActions
+    around gym.make(...) used to break env.spec.make() and so check_env."""
+    from uevavd.perception.table import ObservationTable
+
+    bare = ObservationTable.from_arrays(table.features, table.probs, table.boxes, scenes=table.scenes,
+                                        targets=table.targets, splits=table.splits, contexts=table.contexts)
+    env = AODEnv(bare, "train")
+    _, info = env.reset(seed=0)
+    assert "visible" not in info
+    check_env(env, skip_render_check=True)
+    wrapped = DiscreteActions(gym.make("uevavd/AOD-v0", table=bare, split="train"))
+    check_env(wrapped, skip_render_check=True)
+    assert wrapped.spec.make().action_space == gym.spaces.Discrete(28)

@@ -386,3 +386,18 @@ def test_two_recognizers_give_their_own_classifiers_tables_and_runs(tiny):
     jobs = plan_jobs(plan, tables)
     assert sorted({(j.method, j.recognizer) for j in jobs}) == [("ibe_map", 0), ("ibe_map", 1), ("map", 0), ("map", 1)]
     assert len({j.out for j in jobs}) == len(jobs)
+
+
+def test_threads_follow_the_workers_asked_for_not_the_runs_left(monkeypatch):
+    """A resumed ablation with one run left gives it the thread count an uninterrupted one
+    gave it (cores // workers), so its weights are the same (it used to get every core)."""
+    import uevavd.experiments.backends as backends
+
+    monkeypatch.setattr(backends.os, "cpu_count", lambda: 4)
+    seen = []
+    monkeypatch.setattr(backends, "run_local", lambda jobs, workers, log: seen.extend(jobs) or [])
+    from uevavd.experiments.runner import Job
+
+    job = Job("map", "default", 0, "spec.toml", "table", "out")
+    backends.run_jobs([job], workers=2)
+    assert seen[0].threads == 2

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -406,7 +407,7 @@ def test_table_written_by_hand_is_refused(tmp_path):
     assert ObservationTable.load(copy).verify().key == ObservationTable.load(good).key
     # a table without the record (an older uevavd) is scanned in full at load
     meta = json.loads((copy / "meta.json").read_text())
-    del meta["integrity"]
+    del meta["integrity"], meta["meta_sha256"]  # neither existed then
     (copy / "meta.json").write_text(json.dumps(meta))
     _poke(copy / "features.npy", np.inf)
     os.utime(copy / "features.npy", ns=(0, 0))
@@ -468,3 +469,58 @@ encoder = { name = "resnet18", weights = "classifier" }
 classifier = { name = "resnet18" }
 decompose = false
 """
+
+
+def test_an_edited_meta_json_is_refused(tmp_path):
+    """meta.json is under the integrity check: swapped targets or splits are refused by
+    load() (they would change every reward), naming the file."""
+    path = _small_table().save(tmp_path / "t")
+    good = ObservationTable.load(path)
+    for key, change in (("targets", lambda m: [(t + 1) % 5 for t in m["targets"]]),
+                        ("splits", lambda m: ["hard"] * len(m["splits"]))):
+        copy = tmp_path / key
+        shutil.copytree(path, copy)
+        meta = json.loads((copy / "meta.json").read_text())
+        meta[key] = change(meta)
+        assert meta[key] != json.loads((path / "meta.json").read_text())[key]
+        (copy / "meta.json").write_text(json.dumps(meta))
+        with pytest.raises(TableError, match="meta.json was changed after the table was written"):
+            ObservationTable.load(copy)
+    assert ObservationTable.load(path).key == good.key
+
+
+def test_an_empty_array_file_is_a_table_error_and_prepare_rebuilds(built, tiny_world, tiny_classifier, tmp_path):
+    """A zero-byte features.npy (a killed copy, a full disk): one TableError naming the
+    file, not an EOFError traceback; prepare rebuilds the table."""
+    method, path = built
+    copy_root = tmp_path / "tables"
+    shutil.copytree(path.parent, copy_root)
+    broken = copy_root / path.name
+    (broken / "features.npy").write_bytes(b"")
+    with pytest.raises(TableError, match="features.npy: unreadable array.*rebuild"):
+        ObservationTable.load(broken)
+    rebuilt = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=copy_root,
+                                 progress=False)
+    assert rebuilt == broken and ObservationTable.load(rebuilt).verify().key == ObservationTable.load(path).key
+
+
+def test_two_prepares_of_one_key_at_once_both_get_the_table(tiny_world, tiny_classifier, method_toml, tmp_path):
+    """Two ablations sharing UEVAVD_CACHE build the same table at the same moment (two
+    processes): the second waits on the key's file lock and finds the first's table (it used
+    to fail on the first's vanished .partial folder)."""
+    import subprocess
+    import sys
+
+    method = tmp_path / "tiny.toml"
+    method.write_text(method_toml.format(decompose="false"))
+    code = ("import sys, torch; torch.set_num_threads(1); from uevavd.perception.prepare import prepare_table; "
+            "print(prepare_table(sys.argv[1], sys.argv[2], classifier_path=sys.argv[3], out_dir=sys.argv[4], "
+            "workers=1, progress=False))")
+    args = [sys.executable, "-c", code, str(tiny_world), str(method), str(tiny_classifier), str(tmp_path / "shared")]
+    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err[-2000:] for _, err in outs]
+    paths = {out.strip().splitlines()[-1] for out, _ in outs}
+    assert len(paths) == 1
+    path = Path(paths.pop())
+    assert ObservationTable.load(path).verify().key == path.name

@@ -118,10 +118,20 @@ def register_heads(registry):
 """
 
 
+MISSPELLED = """
+from uevavd.plugins import hookimpl
+
+@hookimpl
+def register_encoder(registry):
+    registry.add("misspelled_enc", "fakeplug_broken:b")
+"""
+
+
 @pytest.mark.parametrize(
     "source, needle",
-    [(BROKEN_IMPORT, "boom at import"), (BAD_SIGNATURE, "extra"), (HALF, "second hook fails")],
-    ids=["import-error", "bad-signature", "hook-raises"],
+    [(BROKEN_IMPORT, "boom at import"), (BAD_SIGNATURE, "extra"), (HALF, "second hook fails"),
+     (MISSPELLED, "unknown hook 'register_encoder'")],
+    ids=["import-error", "bad-signature", "hook-raises", "misspelled-hook"],
 )
 def test_broken_plugin_is_skipped_with_a_warning(site, source, needle):
     make_dist(site, "fake-broken", "0.9", "fakeplug_broken", source)

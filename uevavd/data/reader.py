@@ -498,6 +498,32 @@ def _check_scene(sid, scene_dir, records, seen, size, problems) -> None:
                                     f"missing {len(missing)}: {listed}{more}"))
 
 
+def listed_scenes(root: Path) -> dict[str, str]:
+    """``{scene folder name: the file that lists it}`` from the dataset card's ``scenes`` and
+    the first path component of ``manifest.json``'s files (files at the root excluded);
+    unreadable files list nothing (``validate`` reports them)."""
+    import json
+
+    out: dict[str, str] = {}
+    try:
+        card = json.loads((root / DATASET_CARD).read_text(encoding="utf-8"))
+        for name in card.get("scenes", []) if isinstance(card, dict) else []:
+            out.setdefault(str(name), DATASET_CARD)
+    except (OSError, ValueError):
+        pass
+    try:
+        raw = json.loads((root / MANIFEST).read_text(encoding="utf-8"))
+        files = raw.get("files", raw) if isinstance(raw, dict) else raw
+        names = files.keys() if isinstance(files, dict) else (
+            f.get("path", "") for f in files if isinstance(f, dict)) if isinstance(files, list) else ()
+        for rel in names:
+            if isinstance(rel, str) and "/" in rel:
+                out.setdefault(rel.split("/", 1)[0], MANIFEST)
+    except (OSError, ValueError):
+        pass
+    return out
+
+
 def scan(root: str | Path, *, check: bool = True) -> tuple[Manifest, list[Problem]]:
     """Read ``root`` without raising: the manifest of every record that parsed, and the
     list of problems (checks as in :func:`read_dataset`)."""
@@ -515,6 +541,10 @@ def scan(root: str | Path, *, check: bool = True) -> tuple[Manifest, list[Proble
         scene_dirs[sid.name] = scene_dir
         if size is not None:
             sizes[size].append(scene_dir)
+    for name, where in listed_scenes(root).items():
+        if name not in scene_dirs:
+            problems.append(Problem("missing_scene", root / name, f"scene {name} is listed in {where} but its "
+                                    "folder is missing: restore it (or regenerate the dataset)"))
     ranked = sorted(sizes.items(), key=lambda kv: (-len(kv[1]), kv[0]))
     if check and len(ranked) > 1:
         (common, _), rest = ranked[0], ranked[1:]

@@ -136,28 +136,49 @@ def _ranges(ids: Iterable[int]) -> str:
     return ", ".join(parts)
 
 
-def check_image_bytes(data: bytes, path: Path, *, seg: bool = False) -> tuple[tuple[int, int] | None, str | None]:
-    """Force-decode one image: ``((H, W), None)`` or ``(None, error message)``.
-
-    PNGs must end with their IEND chunk and JPEGs with an EOI marker (a truncated file
-    is an error even where the decoder would fill in the rest); segmentation PNGs must
-    be single-channel.
-    """
-    import cv2
-
+def container_problem(data: bytes) -> str | None:
+    """What is wrong with an image file's bytes before decoding, or None: empty, an unknown
+    signature, a PNG without its IEND chunk or a JPEG without its end-of-image marker at the
+    end (a truncated file is an error even where the decoder would fill in the rest, as
+    OpenCV fills a truncated JPEG with gray)."""
     if not data:
-        return None, "empty file; expected a PNG or JPEG image"
+        return "empty file; expected a PNG or JPEG image"
     if data[:8] == b"\x89PNG\r\n\x1a\n":
         if not data.rstrip(b"\x00").endswith(_PNG_END):
-            return None, f"truncated PNG ({len(data)} bytes, no IEND chunk at the end); re-copy or regenerate it"
+            return f"truncated PNG ({len(data)} bytes, no IEND chunk at the end); re-copy or regenerate it"
     elif data[:2] == b"\xff\xd8":
         if b"\xff\xd9" not in data[-16:]:
-            return None, f"truncated JPEG ({len(data)} bytes, no end-of-image marker); re-copy or regenerate it"
+            return f"truncated JPEG ({len(data)} bytes, no end-of-image marker); re-copy or regenerate it"
     else:
-        return None, "not a PNG or JPEG file (unknown signature)"
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        return "not a PNG or JPEG file (unknown signature)"
+    return None
+
+
+def decode_bytes(data: bytes, flags: int | None = None):
+    """``(image, None)`` or ``(None, error message)``: :func:`container_problem`, then
+    OpenCV's decode, whose own refusals (a header claiming 60000 x 60000 pixels, corrupt data)
+    become a message instead of a ``cv2.error``."""
+    import cv2
+
+    problem = container_problem(data)
+    if problem:
+        return None, problem
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED if flags is None else flags)
+    except cv2.error as exc:
+        text = str(exc).strip().splitlines()[-1].strip() if str(exc).strip() else "decoder error"
+        return None, f"cannot be decoded ({text}); re-copy or regenerate it"
     if img is None or img.size == 0:
         return None, "cannot be decoded (corrupt image data); re-copy or regenerate it"
+    return img, None
+
+
+def check_image_bytes(data: bytes, path: Path, *, seg: bool = False) -> tuple[tuple[int, int] | None, str | None]:
+    """Force-decode one image: ``((H, W), None)`` or ``(None, error message)``
+    (:func:`decode_bytes`); segmentation PNGs must be single-channel."""
+    img, err = decode_bytes(data)
+    if err:
+        return None, err
     if seg and img.ndim != 2:
         return None, f"segmentation has shape {img.shape}; expected a single-channel (H, W) uint16 PNG"
     if not seg and img.ndim == 3 and img.shape[2] not in (3, 4):
@@ -229,7 +250,10 @@ def validate(root: str | Path, *, decode_images: bool = True, workers: int = 2,
         items += [(r.image, False, r.image in hashes) for r in manifest.records]
         items += [(r.seg, True, r.seg in hashes) for r in manifest.records if r.seg is not None]
     covered = {p for p, _, _ in items}
-    items += [(p, None, True) for p in sorted(hashes) if p not in covered]
+    # a missing scene is one problem (from the reader), not one per file it held
+    gone = {root / p.path.name for p in problems if p.kind == "missing_scene"}
+    items += [(p, None, True) for p in sorted(hashes) if p not in covered and not any(
+        g in p.parents for g in gone)]
     # Sizes are judged after decoding: drop the reader's header-based verdict.
     problems = [p for p in problems if p.kind != "mixed_sizes" or not decode_images]
     sizes: dict[tuple[int, int], list[Path]] = defaultdict(list)

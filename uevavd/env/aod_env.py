@@ -19,7 +19,8 @@ Observation (``Dict``):
 * ``"t"`` Discrete(T_max + 1): decisions taken so far
 
 ``info``: ``view`` (index), ``xyz`` (metres), ``probs`` (K,) float32, ``visible``
-(fraction, NaN if unknown), ``distance_m`` and ``steps`` flown so far, ``context``,
+(fraction; absent where the table does not know it: a NaN would break Gymnasium's
+determinism check, NaN != NaN), ``distance_m`` and ``steps`` flown so far, ``context``,
 ``scene`` (table index), ``target`` (class index), ``t``; at the end also
 ``recognized``, ``correct`` (argmax == target) and ``return`` (discounted).
 """
@@ -136,11 +137,12 @@ class AODEnv(gym.Env):
 
     def _info(self) -> dict[str, Any]:
         s, v = self._scene, self._view
+        visible = float(self.table.visible[s, v])
         return {
             "view": int(v),
             "xyz": self._coords[v].copy(),
             "probs": np.array(self.table.probs[s, v], dtype=np.float32),
-            "visible": float(self.table.visible[s, v]),
+            **({} if np.isnan(visible) else {"visible": visible}),
             "distance_m": float(self._dist),
             "steps": int(self._steps),
             "context": int(self.table.contexts[s]),

@@ -11,7 +11,7 @@ from gymnasium import spaces
 from ..data.grid import unflat_action
 
 
-class DiscreteActions(gym.Wrapper):
+class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """``MultiDiscrete([7, A])`` -> ``Discrete(7 * A)`` for libraries that need one action
     index (Stable-Baselines3's DQN). Index ``a = type * A + range`` (type-major, as
     :func:`uevavd.data.grid.flat_action`); stop is ``6 * A + r`` for any ``r``.
@@ -21,7 +21,9 @@ class DiscreteActions(gym.Wrapper):
     """
 
     def __init__(self, env: gym.Env) -> None:
-        super().__init__(env)
+        # recorded so that env.spec.make() (and with it gymnasium's check_env) rebuilds the stack
+        gym.utils.RecordConstructorArgs.__init__(self)
+        gym.Wrapper.__init__(self, env)
         nvec = np.asarray(env.action_space.nvec)
         if nvec.shape != (2,) or int(nvec[0]) != 7:
             raise ValueError(f"DiscreteActions wraps a MultiDiscrete([7, A]) env, got {env.action_space}")

@@ -140,6 +140,8 @@ def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame
         f"{', '.join(label(m) for m in BASELINES if m in set(results['method']))}",
         f"- Seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)}) on each of {len(recognizers)} recognizer(s) "
         f"({', '.join(str(r) for r in recognizers)}): {len(seeds) * len(recognizers)} runs per method and setting",
+        *[f"- Perception of {label(m)}: {v}" if m in set(methods) else f"- {m.capitalize()}: {v}"
+          for m, v in (meta.get("perception") or {}).items()],
         f"- Sweeps: {json.dumps(meta.get('sweeps', {}))}; default thre = {DEFAULT_THRE}, C = {DEFAULT_C}",
         f"- Training episodes at the final evaluation point: {', '.join(str(e) for e in episodes) or 'n/a'}"
         " (the paper trains 300,000)",

@@ -625,8 +625,23 @@ def check_out_dir(plan: Plan) -> None:
         )
 
 
+def perception_summary(plan: Plan) -> dict[str, str]:
+    """``{method: "encoder NAME (WEIGHTS), segmenter NAME, recognizer NAME"}`` as the runs
+    see them, and ``{"recognizer training": settings}``: what the report names as the
+    perception every method used."""
+    out = {}
+    for m in plan.methods:
+        p = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)).to_dict().get("perception", {})
+        enc, seg, clf = p.get("encoder", {}), p.get("segmenter", {}), p.get("classifier", {})
+        out[m] = (f"encoder {enc.get('name')} ({enc.get('weights', 'default weights')}), segmenter "
+                  f"{seg.get('name')}{', decomposed' if p.get('decompose') else ''}, recognizer {clf.get('name')}")
+    out["recognizer training"] = json.dumps(plan.preset.get("classifier", {}), sort_keys=True)
+    return out
+
+
 def write_meta(plan: Plan, data: Path | None, status: str) -> None:
     meta = {
+        "perception": perception_summary(plan),
         "preset": plan.preset.get("name"),
         "fingerprint": plan.fingerprint(),
         "methods": plan.methods,

@@ -13,23 +13,33 @@ import numpy as np
 cv2.setNumThreads(1)  # our own pool parallelises; cv2's inner threads would oversubscribe
 
 
-class ImageReadError(OSError):
-    """An image file is missing or cannot be decoded."""
+class ImageReadError(OSError, ValueError):
+    """An image file is missing, truncated or cannot be decoded (bad input: the CLI reports
+    it in one line)."""
+
+
+def _decode(path: str | os.PathLike[str], flags: int, what: str) -> np.ndarray:
+    """Read and decode one file; truncated PNG/JPEG files are refused, not filled in."""
+    from ..data.validate import decode_bytes
+
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise ImageReadError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    img, err = decode_bytes(data, flags)
+    if err:
+        raise ImageReadError(f"{what} {path}: {err}")
+    return img
 
 
 def read_rgb(path: str | os.PathLike[str]) -> np.ndarray:
     """(H, W, 3) uint8 RGB."""
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ImageReadError(f"cannot decode image {path}: missing, truncated or not an image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(_decode(path, cv2.IMREAD_COLOR, "image"), cv2.COLOR_BGR2RGB)
 
 
 def read_instance_map(path: str | os.PathLike[str]) -> np.ndarray:
     """(H, W) uint16 instance ids from a 16-bit (or 8-bit) single-channel PNG."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ImageReadError(f"cannot decode segmentation {path}: missing, truncated or not a PNG")
+    img = _decode(path, cv2.IMREAD_UNCHANGED, "segmentation")
     if img.ndim != 2:
         raise ImageReadError(f"segmentation {path} has shape {img.shape}; expected one channel of instance ids")
     return img.astype(np.uint16, copy=False)

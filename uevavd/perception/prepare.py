@@ -22,11 +22,13 @@ import os
 import shutil
 import tempfile
 from collections.abc import Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from filelock import FileLock
 
 from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
 from ..data.grid import N_VIEWS
@@ -331,6 +333,12 @@ def plan_table(
         spec, data_root, None if classifier_path is None else str(classifier_path))
     if tuple(classifier.classes) != TARGETS:
         raise ValueError(f"classifier classes {list(classifier.classes)}; the table needs {list(TARGETS)}")
+    trained_on = (getattr(classifier, "meta", None) or {}).get("input_size")
+    if trained_on and manifest.image_size and tuple(trained_on) != tuple(manifest.image_size):
+        raise ValueError(
+            f"the recognizer {classifier_path or 'of this dataset'} was trained on {trained_on[0]} x {trained_on[1]} "
+            f"px crops, but {data_root} holds {manifest.image_size[0]} x {manifest.image_size[1]} px views: train "
+            f"one on this dataset (`uevavd train-classifier {data_root}`) or pass the matching --classifier")
     decomposing = segmenter is not None
     if decomposing and getattr(segmenter, "needs_ground_truth", False):
         for scene, recs in scenes:  # fail before any image is decoded
@@ -377,66 +385,72 @@ def prepare_table(
     segmenter, encoder, classifier, gray_seed = p.segmenter, p.encoder, p.classifier, p.gray_seed
     parts, key = p.parts, p.key
     out_dir = Path(out_dir).expanduser() if out_dir is not None else tables_dir()
-    final = out_dir / key
-    if final.is_dir():
-        try:
-            ObservationTable.load(final, expect_key=key)
-            log.info("prepare: table %s already built", final)
-            return final
-        except TableError as exc:
-            log.warning("prepare: existing table %s is unusable (%s); rebuilding", final, exc)
-    partial = out_dir / f"{key}.partial"
-    partial.mkdir(parents=True, exist_ok=True)
-    probs_dir = out_dir / "probs" / hashlib.sha256(classifier.identity().encode()).hexdigest()[:16]
-    features_dir = _features_dir(out_dir, parts)
-    (partial / "key.json").write_text(json.dumps(parts, indent=1, sort_keys=True), encoding="utf-8")
-    k = len(TARGETS)
-    shards: dict[str, dict[str, np.ndarray]] = {}
-    todo = []
-    for scene, recs in scenes:
-        done = _read_shard(partial / f"{scene}.npz", encoder.feature_dim, k)
-        if done is None:
-            if only_scenes is None or scene in only_scenes:
-                todo.append((scene, recs))
-        else:
-            shards[scene] = done
-    bar = tqdm(total=len(scenes) * N_VIEWS, initial=len(shards) * N_VIEWS, desc=f"prepare {key[:8]}",
-               unit="view", disable=not progress)
-    with Decoder(workers) as dec:
-        nxt = dec.submit(_load_scene, dec, manifest, *todo[0], segmenter, gray_seed) if todo else None
-        for i, (scene, recs) in enumerate(todo):
-            loaded = nxt.result()
-            nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], segmenter, gray_seed) if i + 1 < len(todo) else None
-            arrays = _compute_scene(scene, recs, loaded, segmenter=segmenter, encoder=encoder,
-                                    classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size,
-                                    probs_path=_probs_path(probs_dir, manifest, scene, recs),
-                                    features_path=_probs_path(features_dir, manifest, scene, recs))
-            _write_shard(partial / f"{scene}.npz", arrays)
-            shards[scene] = arrays
-            bar.update(N_VIEWS)
-    bar.close()
-    if not assemble:
-        return partial
-    names = [s for s, _ in scenes]
-    stack = {a: np.stack([shards[s][a] for s in names]) for a in SHARD_ARRAYS}
-    config = {
-        "method": spec.name,
-        "method_hash": spec.hash,
-        "perception": spec.to_dict().get("perception", {}),
-        "key_parts": parts,
-        "data_root": str(data_root),
-    }
-    table = ObservationTable.from_arrays(
-        stack["features"], stack["probs"], stack["boxes"], visible=stack["visible"],
-        scenes=names,
-        targets=[recs[0].target for _, recs in scenes],
-        splits=[recs[0].split for _, recs in scenes],
-        contexts=[recs[0].context for _, recs in scenes],
-        config=config, key=key,
-    )
-    table.save(final)
-    shutil.rmtree(partial, ignore_errors=True)
-    return final
+    out_dir.mkdir(parents=True, exist_ok=True)
+    # One build per key at a time: a second prepare of the same table (another ablation on the
+    # same UEVAVD_CACHE) waits here, then finds the table built. Ray shards share the partial
+    # folder on purpose and take no lock.
+    lock = FileLock(str(out_dir / f".{key}.lock")) if only_scenes is None and assemble else nullcontext()
+    with lock:
+        final = out_dir / key
+        if final.is_dir():
+            try:
+                ObservationTable.load(final, expect_key=key)
+                log.info("prepare: table %s already built", final)
+                return final
+            except TableError as exc:
+                log.warning("prepare: existing table %s is unusable (%s); rebuilding", final, exc)
+        partial = out_dir / f"{key}.partial"
+        partial.mkdir(parents=True, exist_ok=True)
+        probs_dir = out_dir / "probs" / hashlib.sha256(classifier.identity().encode()).hexdigest()[:16]
+        features_dir = _features_dir(out_dir, parts)
+        (partial / "key.json").write_text(json.dumps(parts, indent=1, sort_keys=True), encoding="utf-8")
+        k = len(TARGETS)
+        shards: dict[str, dict[str, np.ndarray]] = {}
+        todo = []
+        for scene, recs in scenes:
+            done = _read_shard(partial / f"{scene}.npz", encoder.feature_dim, k)
+            if done is None:
+                if only_scenes is None or scene in only_scenes:
+                    todo.append((scene, recs))
+            else:
+                shards[scene] = done
+        bar = tqdm(total=len(scenes) * N_VIEWS, initial=len(shards) * N_VIEWS, desc=f"prepare {key[:8]}",
+                   unit="view", disable=not progress)
+        with Decoder(workers) as dec:
+            nxt = dec.submit(_load_scene, dec, manifest, *todo[0], segmenter, gray_seed) if todo else None
+            for i, (scene, recs) in enumerate(todo):
+                loaded = nxt.result()
+                nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], segmenter, gray_seed) if i + 1 < len(todo) else None
+                arrays = _compute_scene(scene, recs, loaded, segmenter=segmenter, encoder=encoder,
+                                        classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size,
+                                        probs_path=_probs_path(probs_dir, manifest, scene, recs),
+                                        features_path=_probs_path(features_dir, manifest, scene, recs))
+                _write_shard(partial / f"{scene}.npz", arrays)
+                shards[scene] = arrays
+                bar.update(N_VIEWS)
+        bar.close()
+        if not assemble:
+            return partial
+        names = [s for s, _ in scenes]
+        stack = {a: np.stack([shards[s][a] for s in names]) for a in SHARD_ARRAYS}
+        config = {
+            "method": spec.name,
+            "method_hash": spec.hash,
+            "perception": spec.to_dict().get("perception", {}),
+            "key_parts": parts,
+            "data_root": str(data_root),
+        }
+        table = ObservationTable.from_arrays(
+            stack["features"], stack["probs"], stack["boxes"], visible=stack["visible"],
+            scenes=names,
+            targets=[recs[0].target for _, recs in scenes],
+            splits=[recs[0].split for _, recs in scenes],
+            contexts=[recs[0].context for _, recs in scenes],
+            config=config, key=key,
+        )
+        table.save(final)
+        shutil.rmtree(partial, ignore_errors=True)
+        return final
 
 
 def _prepare_shards(data_root: str, spec_path: str, classifier_path: str | None, out_dir: str,

@@ -58,6 +58,12 @@ CHECKS = ("shapes", "finite features, probs and boxes", "probs sum to 1", "boxes
 _BACKDATE_NS = 10**9
 
 
+def _meta_digest(meta: dict) -> str:
+    """sha256 of a table's metadata (without its own digest), as JSON with sorted keys."""
+    body = {k: v for k, v in meta.items() if k != "meta_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()
+
+
 def _file_sha256(path: Path) -> str:
     with open(path, "rb") as fh:
         return hashlib.file_digest(fh, "sha256").hexdigest()
@@ -268,6 +274,7 @@ class ObservationTable:
                 shapes={n: list(getattr(self, n).shape) for n in ARRAYS},
                 integrity={"checked": list(CHECKS), "files": files},
             )
+            meta["meta_sha256"] = _meta_digest(meta)
             with open(tmp / META_FILE, "w", encoding="utf-8") as fh:
                 json.dump(meta, fh, indent=1, sort_keys=True)
                 fh.flush()
@@ -303,12 +310,18 @@ class ObservationTable:
             meta = json.loads(meta_path.read_text(encoding="utf-8"))
         except json.JSONDecodeError as exc:
             raise TableError(f"{meta_path}: unreadable metadata ({exc}); rebuild the table") from None
+        if not isinstance(meta, dict):
+            raise TableError(f"{meta_path}: expected a JSON object; rebuild the table")
         version = meta.get("schema_version")
         if version != SCHEMA_VERSION:
             raise TableError(
                 f"{path}: table schema version {version} but this uevavd reads version {SCHEMA_VERSION}; "
                 "rebuild it with `uevavd prepare`"
             )
+        digest = meta.pop("meta_sha256", None)
+        if digest is not None and digest != _meta_digest(meta):
+            raise TableError(f"{meta_path} was changed after the table was written (its scenes, targets, splits or "
+                             "config no longer match their checksum): rebuild the table with `uevavd prepare`")
         if expect_key is not None and meta.get("key") != expect_key:
             raise TableError(
                 f"{path}: table key {meta.get('key')} does not match the expected {expect_key} "
@@ -321,8 +334,9 @@ class ObservationTable:
                 raise TableError(f"{path}: missing {f.name}; the table is incomplete, rebuild it")
             try:
                 arrays[name] = np.load(f, mmap_mode="r" if mmap else None, allow_pickle=False)
-            except ValueError as exc:
-                raise TableError(f"{f}: unreadable array ({exc}); rebuild the table") from None
+            except (ValueError, EOFError, OSError) as exc:  # truncated, empty or not .npy
+                raise TableError(f"{f}: unreadable array ({type(exc).__name__}: {exc or 'empty file'}); rebuild the "
+                                 "table (`uevavd prepare` rebuilds it)") from None
             if list(arrays[name].shape) != meta.get("shapes", {}).get(name, list(arrays[name].shape)):
                 raise TableError(f"{f}: shape {arrays[name].shape} disagrees with {META_FILE}; rebuild it")
         table = cls(

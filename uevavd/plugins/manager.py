@@ -169,8 +169,14 @@ class PluginManager:
         staged: list[Entry] = []
         try:
             self._pm.register(plugin, name=name)
+            # a hook whose name is misspelled (register_encoder for register_encoders) would
+            # register nothing without a word: pluggy lists hooks that match no spec
+            self._pm.check_pending()
         except Exception as exc:  # noqa: BLE001 - pluggy's validation errors and name clashes
-            return self._fail(name, version, source, f"{type(exc).__name__}: {exc}", strict, builtin)
+            if self._pm.is_registered(plugin):
+                self._pm.unregister(plugin)
+            hint = (f"; uevavd's hooks are {sorted(KINDS.values())}" if "unknown hook" in str(exc) else "")
+            return self._fail(name, version, source, f"{type(exc).__name__}: {exc}{hint}", strict, builtin)
         try:
             for kind, hook_name in KINDS.items():
                 for impl in getattr(self._pm.hook, hook_name).get_hookimpls():

@@ -10,6 +10,7 @@ differs.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -17,8 +18,12 @@ from typing import Any
 
 import torch
 
-#: Settings a checkpoint must agree on with the run that loads it.
-META_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "n_types", "n_ranges", "t_max", "state", "head")
+#: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
+ARCH_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "n_types", "n_ranges", "t_max", "state", "head")
+#: What a run must agree on to *resume* from a checkpoint: a checkpoint of another seed,
+#: other training settings, another torch thread count or another uevavd version would
+#: resume into a run that differs from an uninterrupted one.
+META_KEYS = (*ARCH_KEYS, "seed", "train", "env", "threads", "uevavd")
 
 
 class CheckpointError(ValueError):
@@ -26,7 +31,9 @@ class CheckpointError(ValueError):
 
 
 def checkpoint_meta(settings: dict[str, Any]) -> dict[str, Any]:
-    return {k: settings.get(k) for k in META_KEYS}
+    meta = {k: settings.get(k) for k in META_KEYS}
+    meta["uevavd"] = (settings.get("versions") or {}).get("uevavd")
+    return meta
 
 
 def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path:
@@ -40,15 +47,23 @@ def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except RuntimeError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        if "unexpected pos" in str(exc) or "write" in str(exc).lower():  # torch's words for a failed write
+            raise OSError(errno.ENOSPC, "could not write the checkpoint (disk full?): free space and rerun; "
+                          "the previous checkpoint is intact", str(path)) from None
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
 
 
-def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Load a checkpoint (CPU tensors). With ``expect`` (a run's settings), refuse one whose
-    method, spec, table or spaces differ, listing each difference."""
+def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | None = None,
+                    keys: tuple[str, ...] = META_KEYS) -> dict[str, Any]:
+    """Load a checkpoint (CPU tensors). With ``expect`` (a run's settings), refuse one that
+    differs in ``keys`` (default: everything a resume must share; :data:`ARCH_KEYS` for
+    loading the network alone), listing each difference."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint there (train first with `uevavd train`)")
@@ -60,8 +75,8 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
         raise CheckpointError(f"{path}: not a uevavd training checkpoint (no meta)")
     if expect is not None:
         want = checkpoint_meta(expect)
-        diffs = [f"{k}: checkpoint has {state['meta'].get(k)!r}, expected {v!r}"
-                 for k, v in want.items() if state["meta"].get(k) != v]
+        diffs = [f"{k}: checkpoint has {state['meta'].get(k)!r}, expected {want[k]!r}"
+                 for k in keys if state["meta"].get(k) != want[k]]
         if diffs:
             raise CheckpointError(f"{path} belongs to another configuration: " + "; ".join(diffs))
     return state

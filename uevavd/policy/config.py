@@ -69,6 +69,35 @@ class TrainConfig:
     loss: Literal["huber", "mse"] = "huber"
     """TD loss (Huber is the usual choice for DQN)."""
 
+    def __post_init__(self) -> None:
+        """Ranges, not only types: a value that would crash training later (a zero
+        divisor) or silently learn nothing is refused here, before a run directory exists."""
+        from ..config import ConfigError
+
+        def need(ok: bool, key: str, what: str) -> None:
+            if not ok:
+                raise ConfigError(f"train.{key} = {getattr(self, key)!r}: expected {what}")
+
+        for key in ("episodes", "batch_size", "buffer_episodes", "n_envs", "target_update", "epoch_episodes",
+                    "checkpoint_every"):
+            need(isinstance(getattr(self, key), int) and getattr(self, key) >= 1, key, "an integer >= 1")
+        for key in ("learning_starts", "eval_contexts", "threads", "seed"):
+            need(isinstance(getattr(self, key), int) and getattr(self, key) >= 0, key, "an integer >= 0")
+        need(self.lr > 0, "lr", "a learning rate > 0")
+        need(self.updates_per_step > 0, "updates_per_step", "a number > 0 (gradient updates per step)")
+        for key in ("eps_start", "eps_end", "per_beta"):
+            need(0.0 <= getattr(self, key) <= 1.0, key, "a number in [0, 1]")
+        need(0.0 < self.eps_fraction <= 1.0, "eps_fraction", "a share of training in (0, 1]")
+        need(self.per_alpha >= 0, "per_alpha", "a number >= 0")
+        need(self.per_eps > 0, "per_eps", "a number > 0")
+        need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
+        need(self.grad_clip >= 0, "grad_clip", "a number >= 0 (0 disables clipping)")
+        need(self.learning_starts < self.episodes, "learning_starts",
+             f"fewer episodes than train.episodes = {self.episodes}, or no gradient update would ever run "
+             "(lower train.learning_starts or train more episodes)")
+        need(self.buffer_episodes >= self.batch_size, "buffer_episodes",
+             f"at least train.batch_size = {self.batch_size} episodes")
+
     def resolve_gamma(self, env_gamma: float) -> TrainConfig:
         """This config with ``gamma`` set to the one discount of the run (``env.gamma``).
 

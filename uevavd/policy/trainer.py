@@ -79,6 +79,35 @@ def _versions() -> dict[str, str]:
             "python": platform.python_version()}
 
 
+#: The perception keys a table's recorded config must share with the method trained on it.
+PERCEPTION_KEYS = ("segmenter.name", "decompose", "gray_seed", "encoder.name", "encoder.weights", "classifier.name")
+
+
+def check_table_perception(spec: MethodSpec, table: Any) -> None:
+    """Refuse a table built for another perception config than ``spec``'s (its
+    ``meta.json`` records the method's ``[perception]``): raw features for IBE-MAP, or a
+    ResNet18 table for a ResNet50 method, would train and record a run that is not what its
+    ``method.toml`` says. Tables made with ``from_arrays`` (no recorded perception) pass."""
+    recorded = (table.meta.get("config") or {}).get("perception")
+    if not isinstance(recorded, dict):
+        return
+    want = spec.to_dict().get("perception") or {}
+
+    def get(d: dict, dotted: str):
+        head, _, rest = dotted.partition(".")
+        v = d.get(head)
+        if rest:
+            return v.get(rest) if hasattr(v, "get") else None
+        return v
+
+    diffs = [f"perception.{k}: table {get(recorded, k)!r}, method {get(want, k)!r}"
+             for k in PERCEPTION_KEYS if get(recorded, k) != get(want, k)]
+    if diffs:
+        raise RunDirError(f"table {table.path or table.key} was built for another perception config than method "
+                          f"{spec.name!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA --method "
+                          f"{spec.name}` (with the same --set overrides) and pass that one")
+
+
 def _check_run_dir(out: Path, settings: dict[str, Any]) -> None:
     path = out / "settings.json"
     if not path.is_file():
@@ -103,19 +132,24 @@ def _check_run_dir(out: Path, settings: dict[str, Any]) -> None:
 class _Evaluator:
     """Per-epoch evaluation on each split, its device tensors built once."""
 
-    def __init__(self, table: Any, cfg: TrainConfig, env_cfg: EnvConfig, device: torch.device) -> None:
+    def __init__(self, table: Any, cfg: TrainConfig, env_cfg: EnvConfig, device: torch.device,
+                 net: Any) -> None:
         from ..env.aod_env import select_scenes
         from ..env.batched import EnvTensors
 
+        self.device = device
+        self.features = torch.from_numpy(np.array(table.features)).to(device)
+        # the greedy policy reads the table's features itself when the estimator offers the
+        # encoded fast path; an estimator without it (a plugin's) needs them in every obs
+        needs = GreedyPolicy(net, device=device, features=self.features).needs_features
+        net.train()
         self.tensors = {}
         for split in cfg.eval_splits:
             ctx = table.contexts[select_scenes(table, split)]
             if cfg.eval_contexts and cfg.eval_contexts < len(ctx):
                 ctx = ctx[np.linspace(0, len(ctx) - 1, cfg.eval_contexts).round().astype(int)]
             self.tensors[split] = EnvTensors(table, split, env_cfg, device=device, contexts=ctx,
-                                             with_features=False)
-        self.device = device
-        self.features = torch.from_numpy(np.array(table.features)).to(device)
+                                             with_features=needs)
 
     def __call__(self, net: Any) -> dict[str, dict[str, Any]]:
         from ..env.evaluate import evaluate_policy
@@ -150,6 +184,7 @@ def train(
     # -- settings -----------------------------------------------------------------------------
     spec = apply_overrides(spec, overrides)
     table = load_table(table)
+    check_table_perception(spec, table)
     train_section = dict(spec.get("train", {}) or {})
     cfg = TrainConfig.from_dict({**train_section, "seed": seed,
                                  **({"episodes": episodes} if episodes is not None else {})})
@@ -166,11 +201,12 @@ def train(
         "n_ranges": env_cfg.max_range, "t_max": env_cfg.t_max, "state": state_name, "head": head_name,
         "device": str(dev), "versions": _versions(),
     }
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    settings["threads"] = torch.get_num_threads()  # results depend on it: recorded, checked on resume
     _check_run_dir(out, settings)
     if (out / "done.json").is_file():
         return out
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
 
     # -- seeding and setup (everything that can refuse the input, before the run directory
     # is written: a table without the train or an eval split leaves no half-made run) --------
@@ -182,7 +218,7 @@ def train(
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=cfg.seed + 2,
                         features_dtype=torch.float16)
     lookup = TableLookup(env.tables)
-    evaluator = _Evaluator(table, cfg, env_cfg, dev)
+    evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
     spec.save(out / "method.toml")
     _write_json(out / "settings.json", settings)

@@ -1,0 +1,76 @@
+"""Damaged images reach `prepare` as one-line errors naming the file, never as silently
+different features."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from uevavd.perception.images import ImageReadError, read_rgb
+
+
+def test_a_truncated_jpeg_is_refused_not_filled_with_gray(tmp_path):
+    img = (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img)
+    good = tmp_path / "good.jpg"
+    good.write_bytes(buf.tobytes())
+    assert read_rgb(good).shape == (64, 64, 3)
+    cut = tmp_path / "cut.jpg"
+    cut.write_bytes(buf.tobytes()[: len(buf) // 2])
+    assert cv2.imread(str(cut)) is not None  # what OpenCV alone does: decodes it, gray-filled
+    with pytest.raises(ImageReadError, match=r"cut.jpg: truncated JPEG"):
+        read_rgb(cut)
+
+
+def test_an_absurd_png_header_is_a_read_error_not_a_cv2_error(tmp_path):
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    huge = tmp_path / "huge.png"
+    huge.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 60000, 60000, 8, 2, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(b"\x00" * 10)) + chunk(b"IEND", b""))
+    with pytest.raises(ImageReadError, match="huge.png: cannot be decoded"):
+        read_rgb(huge)
+    from uevavd.data.validate import check_image_bytes
+
+    size, err = check_image_bytes(huge.read_bytes(), huge)
+    assert size is None and "cannot be decoded" in err
+
+
+def test_prepare_reports_a_truncated_view_in_one_line(tiny_world, tiny_classifier, method_toml, tmp_path, capsys,
+                                                      monkeypatch):
+    import shutil
+
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    world = tmp_path / "world"
+    shutil.copytree(tiny_world, world)
+    victim = sorted((world / "031").glob("*.png"))[7]
+    victim.write_bytes(victim.read_bytes()[:-40])
+    method = tmp_path / "m.toml"
+    method.write_text(method_toml.format(decompose="false"))
+    rc = main(["prepare", str(world), "--method", str(method), "--classifier", str(tiny_classifier),
+               "--out", str(tmp_path / "tables"), "--workers", "1"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0 and victim.name in err and "truncated PNG" in err, err
+
+
+def test_a_recognizer_of_another_crop_size_is_refused(tiny_world, tiny_classifier, method_toml, tmp_path):
+    """A 16 px recognizer on a 24 px world used to build a table without a word."""
+    import json
+
+    from uevavd.perception.classifier import read_classifier_file, write_classifier_file
+    from uevavd.perception.prepare import prepare_table
+
+    sd, meta = read_classifier_file(tiny_classifier)
+    other = write_classifier_file(tmp_path / "c24.safetensors", sd, {**meta, "input_size": [24, 24]})
+    method = tmp_path / "m.toml"
+    method.write_text(method_toml.format(decompose="false"))
+    with pytest.raises(ValueError, match=r"trained on 24 x 24 px crops, but .* holds 16 x 16 px views"):
+        prepare_table(tiny_world, method, classifier_path=other, out_dir=tmp_path / "t", progress=False)
+    assert json.dumps(meta["input_size"]) == "[16, 16]"

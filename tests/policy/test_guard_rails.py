@@ -1,0 +1,170 @@
+"""Guard rails of `uevavd train`: values checked by range before a run directory exists, a
+table of another perception config refused, checkpoints tied to their seed and settings,
+a full disk reported in one line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from uevavd.cli import main
+from uevavd.config import ConfigError, load_method
+from uevavd.policy.checkpoint import CheckpointError
+from uevavd.policy.trainer import RunDirError, train
+
+from .conftest import small
+
+
+def _sets(**extra):
+    return [a for k, v in {**small("map"), **extra}.items() for a in ("--set", f"{k}={json.dumps(v)}")]
+
+
+def _one_line(capsys, *needles):
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    for n in needles:
+        assert n in err, (n, err)
+
+
+@pytest.mark.parametrize("key, value, needle", [
+    ("train.checkpoint_every", 0, "train.checkpoint_every = 0: expected an integer >= 1"),
+    ("train.target_update", 0, "train.target_update = 0: expected an integer >= 1"),
+    ("train.batch_size", 0, "train.batch_size = 0: expected an integer >= 1"),
+    ("train.updates_per_step", -1, "train.updates_per_step = -1"),
+    ("train.learning_starts", 500, "no gradient update would ever run"),
+])
+def test_out_of_range_training_values_are_refused_before_the_run_starts(table, tmp_path, capsys, monkeypatch,
+                                                                        key, value, needle):
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    out = tmp_path / "run"
+    rc = main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(out),
+               "--no-progress", "--device", "cpu", *_sets(**{key: value})])
+    assert rc == 2
+    _one_line(capsys, needle)
+    assert not out.exists()  # nothing written: the directory is not locked to a bad config
+
+
+def test_zero_episodes_are_refused(table, tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    assert main(["train", "--method", "map", "--table", str(path), "--episodes", "0", "--out",
+                 str(tmp_path / "run"), "--no-progress", *_sets()]) == 2
+    _one_line(capsys, "train.episodes = 0")
+
+
+def test_a_table_of_another_perception_config_is_refused(table, tmp_path):
+    """IBE-MAP on a table whose meta.json says raw (undecomposed) features, or MAP's
+    ResNet50 on a ResNet18 table: refused, naming what differs."""
+    from uevavd.perception.table import ObservationTable
+
+    raw = {"segmenter": {"name": "none"}, "decompose": False, "encoder": {"name": "resnet18", "weights": "imagenet"},
+           "classifier": {"name": "resnet18"}}
+    t = ObservationTable.from_arrays(table.features, table.probs, table.boxes, scenes=table.scenes,
+                                     targets=table.targets, splits=table.splits, contexts=table.contexts,
+                                     config={"perception": raw})
+    path = t.save(tmp_path / "raw-table")
+    ibe = load_method("ibe_map", overrides={**small("ibe_map"), "train.episodes": 100})
+    with pytest.raises(RunDirError, match=r"perception.segmenter.name: table 'none', method 'gt'.*decompose"):
+        train(ibe, path, out=tmp_path / "ibe", device="cpu", progress=False)
+    mp = load_method("map", overrides={**small("map"), "train.episodes": 100})
+    with pytest.raises(RunDirError, match=r"perception.encoder.name: table 'resnet18', method 'resnet50'"):
+        train(mp, path, out=tmp_path / "map", device="cpu", progress=False)
+    assert not (tmp_path / "ibe").exists() and not (tmp_path / "map").exists()
+    same = load_method("map", overrides={**small("map"), "train.episodes": 100,
+                                         "perception.encoder.name": "resnet18", "perception.encoder.weights": "imagenet"})
+    train(same, path, out=tmp_path / "ok", device="cpu", progress=False)  # the matching method trains
+
+
+def test_a_checkpoint_of_another_seed_is_refused(table, tmp_path):
+    """A seed-1 checkpoint copied into an unfinished seed-0 run of the same method: refused
+    (it used to resume as seed 0)."""
+    import shutil
+
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 300})
+    for seed in (0, 1):
+        train(spec, table, out=tmp_path / f"s{seed}", seed=seed, device="cpu", progress=False, max_epochs=1)
+    shutil.copy(tmp_path / "s1" / "checkpoint.pt", tmp_path / "s0" / "checkpoint.pt")
+    with pytest.raises(CheckpointError, match="seed: checkpoint has 1, expected 0"):
+        train(spec, table, out=tmp_path / "s0", seed=0, device="cpu", progress=False)
+
+
+def test_a_full_disk_while_checkpointing_is_one_line(table, tmp_path, capsys, monkeypatch):
+    """torch says "unexpected pos" when the disk fills during a save: the user reads one line
+    saying the disk is full, exit 2, and no temp file is left behind."""
+    import torch
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+
+    def full(*a, **k):
+        raise RuntimeError("[enforce fail at inline_container.cc:783] . PytorchStreamWriter failed writing file "
+                           "data/0: file write failed; unexpected pos 64 vs 4096")
+
+    monkeypatch.setattr(torch, "save", full)
+    path = table.save(tmp_path / "table")
+    out = tmp_path / "run"
+    rc = main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(out),
+               "--no-progress", "--device", "cpu", *_sets()])
+    assert rc == 2
+    _one_line(capsys, "[Errno 28]", "disk full", "checkpoint.pt")
+    assert not list(out.glob(".checkpoint.pt.*"))
+
+
+def test_range_checks_live_in_the_config(table):
+    from uevavd.policy.config import TrainConfig
+
+    with pytest.raises(ConfigError, match="train.eps_fraction = 0"):
+        TrainConfig(eps_fraction=0.0)
+    TrainConfig.from_dict({"episodes": 10, "learning_starts": 5})
+
+
+class _PlainState(__import__("torch").nn.Module):
+    """A third-party estimator that follows the documented protocol (forward, step,
+    initial_hidden) without the optional ``step_encoded`` fast path."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner = inner
+        self.feature_dim, self.state_dim, self.recurrent = inner.feature_dim, inner.state_dim, inner.recurrent
+
+    def forward(self, features, boxes):
+        return self.inner(features, boxes)
+
+    def initial_hidden(self, n, device="cpu"):
+        return self.inner.initial_hidden(n, device)
+
+    def step(self, features, boxes, hidden):
+        return self.inner.step(features, boxes, hidden)
+
+
+def build_plain_state(**kwargs):
+    from uevavd.state.single_view import build_single_view
+
+    return _PlainState(build_single_view(**kwargs))
+
+
+def test_an_estimator_without_the_optional_fast_path_trains_and_is_evaluated(table, tmp_path):
+    """It passes the contract check and used to crash in the first per-epoch evaluation
+    (the evaluator built its observations without features)."""
+    import types
+
+    from uevavd.plugins import hookimpl
+    from uevavd.plugins.manager import manager
+    from uevavd.testing import check_state_estimator
+
+    @hookimpl
+    def register_state_estimators(registry):
+        registry.add("plain_single_view", f"{__name__}:build_plain_state")
+
+    manager.register_plugin(types.SimpleNamespace(register_state_estimators=register_state_estimators),
+                            name="plain-state-test")
+    try:
+        check_state_estimator(build_plain_state(feature_dim=8, input_dim=24, box_dim=8, state_dim=16))
+        spec = load_method("map", overrides={**small("map"), "train.episodes": 200, "state.name": "plain_single_view"})
+        run = train(spec, table, out=tmp_path / "run", device="cpu", progress=False)
+        evals = [json.loads(line) for line in (run / "evals.jsonl").read_text().splitlines()]
+        assert evals and all(np.isfinite(e["mean_return"]) for e in evals)
+    finally:
+        manager.unregister_plugin("plain-state-test")
