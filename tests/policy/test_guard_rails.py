@@ -168,3 +168,36 @@ def test_an_estimator_without_the_optional_fast_path_trains_and_is_evaluated(tab
         assert evals and all(np.isfinite(e["mean_return"]) for e in evals)
     finally:
         manager.unregister_plugin("plain-state-test")
+
+
+def test_a_cuda_device_that_is_not_there_is_one_line(table, tmp_path, capsys, monkeypatch):
+    import torch
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    path = table.save(tmp_path / "table")
+    assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out",
+                 str(tmp_path / "run"), "--device", "cuda", "--no-progress", *_sets()]) == 2
+    _one_line(capsys, "device 'cuda' requested but no CUDA device is available")
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_corrupt_settings_json_is_named(table, tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    run = tmp_path / "run"
+    assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(run),
+                 "--no-progress", "--device", "cpu", *_sets()]) == 0
+    capsys.readouterr()
+    (run / "settings.json").write_text("{not json")
+    assert main(["evaluate", str(run), "--split", "hard"]) == 2
+    _one_line(capsys, f"{run / 'settings.json'}: unreadable")
+
+
+def test_a_killed_saves_temp_file_is_removed_on_resume(table, tmp_path):
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 300})
+    run = train(spec, table, out=tmp_path / "run", device="cpu", progress=False, max_epochs=1)
+    stale = run / ".checkpoint.pt.abc123.tmp"
+    stale.write_bytes(b"\0" * 4096)  # what a kill during torch.save leaves
+    train(spec, table, out=run, device="cpu", progress=False)
+    assert not stale.exists() and (run / "done.json").is_file()

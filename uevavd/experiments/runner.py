@@ -371,7 +371,9 @@ def is_done(job: Job) -> bool:
 def _final_eval_key(run: Path) -> dict[str, Any]:
     """What the cached final evaluation depends on: the finished run (its episode and
     update counts), its env config, its table and the splits."""
-    settings = json.loads((run / "settings.json").read_text(encoding="utf-8"))
+    from ..policy.trainer import read_settings
+
+    settings = read_settings(run)
     done = json.loads((run / "done.json").read_text(encoding="utf-8"))
     splits = list(settings.get("train", {}).get("eval_splits") or ["train", "hard"])
     return {"protocol": "every context of the split x all 605 start views, greedy policy",

@@ -14,7 +14,6 @@ the agent cannot take never leak into its targets.
 from __future__ import annotations
 
 import copy
-import json
 from pathlib import Path
 from typing import Any
 
@@ -348,13 +347,10 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "che
     ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
     its actions are the same either way."""
     from .checkpoint import ARCH_KEYS, load_checkpoint
-    from .trainer import resolve_spec
+    from .trainer import read_settings, resolve_spec
 
     run_dir = Path(run_dir)
-    settings_path = run_dir / "settings.json"
-    if not settings_path.is_file():
-        raise FileNotFoundError(f"{run_dir} is not a training run: no settings.json (train one with `uevavd train`)")
-    settings = json.loads(settings_path.read_text(encoding="utf-8"))
+    settings = read_settings(run_dir)
     spec = resolve_spec(run_dir)
     from .network import build_network
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -71,10 +70,7 @@ def add_train(p: argparse.ArgumentParser):
             spec = load_method(args.method, overrides)
         except ConfigError as exc:
             return _error("train", exc)
-        if (args.out / "done.json").is_file():
-            print(f"uevavd train: error: {args.out} holds a finished run (done.json); evaluate it with "
-                  f"`uevavd evaluate {args.out}` or train into another --out", file=sys.stderr)
-            return 1
+        was_done = (args.out / "done.json").is_file()  # the same run again: nothing to do, not an error
         problem = _table_problem(args.table)
         if problem:
             return _error("train", problem)
@@ -83,6 +79,9 @@ def add_train(p: argparse.ArgumentParser):
                         device=args.device, progress=not args.no_progress, max_epochs=args.max_epochs)
         except (RunDirError, *BAD_INPUT) as exc:
             return _error("train", exc)
+        if was_done:
+            print(f"run already finished: {out} (evaluate it with `uevavd evaluate {out}`; another --out trains anew)")
+            return 0
         status = "finished" if (out / "done.json").is_file() else "paused (rerun the same command to resume)"
         print(f"run {status}: {out}")
         return 0
@@ -114,11 +113,14 @@ def _evaluate(args: argparse.Namespace) -> int:
     from ..env.evaluate import evaluate_policy
     from ..env.oracle import OraclePolicy
     from .agent import load_policy
+    from .trainer import read_settings
 
-    settings_path = args.run_dir / "settings.json"
-    if not settings_path.is_file():
+    if not (args.run_dir / "settings.json").is_file():
         return _error("evaluate", f"{args.run_dir} is not a training run (no settings.json)")
-    settings = json.loads(settings_path.read_text(encoding="utf-8"))
+    try:
+        settings = read_settings(args.run_dir)
+    except ValueError as exc:
+        return _error("evaluate", exc)
     table_path = args.table or settings.get("table_path")
     if not table_path:
         return _error("evaluate", "the run names no table folder; pass --table")

@@ -40,9 +40,26 @@ class RunDirError(ValueError):
 
 
 def resolve_device(device: str) -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
+    """``"auto"`` -> CUDA when present, else CPU; a CUDA device that is not there is a
+    one-line error (the perception layer's rule, :func:`uevavd.perception.nets.resolve_device`)."""
+    from ..perception.nets import resolve_device as _resolve
+
+    return _resolve(device)
+
+
+def read_settings(run_dir: str | Path) -> dict[str, Any]:
+    """A run's ``settings.json``; a missing, unreadable or damaged file is an error naming it."""
+    path = Path(run_dir) / "settings.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{run_dir} is not a training run: no settings.json (train one with `uevavd train`)")
+    try:
+        settings = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RunDirError(f"{path}: unreadable ({exc}); the run directory is damaged: train it again "
+                          "into a new --out") from None
+    if not isinstance(settings, dict) or "env" not in settings:
+        raise RunDirError(f"{path}: not a uevavd run's settings (no env section); train it again into a new --out")
+    return settings
 
 
 def resolve_spec(run_dir: str | Path) -> MethodSpec:
@@ -207,6 +224,8 @@ def train(
     _check_run_dir(out, settings)
     if (out / "done.json").is_file():
         return out
+    for stale in out.glob(".*.tmp") if out.is_dir() else ():
+        stale.unlink(missing_ok=True)  # a killed save's temp file (a checkpoint's is full size)
 
     # -- seeding and setup (everything that can refuse the input, before the run directory
     # is written: a table without the train or an eval split leaves no half-made run) --------
