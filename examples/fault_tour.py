@@ -1,0 +1,84 @@
+"""A tour of user mistakes and damaged files through the CLI (docs/faults.md): prints, for
+each fault, the exit status and the line the user reads.
+
+    python examples/fault_tour.py
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from uevavd.testing.policy import toy_table
+from uevavd.testing.worlds import write_tiny_world
+
+W = Path(tempfile.mkdtemp(prefix="uevavd-faults-"))
+os.environ["UEVAVD_CACHE"] = str(W / "cache")
+world = write_tiny_world(W / "world", contexts=(1, 26), train605=True)
+table = toy_table(n_train=2, n_hard=1, feature_dim=8).save(W / "table")
+SMALL = ["--set", "state.input_dim=24", "--set", "state.box_dim=8", "--set", "state.state_dim=16", "--set", "head.hidden=16",
+         "--set", "train.n_envs=16", "--set", "train.batch_size=8", "--set", "train.buffer_episodes=400",
+         "--set", "train.learning_starts=40", "--set", "train.epoch_episodes=100", "--set", "train.eval_contexts=1",
+         "--set", "train.threads=1"]
+
+
+def run(*args):
+    p = subprocess.run([sys.executable, "-m", "uevavd.cli", *map(str, args)], capture_output=True, text=True,
+                       env={**os.environ, "UEVAVD_DEBUG": ""}, timeout=600)
+    err = [ln for ln in p.stderr.strip().splitlines() if ln and "Warning" not in ln and "warn" not in ln]
+    return p.returncode, (err[-1] if err else p.stdout.strip().splitlines()[-1] if p.stdout.strip() else "")
+
+
+# a finished run to break
+rc, out = run("train", "--method", "map", "--table", table, "--episodes", 100, "--out", W / "run", "--no-progress", "--device", "cpu", *SMALL)
+assert rc == 0, out
+(W / "afile").write_text("x")
+bad_toml = W / "bad.toml"
+bad_toml.write_text('_base_ = "map"\n[train]\nepisodez = 3\n')
+garbage_csv = W / "abl"
+garbage_csv.mkdir()
+(garbage_csv / "results.csv").write_text("a,b\n1,2\n")
+run2 = W / "run2"
+shutil.copytree(W / "run", run2)
+(run2 / "settings.json").write_text("{not json")
+run3 = W / "run3"
+shutil.copytree(W / "run", run3)
+(run3 / "done.json").unlink()
+data = (run3 / "checkpoint.pt").read_bytes()
+(run3 / "checkpoint.pt").write_bytes(data[: len(data) // 2])
+(W / "empty").mkdir()
+(W / "clf.txt").write_text("not a classifier")
+cases = [
+ ("a table folder that does not exist", ["train", "--method", "map", "--table", W / "nope", "--out", W / "r1"]),
+ ("an unknown method", ["train", "--method", "mapp", "--table", table, "--out", W / "r2"]),
+ ("a method file with a misspelled key", ["train", "--method", bad_toml, "--table", table, "--out", W / "r3"]),
+ ("a negative learning rate", ["train", "--method", "map", "--table", table, "--out", W / "r4", "--set", "train.lr=-1"]),
+ ("a reward constant of the wrong type", ["train", "--method", "map", "--table", table, "--out", W / "r5", "--set", "env.thre=\"abc\""]),
+ ("--out is an existing file", ["train", "--method", "map", "--table", table, "--out", W / "afile", "--episodes", 100, *SMALL]),
+ ("training on a CUDA device that is not there", ["train", "--method", "map", "--table", table, "--out", W / "r6", "--device", "cuda", "--episodes", 100, *SMALL]),
+ ("resuming from a half-written checkpoint", ["train", "--method", "map", "--table", table, "--out", run3, "--episodes", 100, "--no-progress", "--device", "cpu", *SMALL]),
+ ("evaluate on a folder that is not a run", ["evaluate", W / "empty", "--split", "hard"]),
+ ("evaluate a run whose settings.json is corrupt", ["evaluate", run2, "--split", "hard"]),
+ ("prepare on a file instead of a dataset root", ["prepare", W / "afile", "--method", "map"]),
+ ("prepare with a classifier file that is not one", ["prepare", world, "--method", "map", "--classifier", W / "clf.txt"]),
+ ("validate an empty folder", ["validate", W / "empty"]),
+ ("a Lite0 recognizer on 16 px crops", ["train-classifier", world, "--arch", "efficientnet_lite0", "--epochs", 1, "--out", W / "c.safetensors"]),
+ ("a classifier output that is not .safetensors", ["train-classifier", world, "--out", W / "c.pt"]),
+ ("synth with a crop size below 16 px", ["synth", "--out", W / "s1", "--size", 8, "--contexts", 1]),
+ ("synth with context ids out of range", ["synth", "--out", W / "s2", "--contexts", "0-3"]),
+ ("ablate with an unknown preset", ["ablate", "--preset", "quik", "--out", W / "a1"]),
+ ("ablate sweeping a key that is not sweepable", ["ablate", "--sweep", "gamma=0.5", "--out", W / "a2"]),
+ ("ablate with zero seeds", ["ablate", "--seeds", 0, "--out", W / "a3"]),
+ ("ablate with zero recognizers", ["ablate", "--recognizers", 0, "--out", W / "a4"]),
+ ("ablate into a non-empty folder that holds no ablation", ["ablate", "--out", W / "world"]),
+ ("report on a results.csv without the expected columns", ["report", garbage_csv]),
+ ("report on a folder without results", ["report", W / "empty"]),
+]
+for what, args in cases:
+    rc, line = run(*args)
+    print(f"{rc} | {what} | {line.replace(str(W), 'W')[:220]}", flush=True)
+shutil.rmtree(W, ignore_errors=True)
