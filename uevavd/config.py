@@ -35,7 +35,6 @@ import hashlib
 import inspect
 import json
 import os
-import tempfile
 import tomllib
 import types
 import typing
@@ -376,13 +375,9 @@ class MethodSpec:
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the resolved spec as TOML (atomically); :func:`load_method` reads it back."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(self.to_toml())
-        os.replace(tmp, path)
-        return path
+        from .atomic import atomic_write
+
+        return atomic_write(path, self.to_toml())
 
 
 def load_method(

@@ -316,14 +316,10 @@ def add_validate(parser: argparse.ArgumentParser):
 
 
 def _write_json(path: Path, report: ValidationReport) -> None:
-    import os
-    import tempfile
 
     data = {**report.summary(), "problem_list": [
         {"kind": p.kind, "path": str(p.path), "message": p.message} for p in report.problems]}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=1)
-    os.replace(tmp, path)
+    from ..atomic import atomic_write
+
+    atomic_write(path, json.dumps(data, indent=1))
 

@@ -7,7 +7,6 @@ Both functions write a PNG atomically (temp file in the same folder, then
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import seaborn as sns  # noqa: E402
 
+from ..atomic import atomic_save  # noqa: E402
 from ..data.grid import ACTION_TYPES, STOP, XS, YS, ZS, view_coords  # noqa: E402
 from .report_data import BASELINES, label, order_methods  # noqa: E402
 from .stats import smooth  # noqa: E402
@@ -35,17 +35,10 @@ _BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "visibility_oracl
 
 
 def _save(fig, path: Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.png")
     try:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-        os.replace(tmp, path)
+        return atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight"))
     finally:
         plt.close(fig)
-        if tmp.exists():
-            tmp.unlink()
-    return path
 
 
 def smoothed_curves(curves: pd.DataFrame, window: int) -> pd.DataFrame:

@@ -20,7 +20,6 @@ import json
 import logging
 import os
 import shutil
-import tempfile
 from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from typing import Any
 import numpy as np
 from filelock import FileLock
 
+from ..atomic import atomic_write
 from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
 from ..data.grid import N_VIEWS
 from ..data.splits import TARGETS
@@ -141,16 +141,7 @@ def table_key(parts: Mapping[str, Any]) -> str:
 
 
 def _write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda fh: np.savez(fh, **arrays), fsync=True)
 
 
 def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.ndarray] | None:
@@ -242,15 +233,7 @@ def _cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
 
 def _save_array(path: Path, array: np.ndarray) -> None:
     """``np.save`` written atomically (temp file, then rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.save(fh, array)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda fh: np.save(fh, array))
 
 
 def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw,

@@ -3,12 +3,11 @@ visible fraction on the training contexts (markdown table + PNG)."""
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_save, atomic_write
 from ..data.splits import TARGETS
 
 BINS = np.linspace(0.0, 1.0, 11)
@@ -27,10 +26,7 @@ def accuracy_by_visibility(correct: np.ndarray, visible: np.ndarray, bins: np.nd
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
+    atomic_write(path, text)
 
 
 def visibility_report(model, manifest, weights_path: Path, info: dict, *, decoder, max_views: int = 3000,
@@ -94,8 +90,7 @@ def _plot(rows, path: Path, clean_acc: float) -> None:
     ax.set(xlabel="visible fraction of the target", ylabel="accuracy", xlim=(0, 1), ylim=(0, 1.02))
     ax.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
-    os.close(fd)
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
+    try:
+        atomic_save(path, fig.savefig)
+    finally:
+        plt.close(fig)

@@ -30,8 +30,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ..atomic import atomic_dir
 from ..data.grid import N_VIEWS
 from ..data.splits import SPLITS, TARGETS, resolve_split
 
@@ -249,10 +248,8 @@ class ObservationTable:
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write to folder ``path`` atomically (temp folder + rename). Returns the path."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         self.check(where=str(path))  # the one full pass over the values; load trusts the record
-        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
-        try:
+        with atomic_dir(path) as tmp:
             files = {}
             for name in ARRAYS:
                 f = tmp / f"{name}.npy"
@@ -279,16 +276,6 @@ class ObservationTable:
                 json.dump(meta, fh, indent=1, sort_keys=True)
                 fh.flush()
                 os.fsync(fh.fileno())
-            if path.exists():
-                old = path.with_name(f".{path.name}.old-{os.getpid()}")
-                os.replace(path, old)
-                os.replace(tmp, path)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(tmp, path)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         return path
 
     @classmethod

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import errno
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from ..atomic import atomic_write
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
 ARCH_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "n_types", "n_ranges", "t_max", "state", "head")
@@ -38,25 +39,13 @@ def checkpoint_meta(settings: dict[str, Any]) -> dict[str, Any]:
 
 def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path:
     """``torch.save`` to a temp file in the same folder, fsync, then ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        return atomic_write(path, lambda f: torch.save(state, f), fsync=True)
     except RuntimeError as exc:
-        Path(tmp).unlink(missing_ok=True)
         if "unexpected pos" in str(exc) or "write" in str(exc).lower():  # torch's words for a failed write
             raise OSError(errno.ENOSPC, "could not write the checkpoint (disk full?): free space and rerun; "
                           "the previous checkpoint is intact", str(path)) from None
         raise
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | None = None,

@@ -12,9 +12,7 @@ after every epoch evaluates, logs and checkpoints. Run directory::
 from __future__ import annotations
 
 import json
-import os
 import platform
-import tempfile
 import time
 from collections import deque
 from pathlib import Path
@@ -23,6 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..atomic import atomic_write
 from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
 from ..env.config import EnvConfig
 from .agent import GreedyPolicy, Learner, TableLookup, random_actions
@@ -83,10 +82,7 @@ def apply_overrides(spec: MethodSpec, overrides: dict[str, Any] | None) -> Metho
 
 
 def _write_json(path: Path, obj: Any) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(obj if isinstance(obj, str) else json.dumps(obj, indent=1, sort_keys=True, default=str))
-    os.replace(tmp, path)
+    atomic_write(path, obj if isinstance(obj, str) else json.dumps(obj, indent=1, sort_keys=True, default=str))
 
 
 def _versions() -> dict[str, str]:

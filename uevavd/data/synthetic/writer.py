@@ -51,10 +51,9 @@ _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
+    from ...atomic import atomic_write
+
+    atomic_write(path, data)
 
 
 def _sha256(data: bytes) -> str:

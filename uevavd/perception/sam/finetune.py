@@ -12,7 +12,6 @@ Dice + BCE and AdamW. Held-out mIoU is measured before and after; the changed we
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -50,10 +49,9 @@ def cached_embeddings(seg: SamSegmenter, views: GTViews, base_sha: str, *, cache
         torch.save(e, f)
         pieces.append(e)
     emb = torch.cat(pieces)
-    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    torch.save(emb, tmp)
-    os.replace(tmp, path)
+    from ...atomic import atomic_write
+
+    atomic_write(path, lambda fh: torch.save(emb, fh))
     for f in part.iterdir():
         f.unlink()
     part.rmdir()

@@ -1,0 +1,50 @@
+"""The one atomic-write helper: all or nothing, and the permissions a plain open() gives."""
+
+from __future__ import annotations
+
+import stat
+
+import numpy as np
+import pytest
+
+from uevavd.atomic import DIR_MODE, FILE_MODE, atomic_dir, atomic_save, atomic_write
+
+
+def _mode(path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+def test_files_and_folders_get_the_umask_permissions_not_tempfiles_0600(tmp_path):
+    """mkstemp makes 0600 and mkdtemp 0700: a shared cache or a Ray worker running as
+    another user could not read what uevavd wrote."""
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    f = atomic_write(tmp_path / "a.json", "{}")
+    assert _mode(f) == FILE_MODE == _mode(plain)
+    s = atomic_save(tmp_path / "b.bin", lambda name: open(name, "wb").write(b"1"))
+    assert _mode(s) == FILE_MODE
+    with atomic_dir(tmp_path / "table") as d:
+        (d / "x.npy").write_bytes(b"")
+    assert _mode(tmp_path / "table") == DIR_MODE
+    from uevavd.perception.table import ObservationTable
+
+    t = ObservationTable.from_arrays(np.zeros((1, 605, 2)), np.full((1, 605, 5), 0.2), np.zeros((1, 605, 4)),
+                                     scenes=["001"], targets=[0], splits=["train"])
+    saved = t.save(tmp_path / "t")
+    assert _mode(saved) == DIR_MODE and {_mode(p) for p in saved.iterdir()} == {FILE_MODE}
+
+
+def test_a_failed_write_keeps_the_old_file_and_leaves_no_temp(tmp_path):
+    path = atomic_write(tmp_path / "state.bin", b"old")
+
+    def boom(fh):
+        fh.write(b"half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        atomic_write(path, boom)
+    assert path.read_bytes() == b"old" and sorted(p.name for p in tmp_path.iterdir()) == ["state.bin"]
+    with pytest.raises(RuntimeError), atomic_dir(tmp_path / "d") as d:
+        (d / "f").write_text("x")
+        raise RuntimeError("killed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.bin"]

@@ -1,0 +1,96 @@
+"""Writing files so that nothing already written is lost: the one helper every layer uses.
+
+A file is written to a temporary name in its own folder, then renamed over the target
+(``os.replace`` is atomic on POSIX and Windows), so a reader sees the old file or the new
+one, never half of one, and a killed or failed write leaves the old file in place and no
+temporary behind. ``tempfile`` creates files 0600 and folders 0700, so the result gets the
+permissions a plain ``open()`` / ``mkdir`` would give under the process's umask: a shared
+cache, or a Ray worker running as another user, can read what uevavd wrote.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)  # reading the umask means setting it; restored at once
+    os.umask(mask)
+    return mask
+
+
+#: The process's umask at import (uevavd never changes it).
+_UMASK = _umask()
+FILE_MODE = 0o666 & ~_UMASK
+DIR_MODE = 0o777 & ~_UMASK
+
+
+def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[bytes]], None], *,
+                 fsync: bool = False) -> Path:
+    """Write ``data`` (bytes, text as UTF-8, or a function writing to a binary file object)
+    to ``path`` atomically; ``fsync`` flushes it to the disk before the rename (for state a
+    crash must not lose: checkpoints, shards). Returns ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.fchmod(fd, FILE_MODE)
+        with os.fdopen(fd, "wb") as fh:
+            if callable(data):
+                data(fh)
+            else:
+                fh.write(data.encode("utf-8") if isinstance(data, str) else data)
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def atomic_save(path: str | os.PathLike[str], save: Callable[[str], None]) -> Path:
+    """For libraries that write by file name (safetensors' ``save_file``, matplotlib's
+    ``savefig``): ``save(tmp_name)``, then the rename of :func:`atomic_write`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp" + path.suffix)
+    os.close(fd)
+    try:
+        save(tmp)
+        os.chmod(tmp, FILE_MODE)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+@contextmanager
+def atomic_dir(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Build a folder in a temporary sibling and put it in place of ``path`` when the block
+    ends without an error (an existing ``path`` is moved aside first, then removed); on an
+    error the temporary folder is removed and ``path`` is left as it was."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        os.chmod(tmp, DIR_MODE)
+        yield tmp
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
