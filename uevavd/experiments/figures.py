@@ -137,8 +137,10 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
                 for m in BASELINES if m in present]
     fig.legend(handles=handles, loc="lower center", ncol=max(1, len(handles)), frameon=False,
                bbox_to_anchor=(0.5, -0.01))
-    fig.suptitle(f"Mean over seeds and 95% Student-t interval over seeds after a {window}-point trailing "
-                 "sliding-window mean", fontsize=11)
+    nested = curves["seed"].nunique() > 0 and (curves["seed"] // 1000).nunique() > 1  # several recognizers
+    how = ("the two-stage bootstrap over recognizers, then seeds" if nested else "Student t over seeds")
+    fig.suptitle(f"Mean over runs and 95% interval ({how}) after a {window}-point trailing sliding-window mean",
+                 fontsize=11)
     fig.tight_layout(rect=(0, 0.03, 1, 0.97))
     return _save(fig, path)
 

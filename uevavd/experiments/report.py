@@ -222,8 +222,10 @@ def _results_section(final: pd.DataFrame, setting: str) -> list[str]:
 
 def _gengap_section(final: pd.DataFrame, setting: str) -> list[str]:
     out = ["## Generalisation gap", "",
-           "GenGap = return on training contexts minus return on test contexts, per seed (same run), "
-           "then mean ± std and 95% t-interval over seeds. Smaller is better.", ""]
+           "GenGap = return on training contexts minus return on test contexts, per run (same run), "
+           "then mean ± std and the 95% interval of the results tables (Student t over seeds with one "
+           "recognizer; the two-stage bootstrap over recognizers, then seeds, with several). Smaller is better.",
+           ""]
     rows = []
     for m in order_methods(final.loc[final["setting"] == setting, "method"].unique()):
         tr = estimate(final, m, "train", "return", setting)
@@ -253,10 +255,14 @@ def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, ou
                  if w > 1 else "not smoothed (window 1)")
     out += [f"Return, recognition rate and movement distance against training episodes on the training and "
             f"hard-test contexts ({setting} setting). Each seed's curve ({points}+ evaluation points) is "
-            f"{smoothing}; the line is the mean over seeds and the band the 95% Student-t interval over seeds at "
-            "each evaluation point (mean ± t(0.975, n-1) · sd / √n, the same interval as the tables; no band "
-            "with one seed). Curve points are the per-epoch evaluations (`train.eval_contexts` contexts per "
-            "split); dashed lines: random, passive and oracle, evaluated on every context.", "",
+            f"{smoothing}; the line is the mean over runs and the band "
+            + ("the tables' 95% two-stage bootstrap interval (recognizers, then seeds)"
+               if results["recognizer"].nunique() > 1 else
+               "the 95% Student-t interval over seeds (mean ± t(0.975, n-1) · sd / √n, the same interval as the "
+               "tables; no band with one seed)")
+            + " at each evaluation point, clipped to the metric's range. Curve points are the per-epoch evaluations "
+            "(`train.eval_contexts` contexts per split); dashed lines: the baselines, evaluated on every context.",
+            "",
             "![Fig. 9: learning curves](fig9_curves.png)", ""]
     return out
 
@@ -329,9 +335,11 @@ def _strips_section(ablation_dir: Path, meta: dict | None, out_dir: Path) -> lis
 def _claims_section(claims: list[Claim], notes: list[str]) -> list[str]:
     out = ["## Claims checked", "",
            "Each claim of the paper against our final-point numbers. A comparison agrees when its whole 95% "
-           "interval (Student t over seeds; Welch for differences between methods, exact for the deterministic "
-           "passive baseline; least-squares slope over (setting, seed) points for sweeps) lies on the claimed "
-           "side of zero, disagrees when it lies wholly on the other side, and cannot tell otherwise.", ""]
+           "interval lies on the claimed side of zero, disagrees when it lies wholly on the other side, and "
+           "cannot tell otherwise. Intervals: with one recognizer, Student t over seeds (Welch for differences "
+           "between methods, exact for the deterministic passive baseline); with several, the two-stage bootstrap "
+           "(recognizers with replacement, then seeds within each; differences paired by recognizer); for sweeps, "
+           "a least-squares slope with its t-interval over (setting, run) points.", ""]
     for c in claims:
         out.append(f"- **({c.id}) {c.text}** — **{c.verdict}**. {c.evidence}")
     out += ["", "### What could explain a claim that does not agree", ""]
