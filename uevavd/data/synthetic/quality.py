@@ -27,13 +27,13 @@ def view_stats(visible: np.ndarray) -> dict[str, float]:
 
 
 def read_visible(root: str | Path) -> dict[int, np.ndarray]:
-    """``{context id: (605,) float32 visible fractions}`` of every context folder of a
+    """``{context id: (605,) float64 visible fractions}`` of every context folder of a
     synthetic world (from its ``scene.json``)."""
     out = {}
     for meta_path in sorted(Path(root).glob(f"[0-9][0-9][0-9]/{SCENE_META}")):
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
         if meta.get("context") is not None:
-            out[int(meta["context"])] = np.array(list(meta["visible"].values()), np.float32)
+            out[int(meta["context"])] = np.array(list(meta["visible"].values()), np.float64)
     return out
 
 
@@ -51,7 +51,7 @@ def split_rows(visible: Mapping[int, np.ndarray]) -> list[dict]:
             if not members:
                 continue
             v = np.concatenate([visible[c] for c in members])
-            clear = [float(np.mean(visible[c] >= VALIDITY.clear_at)) for c in members]
+            clear = [view_stats(visible[c])["clear"] for c in members]  # the same comparison as the rows
             rows.append({"split": split, "terrain": terrain if terrain == "all" else f"{terrain} ({placement})",
                          "contexts": len(members), "views": len(v), **view_stats(v),
                          "min_clear": min(clear), "valid": sum(VALIDITY.passes(visible[c]) for c in members)})
