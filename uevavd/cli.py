@@ -37,9 +37,10 @@ def bad_input_types() -> tuple[type[BaseException], ...]:
 
 
 #: OS faults that are the machine's state, not a bug: a full disk, a read-only or forbidden
-#: folder, a path that is a file where a folder is needed (and the reverse).
+#: folder, a path that is a file where a folder is needed (and the reverse), a worker process
+#: that was killed.
 OS_FAULTS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.EISDIR,
-                       errno.ENOTDIR, errno.EEXIST})
+                       errno.ENOTDIR, errno.EEXIST, errno.ECHILD})  # ECHILD: a worker process died
 
 
 def os_fault(exc: BaseException) -> bool:

@@ -397,3 +397,21 @@ def test_second_annotations_must_agree(tmp_path, write_scene_fn):
     m = read_dataset(tmp_path, check=False)
     boxes = {r.image.name: r.box for r in m}
     assert boxes[a_name] == a_box and boxes[b_name] == b_box and boxes[c_name] == c_box
+
+
+def test_an_odd_sized_first_image_is_named_not_the_healthy_ones(tmp_path):
+    """The reader read the size from a scene's first image only: a wrong-sized first image
+    made every healthy file's box look outside the image (375 false box_outside), and the
+    odd file was never named."""
+    import cv2
+
+    from uevavd.data.reader import scan
+    from uevavd.testing.worlds import write_tiny_world
+
+    root = write_tiny_world(tmp_path / "w", contexts=(1,), train605=False)
+    first = sorted(p for p in (root / "001").iterdir() if p.suffix == ".png")[0]
+    cv2.imwrite(str(first), np.zeros((20, 20, 3), np.uint8))
+    _, problems = scan(root)
+    kinds = [p.kind for p in problems]
+    assert "box_outside" not in kinds
+    assert [p.path for p in problems if p.kind == "mixed_sizes"] == [first]

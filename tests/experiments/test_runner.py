@@ -401,3 +401,25 @@ def test_threads_follow_the_workers_asked_for_not_the_runs_left(monkeypatch):
     job = Job("map", "default", 0, "spec.toml", "table", "out")
     backends.run_jobs([job], workers=2)
     assert seen[0].threads == 2
+
+
+def test_a_dead_worker_names_its_run_in_one_line(capsys, monkeypatch):
+    """A killed ablation worker surfaced as BrokenProcessPool naming no run."""
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from uevavd.cli import os_fault
+    from uevavd.experiments.backends import job_result
+    from uevavd.experiments.runner import Job
+
+    job = Job("ibe_map", "thre=0.4", 3, "spec.toml", "table", "/runs/ibe_map/thre=0.4/rec1/seed3", recognizer=1)
+    fut = Future()
+    fut.set_exception(BrokenProcessPool("A process in the process pool was terminated abruptly"))
+    with pytest.raises(ChildProcessError, match=r"run ibe_map/thre=0.4/rec1/seed3 died.*rerun the same command") as e:
+        job_result(fut, job)
+    assert os_fault(e.value)  # the CLI prints it in one line, exit 2
+    bad = Future()
+    bad.set_exception(ValueError("table mismatch"))
+    with pytest.raises(ValueError) as e2:
+        job_result(bad, job)
+    assert any("ibe_map/thre=0.4/rec1/seed3" in n for n in e2.value.__notes__)

@@ -343,6 +343,28 @@ def _imageless(stem: str, where: Path, unparsed: str, orphan: str) -> Problem:
     return Problem("orphan_annotation", where, orphan)
 
 
+def _scene_size(scene_dir: Path, images: list[str], problems: list[Problem]) -> tuple[int, int] | None:
+    """A scene's image size from the headers of its first, middle and last images (the
+    majority; a header read is cheap): one odd image is then named as the odd one
+    (``mixed_sizes``) instead of making every healthy file's box look outside the image."""
+    picks = sorted({0, len(images) // 2, len(images) - 1}) if images else []
+    sizes: dict[str, tuple[int, int]] = {}
+    for i in picks:
+        try:
+            sizes[images[i]] = image_size(scene_dir / images[i])
+        except (OSError, ValueError) as e:
+            problems.append(Problem("unreadable_image", scene_dir / images[i], str(e)))
+    if not sizes:
+        return None
+    counts = Counter(sizes.values())
+    size = max(counts, key=lambda s: (counts[s], s))
+    for name, other in sizes.items():
+        if other != size:
+            problems.append(Problem("mixed_sizes", scene_dir / name, f"image is {other[0]}x{other[1]} (HxW) but the "
+                                    f"scene's other images are {size[0]}x{size[1]}; re-export it at that size"))
+    return size
+
+
 def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Problem]):
     """Records of one scene (sorted), its image size (H, W) or None."""
     files = _list_files(scene_dir)
@@ -373,12 +395,7 @@ def _scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Probl
     seg_names = {n.rpartition(".")[0]: n for n in _list_files(scene_dir / SEG_DIR) if n.lower().endswith(".png")}
     visible = _read_visible(scene_dir, problems)
     images = [n for n in files if is_image_name(n)]
-    size = None
-    if images:
-        try:
-            size = image_size(scene_dir / images[0])
-        except (OSError, ValueError) as e:
-            problems.append(Problem("unreadable_image", scene_dir / images[0], str(e)))
+    size = _scene_size(scene_dir, images, problems)
     records: list[ViewRecord] = []
     seen: dict[tuple[str, int], list[Path]] = defaultdict(list)
     split = split_of(sid.context) if sid.context is not None else None

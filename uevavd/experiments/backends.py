@@ -9,6 +9,7 @@ give the same results whichever backend ran them.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import os
 from collections.abc import Callable, Sequence
 
@@ -51,11 +52,27 @@ def run_local(jobs: Sequence[Job], *, workers: int, log: Callable) -> list[str]:
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
             futures = {pool.submit(run_job, job): job for job in jobs}
             for fut in as_completed(futures):
-                done.append(fut.result())  # a failed run raises here, naming its key below
+                done.append(job_result(fut, futures[fut]))
                 bar.update()
         return done
     finally:
         bar.close()
+
+
+def job_result(fut, job: Job) -> str:
+    """A finished future's result; a run that failed names itself: a worker process that died
+    (killed, out of memory) is a ``ChildProcessError`` naming the run and how to resume, and
+    any other failure carries a note with the run's key and folder."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        return fut.result()
+    except BrokenProcessPool as exc:
+        raise ChildProcessError(errno.ECHILD, f"the worker process of run {job.key} died ({exc or 'killed'}); "
+                                "finished runs are kept: rerun the same command to resume", job.out) from None
+    except Exception as exc:
+        exc.add_note(f"in run {job.key} ({job.out})")
+        raise
 
 
 def run_ray(jobs: Sequence[Job], *, workers: int, log: Callable, address: str | None = None,
