@@ -139,3 +139,11 @@ def test_inheritance_loop_and_bad_toml(tmp_path, components):
     write(tmp_path, "bad", "name = \n")
     with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
         load_method(tmp_path / "bad.toml")
+
+
+def test_a_setting_the_pipeline_passes_itself_is_refused():
+    """state.feature_dim was accepted and then replaced by the table's feature size."""
+    from uevavd.config import ConfigError, load_method
+
+    with pytest.raises(ConfigError, match="state.feature_dim = 64 is not a setting: it comes from the table's"):
+        load_method("map", overrides={"state.feature_dim": 64})

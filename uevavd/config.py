@@ -262,6 +262,13 @@ def _dataclass_fields(target: str) -> dict[str, Any]:
     return {f.name: hints.get(f.name, Any) for f in dataclasses.fields(cls)}
 
 
+#: Builder arguments the pipeline passes itself (a value in a method file would be silently
+#: replaced), per section, with where they come from.
+RUNTIME_ARGS: dict[str, dict[str, str]] = {
+    "state": {"feature_dim": "the table's feature size (D), passed when the network is built"},
+}
+
+
 def validate(data: Mapping[str, Any], source: str = "<method>") -> None:
     """Raise :class:`ConfigError` unless every key and type is accepted."""
     allowed_top = list(TOP_KEYS) + list(TOP_SECTIONS)
@@ -291,6 +298,10 @@ def validate(data: Mapping[str, Any], source: str = "<method>") -> None:
             raise ConfigError(f"{source}: {where} needs a `name` naming a registered {kind}")
         fields = _builder_fields(kind, section["name"], where, source)
         args = {k: v for k, v in section.items() if k != "name"}
+        for key in RUNTIME_ARGS.get(where, ()):
+            if key in args:  # the builder takes it, but the trainer passes it: a config value would be ignored
+                raise ConfigError(f"{source}: {where}.{key} = {args[key]!r} is not a setting: it comes from "
+                                  f"{RUNTIME_ARGS[where][key]}; remove it")
         _check_fields(where, args, fields, source)
     for where, target in DATACLASS_SECTIONS.items():
         section = data.get(where)

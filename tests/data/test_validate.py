@@ -139,3 +139,20 @@ def test_a_listed_scene_folder_that_is_missing_is_named_once(synthetic_root, tmp
     problems = validate(root, progress=False).problems
     assert [p.kind for p in problems].count("missing_scene") == 1
     assert not [p for p in problems if "026" in str(p.path) and p.kind != "missing_scene"]
+
+
+def test_validate_and_prepare_agree_on_incomplete_segmentation(synthetic_root, tmp_path):
+    """A scene whose seg/categories.json is missing (or some of whose seg PNGs are): validate
+    used to pass it while `prepare --method ibe_map` refused it; both now name the file."""
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(synthetic_root, root)
+    (root / "026" / "seg" / "categories.json").unlink()
+    manifest_path = root / "manifest.json"
+    listed = json.loads(manifest_path.read_text())
+    listed["files"].pop("026/seg/categories.json")  # keep the hash check out of it
+    manifest_path.write_text(json.dumps(listed))
+    problems = validate(root, progress=False).problems
+    seg = [p for p in problems if p.kind == "incomplete_segmentation"]
+    assert len(seg) == 1 and "categories.json is missing" in seg[0].message

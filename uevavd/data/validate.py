@@ -136,6 +136,28 @@ def _ranges(ids: Iterable[int]) -> str:
     return ", ".join(parts)
 
 
+def segmentation_problem(manifest, scene: str, recs: list) -> str | None:
+    """Why a scene's ground-truth segmentation cannot serve a ground-truth segmenter (IBE-MAP's
+    ``gt``), or None: views without a segmentation PNG, no ``seg/categories.json``, or no
+    instance of category ``target`` in it (every target pixel would then be grayed like the
+    background). The one rule ``validate`` and ``prepare`` share."""
+    from .layout import CATEGORIES
+
+    missing = [r for r in recs if r.seg is None]
+    if missing:
+        return (f"scene {scene}: {len(missing)} of its {len(recs)} views have no ground-truth segmentation "
+                f"(e.g. {missing[0].image}); the gt segmenter needs every view's")
+    path = Path(recs[0].seg).parent / CATEGORIES
+    cats = manifest.categories(scene)
+    if cats is None:
+        return (f"scene {scene}: {path} is missing; the ground-truth segmenter needs it to tell the target from "
+                'other instances ({"<instance id>": "<category>", ...}, with a "target" entry)')
+    if "target" not in cats.values():
+        return (f"{path}: no instance has category 'target' (categories: {sorted(set(cats.values()))}); the "
+                "ground-truth segmenter cannot tell the target from the background")
+    return None
+
+
 def container_problem(data: bytes) -> str | None:
     """What is wrong with an image file's bytes before decoding, or None: empty, an unknown
     signature, a PNG without its IEND chunk or a JPEG without its end-of-image marker at the
@@ -241,6 +263,17 @@ def validate(root: str | Path, *, decode_images: bool = True, workers: int = 2,
     manifest, problems = scan(root, check=True)
     root = manifest.root
     report = ValidationReport(root=root, manifest=manifest)
+    by_scene: dict[str, list] = defaultdict(list)
+    for r in manifest.records:
+        if r.context is not None:
+            by_scene[r.scene].append(r)
+    for scene, recs in sorted(by_scene.items()):
+        # segmentation is optional (the real release has none), but a scene that has some must
+        # have all of it: else `prepare --method ibe_map` refuses what validate passed
+        if any(r.seg is not None for r in recs):
+            problem = segmentation_problem(manifest, scene, recs)
+            if problem:
+                problems.append(Problem("incomplete_segmentation", manifest.scene_dirs.get(scene, root), problem))
     hashes = load_file_hashes(root, problems) if check_hashes else {}
     if not decode_images and not hashes:
         report.problems = problems

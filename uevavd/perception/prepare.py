@@ -163,24 +163,14 @@ def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.nd
 
 def ground_truth_categories(manifest, scene: str, recs: list) -> dict[int, str]:
     """The scene's instance id -> category table for a ground-truth segmenter; an error
-    naming the file when it is missing or names no ``target`` (without it every pixel of
-    the target would be grayed like the background)."""
-    from ..data.layout import CATEGORIES
+    naming the file when the scene's segmentation cannot serve it
+    (:func:`uevavd.data.validate.segmentation_problem`, the rule ``validate`` checks too)."""
+    from ..data.validate import segmentation_problem
 
-    missing_seg = [r for r in recs if r.seg is None]
-    if missing_seg:
-        raise ValueError(f"scene {scene}: the segmenter needs ground-truth segmentation, which "
-                         f"{len(missing_seg)} of its views lack (e.g. {missing_seg[0].image})")
-    path = Path(recs[0].seg).parent / CATEGORIES
-    cats = manifest.categories(scene)
-    if cats is None:
-        raise ValueError(f"scene {scene}: {path} is missing; the ground-truth segmenter needs it to tell the "
-                         'target from other instances ({"<instance id>": "<category>", ...}, with a "target" '
-                         "entry)")
-    if "target" not in cats.values():
-        raise ValueError(f"{path}: no instance has category 'target' (categories: {sorted(set(cats.values()))}); "
-                         "the ground-truth segmenter cannot tell the target from the background")
-    return cats
+    problem = segmentation_problem(manifest, scene, recs)
+    if problem:
+        raise ValueError(problem)
+    return manifest.categories(scene)
 
 
 def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, segmenter, gray_seed: int):
