@@ -13,11 +13,16 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-__all__ = ["__version__", "load_method", "MethodSpec", "registry"]
+#: The researcher's API (:mod:`uevavd.api`), importable from the top level.
+API = ("train_classifier", "build_table", "train", "load_run", "Run", "load_policy_file")
+__all__ = ["__version__", "load_method", "load_preset", "MethodSpec", "registry", "train_classifier", "build_table",
+           "train", "load_run", "Run", "load_policy_file"]
 
 if TYPE_CHECKING:  # pragma: no cover
+    from .api import Run, build_table, load_policy_file, load_run, train, train_classifier
     from .config import MethodSpec, load_method
     from .plugins.manager import registry
+    from .presets import load_preset
 
 
 def __getattr__(name: str) -> Any:
@@ -30,4 +35,12 @@ def __getattr__(name: str) -> Any:
         from .plugins.manager import registry
 
         return registry
+    if name == "load_preset":
+        from .presets import load_preset
+
+        return load_preset
+    if name in API:
+        from . import api
+
+        return getattr(api, name)
     raise AttributeError(f"module 'uevavd' has no attribute {name!r}")

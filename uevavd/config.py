@@ -410,6 +410,19 @@ def load_method(
     return MethodSpec(name=data["name"], data=_freeze(data), source=str(path))
 
 
+def loads_method(text: str, source: str = "<string>") -> MethodSpec:
+    """A resolved method spec from TOML text (what :meth:`MethodSpec.to_toml` writes, e.g.
+    the ``method.toml`` inside a saved policy); validated like a method file."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML ({exc})") from None
+    if "_base_" in data:
+        raise ConfigError(f"{source}: a resolved method has no _base_; load a method file with load_method")
+    validate(data, source)
+    return MethodSpec(name=data["name"], data=_freeze(data), source=source)
+
+
 def known_methods() -> list[str]:
     from .plugins.manager import manager
 

@@ -54,3 +54,20 @@ class PassivePolicy:
         n = obs["view"].shape[0]
         dev = obs["view"].device
         return torch.full((n,), STOP, dtype=torch.int64, device=dev), torch.zeros(n, dtype=torch.int64, device=dev)
+
+
+def reference_policies(table, config) -> dict:
+    """The baselines every evaluation shows beside a learned policy, by name: random (seed 0),
+    passive, the visibility oracle (where the table knows visible fractions) and the
+    class-knowing oracle (an upper bound)."""
+    import numpy as np
+
+    from .oracle import OraclePolicy
+
+    out = {"random": RandomPolicy(0), "passive": PassivePolicy()}
+    if not np.isnan(np.asarray(table.visible)).all():
+        from .visibility_oracle import VisibilityOraclePolicy
+
+        out["visibility_oracle"] = VisibilityOraclePolicy(table, config)
+    out["oracle"] = OraclePolicy(table, config)
+    return out

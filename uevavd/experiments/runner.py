@@ -274,14 +274,14 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
     train_605 images, training settings): a regenerated world under the same path never
     reuses an old classifier."""
     from ..data.reader import read_dataset
-    from ..perception.classifier import classifiers_dir, data_hash, train_records
+    from ..perception.classifier import classifier_cache_path, data_hash, train_records
     from ..perception.train import TrainSettings, train_classifier
 
     digest = data_hash(train_records(read_dataset(data)))
     out = {}
     for r in plan.recognizers:
         settings = TrainSettings(**{**plan.preset.get("classifier", {}), "seed": r})
-        path = classifiers_dir() / f"{digest}-{_digest(settings.__dict__)}.safetensors"
+        path = classifier_cache_path(digest, settings)
         if path.is_file():
             log(f"  reusing classifier {path}")
         else:

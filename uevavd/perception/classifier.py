@@ -53,6 +53,14 @@ def data_hash(records) -> str:
     return h.hexdigest()[:16]
 
 
+def classifier_cache_path(data_digest: str, settings: Any) -> Path:
+    """Where a recognizer trained with ``settings`` (a TrainSettings) on the ``train_605``
+    crops of digest ``data_digest`` is cached: ``<cache>/classifiers/<data>-<settings>.safetensors``,
+    so a regenerated world or other settings never reuse an old recognizer."""
+    key = hashlib.sha256(json.dumps(settings.__dict__, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    return classifiers_dir() / f"{data_digest}-{key}.safetensors"
+
+
 def default_classifier_path(data: str | os.PathLike[str]) -> Path:
     """Where ``uevavd train-classifier`` puts, and the pipeline looks for, the classifier of
     dataset ``data`` (a root folder): ``<cache>/classifiers/<data_hash>.safetensors``."""

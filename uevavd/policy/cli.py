@@ -8,8 +8,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 #: What bad input raises (ConfigError, TableError, RunDirError, CheckpointError are ValueErrors).
 BAD_INPUT = (ValueError, FileNotFoundError, NotADirectoryError)
 
@@ -108,10 +106,9 @@ def add_evaluate(p: argparse.ArgumentParser):
 
 def _evaluate(args: argparse.Namespace) -> int:
     from ..env.aod_env import load_table
-    from ..env.baselines import PassivePolicy, RandomPolicy
+    from ..env.baselines import reference_policies
     from ..env.config import EnvConfig
     from ..env.evaluate import evaluate_policy
-    from ..env.oracle import OraclePolicy
     from .agent import load_policy
     from .trainer import read_settings
 
@@ -135,15 +132,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if problem:
         return _error("evaluate", problem)
     cfg = EnvConfig().replace(**settings["env"])
-    policies = {
-        settings["method"]: load_policy(args.run_dir, device=args.device),
-        "random": RandomPolicy(0), "passive": PassivePolicy(),
-    }
-    if not np.isnan(table.visible).all():  # the visibility oracle needs visible fractions
-        from ..env.visibility_oracle import VisibilityOraclePolicy
-
-        policies["visibility_oracle"] = VisibilityOraclePolicy(table, cfg)
-    policies["oracle"] = OraclePolicy(table, cfg)  # knows the class: an upper bound
+    policies = {settings["method"]: load_policy(args.run_dir, device=args.device), **reference_policies(table, cfg)}
     results = {name: evaluate_policy(table, args.split, pol, cfg, device=args.device)
                for name, pol in policies.items()}
     cols = ["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"]

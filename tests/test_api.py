@@ -1,0 +1,74 @@
+"""The README's Python API script, run exactly as written on the tiny test world (its
+dataset root and preset name swapped for the tiny ones)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uevavd.testing.worlds import write_tiny_world
+
+TINY_PRESET = """
+name = "tiny"
+[overrides]
+"perception.encoder.name" = "resnet18"
+"perception.encoder.weights" = "classifier"
+"train.episodes" = 200
+"train.epoch_episodes" = 100
+"train.n_envs" = 16
+"train.learning_starts" = 50
+"train.eval_splits" = ["train", "hard"]
+"train.eval_contexts" = 1
+"state.input_dim" = 40
+"state.state_dim" = 32
+"head.hidden" = 32
+"train.threads" = 1
+
+[classifier]
+epochs = 2
+max_views = 40
+batch_size = 32
+"""
+
+
+def _readme_script() -> str:
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    section = readme.split("## The Python API", 1)[1]
+    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+
+
+def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatch, capsys):
+    import uevavd
+
+    world = write_tiny_world(tmp_path / "world", contexts=(1, 26, 31, 56), train605=True)
+    (tmp_path / "tiny.toml").write_text(TINY_PRESET)
+    script = _readme_script()
+    assert 'root = "data/quick"' in script and 'uevavd.load_preset("quick")' in script
+    script = script.replace('"data/quick"', repr(str(world))).replace('load_preset("quick")',
+                                                                     f'load_preset({str(tmp_path / "tiny.toml")!r})')
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(script, "README.md", "exec"), namespace)  # noqa: S102 - the README's own example
+    out = capsys.readouterr().out
+    for name in ("ibe_map", "random", "passive", "visibility_oracle", "oracle"):
+        assert name in out
+    run = namespace["run"]
+    assert run.finished and run.env_config.thre == 0.2
+    frame = run.evaluate("hard")
+    assert list(frame.index) == ["ibe_map", "random", "passive", "visibility_oracle", "oracle"]
+    assert frame.loc["oracle", "mean_return"] >= frame["mean_return"].max() - 1e-9
+    policy, cfg = uevavd.load_policy_file(tmp_path / "ibe_map.safetensors", table=namespace["table"])
+    from uevavd.env.evaluate import evaluate_policy
+
+    again = evaluate_policy(namespace["table"], "hard", policy, cfg).summary()
+    assert again["mean_return"] == pytest.approx(frame.loc["ibe_map", "mean_return"], abs=1e-9)
+    assert (tmp_path / "ibe_map.safetensors").stat().st_size < 2_000_000  # no replay buffer
+    other = uevavd.build_table(world, "map", classifier=namespace["recognizer"],
+                               overrides={k: v for k, v in uevavd.load_preset(tmp_path / "tiny.toml")["overrides"].items()
+                                          if k.startswith("perception.")})
+    with pytest.raises(ValueError, match="was trained on table .* not "):
+        uevavd.load_policy_file(tmp_path / "ibe_map.safetensors", table=other)
+    assert np.isfinite(frame.to_numpy()).all()

@@ -1,0 +1,182 @@
+"""The researcher's API: the pipeline in a few calls, as the README shows it.
+
+    import uevavd
+
+    preset = uevavd.load_preset("quick")
+    recognizer = uevavd.train_classifier("data/quick", **preset["classifier"])
+    table = uevavd.build_table("data/quick", "ibe_map", classifier=recognizer, overrides=preset["overrides"])
+    run = uevavd.train("ibe_map", table, out="runs/ibe_map", overrides=preset["overrides"])
+    run.evaluate("hard")                     # a DataFrame: the policy beside the baselines
+    run.save_policy("ibe_map.safetensors")   # the network and its method, no replay buffer
+
+Every function is a thin layer over the CLI's own code (the same caches, keys and checks);
+a :class:`Run` evaluates under its own env config (its ``settings.json``), so nobody rebuilds
+an :class:`~uevavd.env.config.EnvConfig` by hand.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+POLICY_FORMAT = "uevavd-policy/1"
+
+
+def train_classifier(data: str | os.PathLike[str], out: str | os.PathLike[str] | None = None, *,
+                     workers: int = 2, progress: bool = True, **settings: Any) -> Path:
+    """Train the recognizer on ``data``'s ``train_605`` crops (``settings``: the fields of
+    :class:`uevavd.perception.train.TrainSettings`, e.g. a preset's ``[classifier]``); reuse
+    it when a file of these settings exists. Returns the ``.safetensors`` path."""
+    from .data.reader import read_dataset
+    from .perception.classifier import classifier_cache_path, data_hash, train_records
+    from .perception.train import TrainSettings
+    from .perception.train import train_classifier as _train
+
+    s = TrainSettings(**settings)
+    s.check()
+    if out is None:  # the cache `uevavd ablate` uses too
+        out = classifier_cache_path(data_hash(train_records(read_dataset(data))), s)
+        if out.is_file():
+            return out
+    return _train(data, out, settings=s, workers=workers, progress=progress)
+
+
+def build_table(data: str | os.PathLike[str], method: Any, *, classifier: str | os.PathLike[str] | None = None,
+                overrides: Mapping[str, Any] | None = None, out_dir: str | os.PathLike[str] | None = None,
+                workers: int = 2, progress: bool = True):
+    """The observation table of ``method`` (a name, a TOML path or a spec, with dotted
+    ``overrides``) over dataset ``data``, built or found in the cache; returns the
+    :class:`~uevavd.perception.table.ObservationTable`."""
+    from .perception.prepare import prepare_table
+    from .perception.table import ObservationTable
+
+    path = prepare_table(data, method, classifier_path=classifier, overrides=dict(overrides or {}) or None,
+                         out_dir=out_dir, workers=workers, progress=progress)
+    return ObservationTable.load(path)
+
+
+def train(method: Any, table: Any, *, out: str | os.PathLike[str], episodes: int | None = None, seed: int = 0,
+          overrides: Mapping[str, Any] | None = None, device: str = "auto", progress: bool = True) -> Run:
+    """Train ``method`` on ``table`` (an ObservationTable or its folder) into ``out``;
+    resumes an unfinished run of the same settings. Returns the :class:`Run`."""
+    from .perception.prepare import resolve_spec
+    from .policy.trainer import train as _train
+
+    spec = resolve_spec(method, dict(overrides or {}) or None)
+    return Run(_train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress))
+
+
+def load_run(path: str | os.PathLike[str]) -> Run:
+    """A finished (or paused) run directory."""
+    from .policy.trainer import read_settings
+
+    read_settings(path)  # a clear error when it is not a run
+    return Run(Path(path))
+
+
+@dataclass(frozen=True)
+class Run:
+    """A training run directory: its settings, its policy, its evaluation."""
+
+    path: Path
+
+    @cached_property
+    def settings(self) -> dict[str, Any]:
+        from .policy.trainer import read_settings
+
+        return read_settings(self.path)
+
+    @property
+    def env_config(self):
+        """The run's own :class:`~uevavd.env.config.EnvConfig` (its thre, C, T_max, ...)."""
+        from .env.config import make_config
+
+        return make_config(self.settings["env"])
+
+    @property
+    def finished(self) -> bool:
+        return (self.path / "done.json").is_file()
+
+    def table(self):
+        """The run's observation table (from the path it was trained on)."""
+        from .perception.table import ObservationTable
+
+        table = ObservationTable.load(self.settings["table_path"])
+        if table.key != self.settings["table_key"]:
+            raise ValueError(f"{self.settings['table_path']} now holds table {table.key}, but {self.path} was "
+                             f"trained on {self.settings['table_key']}")
+        return table
+
+    def policy(self, device: str = "cpu"):
+        """The greedy policy of the run's latest checkpoint (``act(obs)`` over batched obs)."""
+        from .policy.agent import load_policy
+
+        return load_policy(self.path, device=device)
+
+    def evaluate(self, split: str = "hard", *, baselines: bool = True, device: str = "cpu"):
+        """A pandas DataFrame, one row per policy (this run's method, then random, passive,
+        the visibility oracle where the table knows visible fractions, and the class-knowing
+        oracle), from every context of ``split`` x all 605 starts, under the run's env config."""
+        import pandas as pd
+
+        from .env.baselines import reference_policies
+        from .env.evaluate import evaluate_policy
+
+        table, cfg = self.table(), self.env_config
+        policies = {self.settings["method"]: self.policy(device)}
+        if baselines:
+            policies.update(reference_policies(table, cfg))
+        rows = [{"policy": name, **evaluate_policy(table, split, p, cfg, device=device).summary()}
+                for name, p in policies.items()]
+        return pd.DataFrame(rows).set_index("policy")
+
+    def save_policy(self, path: str | os.PathLike[str]) -> Path:
+        """The network alone (no optimizer, no replay buffer) as ``.safetensors``, with the
+        method, the env config and the table key in its header: :func:`load_policy_file`
+        reads it back."""
+        from safetensors.torch import save_file
+
+        from .atomic import atomic_save
+        from .policy.checkpoint import ARCH_KEYS, load_checkpoint
+
+        state = load_checkpoint(self.path / "checkpoint.pt", expect=self.settings, keys=ARCH_KEYS)
+        tensors = {k: v.contiguous() for k, v in state["net"].items()}
+        meta = {"format": POLICY_FORMAT, "method_toml": (self.path / "method.toml").read_text(encoding="utf-8"),
+                "settings": json.dumps({k: self.settings[k] for k in
+                                        ("method", "spec_hash", "table_key", "feature_dim", "env", "seed")})}
+        return atomic_save(Path(path), lambda tmp: save_file(tensors, tmp, metadata=meta))
+
+
+def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, device: str = "cpu"):
+    """A policy saved by :meth:`Run.save_policy`: ``(GreedyPolicy, EnvConfig)``. With
+    ``table``, a table of another key (another perception config or dataset) is refused."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file
+
+    from .config import loads_method
+    from .env.config import make_config
+    from .policy.agent import GreedyPolicy
+    from .policy.network import build_network
+
+    path = Path(path)
+    with safe_open(str(path), framework="pt") as fh:
+        meta = fh.metadata() or {}
+    if meta.get("format") != POLICY_FORMAT:
+        raise ValueError(f"{path}: not a policy file written by Run.save_policy (format {meta.get('format')!r})")
+    settings = json.loads(meta["settings"])
+    if table is not None:
+        from .env.aod_env import load_table
+
+        key = load_table(table).key
+        if key != settings["table_key"]:
+            raise ValueError(f"{path} was trained on table {settings['table_key']}, not {key}: evaluate it on "
+                             "the table of its own method and dataset")
+    spec = loads_method(meta["method_toml"], source=str(path))
+    net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
+    net.load_state_dict(load_file(str(path)))
+    return GreedyPolicy(net, device=device), make_config(settings["env"])
