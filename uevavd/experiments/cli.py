@@ -73,7 +73,8 @@ def print_results(results: Path) -> None:
     table = table.rename(columns={"steps": "decisions"})  # decisions per episode (path_m is the flight)
     with pd.option_context("display.width", 160, "display.max_columns", 20, "display.precision", 3):
         for split in [s for s in ("train", "simple", "hard") if s in set(final["split"])]:
-            how = "mean / std over recognizers x seeds" if several else "one seed"
+            how = ("one run" if not several else "mean / std over recognizers x seeds"
+                   if final["recognizer"].nunique() > 1 else "mean / std over seeds")
             print(f"\n{split} contexts (final evaluation, {how}):")
             print(table.loc[split].to_string(float_format=lambda v: f"{v:.3f}", na_rep="-"))
 
