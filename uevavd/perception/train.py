@@ -169,8 +169,18 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tra
     """Train on (N, H, W, 3) uint8 crops with (N,) int class labels and (N,) view indices.
 
     Returns ``(model, info)``; ``info`` holds the held-out views, clean validation accuracy,
-    per-epoch history and the initial weights used.
+    per-epoch history and the initial weights used. Reproducible: torch's global generator
+    (which layers such as dropout and Lite0's drop-connect draw from, and which torch seeds
+    at random in every process) is seeded from ``settings.seed`` for the call and restored
+    after it.
     """
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(settings.seed) + 12345)
+        return _fit(images, labels, views, settings, imagenet=imagenet, n_classes=n_classes, progress=progress)
+
+
+def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: TrainSettings, *,
+         imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True):
     from tqdm.auto import tqdm
 
     settings.check()
