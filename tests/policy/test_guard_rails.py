@@ -15,17 +15,8 @@ from uevavd.policy.checkpoint import CheckpointError
 from uevavd.policy.trainer import RunDirError, train
 
 from .conftest import small
-
-
-def _sets(**extra):
-    return [a for k, v in {**small("map"), **extra}.items() for a in ("--set", f"{k}={json.dumps(v)}")]
-
-
-def _one_line(capsys, *needles):
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "Traceback" not in err, err
-    for n in needles:
-        assert n in err, (n, err)
+from .test_cli import _one_line_error as _one_line
+from .test_cli import _sets
 
 
 @pytest.mark.parametrize("key, value, needle", [
