@@ -39,8 +39,8 @@ class ScriptPolicy:
         return a_type, (h // 6) % 4
 
 
-def test_harness_equals_single_env_episodes(table):
-    cfg = EnvConfig(t_max=3)
+@pytest.mark.parametrize("cfg", [EnvConfig(t_max=3), EnvConfig(t_max=3, xi1=0.3, C=0.03)], ids=["default", "xi1-0.3"])
+def test_harness_equals_single_env_episodes(table, cfg):
     res = evaluate_policy(table, "hard", ScriptPolicy(), cfg)
     assert len(res) == 2 * N_VIEWS
     assert res.scene.tolist() == [4] * N_VIEWS + [5] * N_VIEWS

@@ -136,9 +136,10 @@ class EnvTensors:
         final = stopped | (t >= cfg.t_max - 1)
         at = local_scene * N_VIEWS + nv
         reco = self._reco_flat.index_select(0, at)
-        # float64 arithmetic in the same order as AODEnv, so the float32 rewards agree exactly
+        # float64 arithmetic in AODEnv's order (no float32 constant), so rewards and returns agree exactly
         cost = torch.where(stopped, 0.0, cfg.C * (a_range + 1).double())
-        term = torch.where(reco, cfg.xi1, -cfg.xi1).double()
+        xi1 = torch.tensor(cfg.xi1, dtype=torch.float64, device=reco.device)  # not a float32 scalar
+        term = torch.where(reco, xi1, -xi1)
         reward = torch.where(final, term, -cfg.xi2) - cost
         return {
             "next_view": nv,
