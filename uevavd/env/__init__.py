@@ -31,6 +31,7 @@ _LAZY = {
     "select_scenes": "aod_env",
     "DiscreteActions": "wrappers",
     "BatchedAODEnv": "batched",
+    "AODVectorEnv": "vector",
     "evaluate_policy": "evaluate",
     "EvalResult": "evaluate",
     "RandomPolicy": "baselines",
@@ -45,7 +46,8 @@ __all__ = ["ENV_ID", "EnvConfig", "EnvConfigError", "register", *_LAZY]
 def register() -> None:
     """Register ``uevavd/AOD-v0`` with gymnasium (idempotent)."""
     if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point="uevavd.env.aod_env:AODEnv")
+        gym.register(id=ENV_ID, entry_point="uevavd.env.aod_env:AODEnv",
+                     vector_entry_point="uevavd.env.vector:make_vector_env")
 
 
 register()

@@ -35,7 +35,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from ..data.grid import N_VIEWS, STOP, transitions, view_coords
+from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
 from ..perception.table import ObservationTable, TableError
 from .config import EnvConfig, make_config
 
@@ -207,9 +207,14 @@ class AODEnv(gym.Env):
                 a = np.zeros(0)
             if not np.all(a == np.round(a)):
                 a = np.zeros(0)
+        if a.shape == () and 0 <= int(a) < N_TYPES * self.config.max_range:
+            # the flat Discrete(7 * A) index (type-major, as grid.flat_action), for libraries
+            # that turn a MultiDiscrete space into one categorical (TorchRL's GymWrapper)
+            a = np.array(unflat_action(int(a), self.config.max_range))
         if a.shape != (2,):
             raise ValueError(
-                f"action {action!r}: expected (type, range index) in MultiDiscrete([7, {self.config.max_range}])"
+                f"action {action!r}: expected (type, range index) in MultiDiscrete([7, {self.config.max_range}]) "
+                f"or a flat index 0..{N_TYPES * self.config.max_range - 1}"
             )
         a_type, a_range = int(a[0]), int(a[1])
         if not (0 <= a_type <= STOP and 0 <= a_range < self.config.max_range):
@@ -244,3 +249,14 @@ class AODEnv(gym.Env):
                 **{"return": float(self._return)},
             )
         return self._obs(), float(reward), bool(final), False, info
+
+    def action_masks(self) -> np.ndarray:
+        """Allowed actions at the current view for sb3-contrib's MaskablePPO, in its
+        MultiDiscrete form: (7 + A,) bool, a type where any of its ranges is allowed, then
+        every range (the joint (type, range) rule cannot be split per dimension; wrap the env
+        in :class:`~uevavd.env.wrappers.DiscreteActions` for the exact joint mask)."""
+        from .vector import action_masks
+
+        if self._done:
+            raise RuntimeError("action_masks() on a finished episode: call reset() first")
+        return action_masks(self._tr.mask[self._view][None], "multi")[0]

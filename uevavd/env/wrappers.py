@@ -41,6 +41,11 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
         obs, info = self.env.reset(**kwargs)
         return self._flat_obs(obs), info
 
+    def action_masks(self) -> np.ndarray:
+        """(7 * A,) bool: the joint actions allowed at the current view (sb3-contrib's MaskablePPO)."""
+        mask = self.env.unwrapped._tr.mask[self.env.unwrapped._view]
+        return np.asarray(mask, dtype=bool).reshape(-1)
+
     def step(self, action: Any):
         if not self.action_space.contains(action) and not (
             np.ndim(action) == 0 and float(action) == int(action) and 0 <= int(action) < 7 * self._a

@@ -1,0 +1,131 @@
+"""The batched env behind Gymnasium's make_vec, SB3's VecEnv, MaskablePPO and flat actions."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+from uevavd.env import ENV_ID, AODEnv, BatchedAODEnv, DiscreteActions, EnvConfig
+from uevavd.env.vector import AODVectorEnv
+
+
+def _vec(table, n=6, **kw):
+    return gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", table=table, **kw)
+
+
+def test_make_vec_is_the_batched_env_step_for_step(table):
+    venv = _vec(table, n=6, split="train", config=EnvConfig(t_max=3))
+    assert isinstance(venv, AODVectorEnv) and venv.num_envs == 6
+    ref = BatchedAODEnv(table, "train", 6, EnvConfig(t_max=3), seed=5)
+    obs, _ = venv.reset(seed=5)
+    robs = ref.reset()
+    rng = np.random.default_rng(0)
+    finished = 0
+    for _ in range(30):
+        assert venv.observation_space.contains(obs)
+        np.testing.assert_array_equal(obs["features"], robs["features"].numpy())
+        np.testing.assert_array_equal(obs["t"], robs["t"].numpy())
+        np.testing.assert_array_equal(obs["action_mask"], robs["mask"].numpy().astype(np.int8))
+        actions = np.stack([rng.integers(0, 7, 6), rng.integers(0, 4, 6)], 1)
+        obs, reward, term, trunc, infos = venv.step(actions)
+        robs, rreward, rdone, rinfo = ref.step(torch.as_tensor(actions[:, 0]), torch.as_tensor(actions[:, 1]))
+        np.testing.assert_array_equal(reward, rreward.numpy())
+        np.testing.assert_array_equal(term, rdone.numpy())
+        assert not trunc.any()
+        for i in np.flatnonzero(term):  # same-step autoreset: the last observation in infos
+            finished += 1
+            assert infos["_final_obs"][i] and infos["final_return"][i] == float(rinfo["final_return"][i])
+            last = infos["final_obs"][i]
+            s, v = int(rinfo["final_scene"][i]), int(rinfo["final_view"][i])
+            np.testing.assert_array_equal(last["features"], np.asarray(table.features[s, v], np.float32))
+            assert last["t"] == int(rinfo["final_decisions"][i])
+    assert finished > 20
+
+
+def test_flat_actions_match_the_pairs_and_masks_follow_the_space(table):
+    multi = _vec(table, n=4, config=EnvConfig())
+    flat = _vec(table, n=4, config=EnvConfig(), actions="flat")
+    assert flat.single_action_space == gym.spaces.Discrete(28)
+    om, _ = multi.reset(seed=1)
+    of, _ = flat.reset(seed=1)
+    rng = np.random.default_rng(1)
+    for _ in range(12):
+        np.testing.assert_array_equal(of["action_mask"], om["action_mask"].reshape(4, -1))
+        np.testing.assert_array_equal(flat.action_masks(), om["action_mask"].reshape(4, -1).astype(bool))
+        per_dim = multi.action_masks()
+        assert per_dim.shape == (4, 7 + 4) and per_dim[:, 6].all() and per_dim[:, 7:].all()
+        a = rng.integers(0, 28, 4)
+        om, rm, tm, _, _ = multi.step(np.stack([a // 4, a % 4], 1))
+        of, rf, tf, _, _ = flat.step(a)
+        np.testing.assert_array_equal(rm, rf)
+        np.testing.assert_array_equal(tm, tf)
+    with pytest.raises(ValueError, match=r"expected \(4,\) indices of Discrete\(28\)"):
+        flat.step(np.array([0, 1, 28, 2]))
+    with pytest.raises(ValueError, match=r"expected \(4, 2\)"):
+        multi.step(np.zeros(4, np.int64))
+
+
+def test_single_env_takes_the_flat_index_and_offers_masks(table):
+    a, b = AODEnv(table, "train"), AODEnv(table, "train")
+    a.reset(seed=3)
+    b.reset(seed=3)
+    for flat in (5, 13, 26):
+        ra = a.step(np.int64(flat))
+        rb = b.step(np.array([flat // 4, flat % 4]))
+        assert ra[1] == rb[1] and ra[2] == rb[2] and ra[4]["view"] == rb[4]["view"]
+        if ra[2]:
+            break
+    obs, _ = a.reset(seed=0)
+    with pytest.raises(ValueError, match="or a flat index 0..27"):
+        a.step(28)
+    assert a.action_masks().shape == (11,)
+    wrapped = DiscreteActions(AODEnv(table, "train"))
+    obs, _ = wrapped.reset(seed=0)
+    np.testing.assert_array_equal(wrapped.action_masks(), obs["action_mask"].astype(bool))
+
+
+@pytest.mark.parametrize("algo", ["dqn", "ppo"])
+def test_sb3_trains_on_the_vector_form(table, algo):
+    sb3 = pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from uevavd.env.sb3 import SB3VecEnv
+
+    venv = VecMonitor(SB3VecEnv(_vec(table, n=16, actions="flat" if algo == "dqn" else "multi")))
+    if algo == "dqn":
+        model = sb3.DQN("MultiInputPolicy", venv, learning_starts=200, train_freq=1, seed=0, device="cpu",
+                        policy_kwargs={"net_arch": [32]})
+    else:
+        model = sb3.PPO("MultiInputPolicy", venv, n_steps=64, batch_size=256, n_epochs=2, seed=0, device="cpu",
+                        policy_kwargs={"net_arch": [32]})
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model.learn(total_timesteps=3000)
+    finally:
+        torch.set_num_threads(threads)
+    assert model.num_timesteps >= 3000
+    assert len(model.ep_info_buffer) == model.ep_info_buffer.maxlen  # VecMonitor saw >= 100 episodes end
+    obs = venv.reset()
+    actions, _ = model.predict(obs, deterministic=True)
+    assert actions.shape == ((16,) if algo == "dqn" else (16, 2))
+
+
+def test_maskable_ppo_runs_on_both_forms(table):
+    pytest.importorskip("sb3_contrib")
+    from sb3_contrib import MaskablePPO
+
+    from uevavd.env.sb3 import SB3VecEnv
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        for env in (SB3VecEnv(_vec(table, n=8, actions="flat")), DiscreteActions(AODEnv(table, "train"))):
+            model = MaskablePPO("MultiInputPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0,
+                                device="cpu", policy_kwargs={"net_arch": [16]})
+            model.learn(total_timesteps=256)
+            assert model.num_timesteps >= 256
+    finally:
+        torch.set_num_threads(threads)

@@ -1,0 +1,84 @@
+"""Stable-Baselines3 ``VecEnv`` over :class:`~uevavd.env.vector.AODVectorEnv`.
+
+SB3 (2.x) steps its own ``VecEnv`` class and has no adapter for Gymnasium's ``VectorEnv``,
+so the library ships this small one::
+
+    from uevavd.env.sb3 import SB3VecEnv
+    venv = SB3VecEnv(gymnasium.make_vec("uevavd/AOD-v0", num_envs=64, vectorization_mode="vector_entry_point",
+                                        table=path, actions="flat"))
+    DQN("MultiInputPolicy", venv).learn(20_000)
+
+Episodes that end report SB3's ``terminal_observation`` (never ``TimeLimit.truncated``: the
+AOD episode always terminates) and the ``final_*`` fields of the batched env;
+``env_method("action_masks")`` gives each env's mask, so sb3-contrib's MaskablePPO works.
+Wrap it in SB3's ``VecMonitor`` for episode statistics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
+
+from .vector import AODVectorEnv
+
+
+class SB3VecEnv(VecEnv):
+    """SB3's ``VecEnv`` interface around one :class:`AODVectorEnv` (all envs in one process)."""
+
+    def __init__(self, venv: AODVectorEnv) -> None:
+        venv = getattr(venv, "unwrapped", venv)
+        if not isinstance(venv, AODVectorEnv):
+            raise TypeError(f"SB3VecEnv wraps an AODVectorEnv (gymnasium.make_vec of uevavd/AOD-v0), got {type(venv)}")
+        self.venv = venv
+        self.render_mode = None
+        super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
+        self._actions: np.ndarray | None = None
+
+    def reset(self):
+        seed = self._seeds[0]
+        obs, _ = self.venv.reset(seed=seed)
+        self._reset_seeds()
+        self._reset_options()
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions)
+
+    def step_wait(self):
+        obs, reward, terminated, truncated, infos = self.venv.step(self._actions)
+        done = terminated | truncated
+        out: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        for i in np.flatnonzero(done):
+            row = {k: v[i] for k, v in infos.items() if not k.startswith("_") and k != "final_obs"}
+            row["terminal_observation"] = infos["final_obs"][i]
+            row["TimeLimit.truncated"] = bool(truncated[i])
+            out[i] = row
+        return obs, reward.astype(np.float32), done, out
+
+    def close(self) -> None:
+        self.venv.close()
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        value = getattr(self.venv, attr_name)  # AttributeError where absent, as SB3 expects
+        return [value for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        setattr(self.venv, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
+                   **method_kwargs: Any) -> list[Any]:
+        """A per-env answer: an array with one row per env (``action_masks``) is split by row."""
+        result = getattr(self.venv, method_name)(*method_args, **method_kwargs)
+        idx = list(self._get_indices(indices))
+        if isinstance(result, np.ndarray) and result.shape[:1] == (self.num_envs,):
+            return [result[i] for i in idx]
+        return [result for _ in idx]
+
+    def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        return [None for _ in range(self.num_envs)]
