@@ -16,15 +16,12 @@ an :class:`~uevavd.env.config.EnvConfig` by hand.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any
-
-POLICY_FORMAT = "uevavd-policy/1"
 
 
 def train_classifier(data: str | os.PathLike[str], out: str | os.PathLike[str] | None = None, *,
@@ -138,37 +135,25 @@ class Run:
     def save_policy(self, path: str | os.PathLike[str]) -> Path:
         """The network alone (no optimizer, no replay buffer) as ``.safetensors``, with the
         method, the env config and the table key in its header: :func:`load_policy_file`
-        reads it back."""
-        from safetensors.torch import save_file
-
-        from .atomic import atomic_save
-        from .policy.checkpoint import ARCH_KEYS, load_checkpoint
+        reads it back. (A finished run has already written it as ``policy.safetensors``.)"""
+        from .policy.checkpoint import ARCH_KEYS, load_checkpoint, save_policy_file
 
         state = load_checkpoint(self.path / "checkpoint.pt", expect=self.settings, keys=ARCH_KEYS)
-        tensors = {k: v.contiguous() for k, v in state["net"].items()}
-        meta = {"format": POLICY_FORMAT, "method_toml": (self.path / "method.toml").read_text(encoding="utf-8"),
-                "settings": json.dumps({k: self.settings[k] for k in
-                                        ("method", "spec_hash", "table_key", "feature_dim", "env", "seed")})}
-        return atomic_save(Path(path), lambda tmp: save_file(tensors, tmp, metadata=meta))
+        return save_policy_file(path, state["net"], (self.path / "method.toml").read_text(encoding="utf-8"),
+                                self.settings)
 
 
 def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, device: str = "cpu"):
     """A policy saved by :meth:`Run.save_policy`: ``(GreedyPolicy, EnvConfig)``. With
     ``table``, a table of another key (another perception config or dataset) is refused."""
-    from safetensors import safe_open
-    from safetensors.torch import load_file
-
     from .config import loads_method
     from .env.config import make_config
     from .policy.agent import GreedyPolicy
+    from .policy.checkpoint import read_policy_file
     from .policy.network import build_network
 
     path = Path(path)
-    with safe_open(str(path), framework="pt") as fh:
-        meta = fh.metadata() or {}
-    if meta.get("format") != POLICY_FORMAT:
-        raise ValueError(f"{path}: not a policy file written by Run.save_policy (format {meta.get('format')!r})")
-    settings = json.loads(meta["settings"])
+    method_toml, settings, state = read_policy_file(path)
     if table is not None:
         from .env.aod_env import load_table
 
@@ -176,7 +161,7 @@ def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, device:
         if key != settings["table_key"]:
             raise ValueError(f"{path} was trained on table {settings['table_key']}, not {key}: evaluate it on "
                              "the table of its own method and dataset")
-    spec = loads_method(meta["method_toml"], source=str(path))
+    spec = loads_method(method_toml, source=str(path))
     net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
-    net.load_state_dict(load_file(str(path)))
+    net.load_state_dict(state)
     return GreedyPolicy(net, device=device), make_config(settings["env"])

