@@ -129,3 +129,17 @@ def test_maskable_ppo_runs_on_both_forms(table):
             assert model.num_timesteps >= 256
     finally:
         torch.set_num_threads(threads)
+
+
+def test_torchrl_wraps_the_env_and_its_spec_check_passes(table):
+    """TorchRL's GymWrapper turns MultiDiscrete([7, A]) into one categorical of 7 * A and steps
+    with the flat index, which AODEnv accepts."""
+    pytest.importorskip("torchrl")
+    from torchrl.envs import GymWrapper
+    from torchrl.envs.utils import check_env_specs
+
+    env = GymWrapper(gym.make(ENV_ID, table=table, split="train"))
+    assert env.action_spec.shape[-1] == 28
+    check_env_specs(env)
+    rollout = env.rollout(12)
+    assert rollout["next", "done"].any()  # episodes end (stop or T_max) through the flat actions

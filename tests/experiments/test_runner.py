@@ -423,3 +423,32 @@ def test_a_dead_worker_names_its_run_in_one_line(capsys, monkeypatch):
     with pytest.raises(ValueError) as e2:
         job_result(bad, job)
     assert any("ibe_map/thre=0.4/rec1/seed3" in n for n in e2.value.__notes__)
+
+
+def test_sb3_reference_rows_are_added_to_a_finished_ablation_without_retraining(ablation, tiny, tmp_path):
+    pytest.importorskip("stable_baselines3")
+    import shutil
+
+    from uevavd.experiments.report_data import learned
+
+    out = tmp_path / "with_sb3"
+    shutil.copytree(ablation["plan"].out, out)
+    plan = make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1, sb3="dqn")
+    lines: list[str] = []
+    results = run_ablation(plan, log=lines.append)
+    assert any("2 runs, 2 finished already, 0 to run" in x for x in lines)  # nothing retrained
+    df = pd.read_csv(results)
+    ref = df[df["method"] == "sb3_dqn"]
+    assert sorted(ref["split"]) == ["hard", "train"] and (ref["episodes"] == -1).all() and ref["final"].all()
+    assert ref["return"].between(-1, 1).all()
+    run = out / "runs" / "sb3_dqn" / "default" / "rec0" / "seed0"
+    done = json.loads((out / "runs" / "map" / "default" / "rec0" / "seed0" / "done.json").read_text())
+    assert json.loads((run / "final_eval.json").read_text())["env_steps"] == done["env_steps"]  # same env steps
+    assert learned(df["method"].unique()) == ["map", "ibe_map"]  # a reference row, never a claimed method
+    assert "SB3 DQN (reference)" in (out / "report" / "report.md").read_text()
+    mtime = (run / "final_eval.json").stat().st_mtime_ns
+    run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1, sb3="dqn"),
+                 log=lambda *_: None)
+    assert (run / "final_eval.json").stat().st_mtime_ns == mtime  # cached: not trained again
+    with pytest.raises(AblationError, match="--sb3 'a2c'"):
+        make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], sb3="a2c")

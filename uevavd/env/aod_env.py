@@ -87,7 +87,7 @@ class AODEnv(gym.Env):
     "view": index})``.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
 
     def __init__(
         self,
@@ -119,7 +119,10 @@ class AODEnv(gym.Env):
             }
         )
         self.action_space = spaces.MultiDiscrete([7, cfg.max_range])
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode={render_mode!r}: expected None or one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
+        self._path: list[int] = []
         self._scene = -1
         self._view = -1
         self._t = 0
@@ -189,6 +192,7 @@ class AODEnv(gym.Env):
             fixed = self.config.start_view
             v = fixed if fixed is not None else int(self.np_random.integers(N_VIEWS))
         self._view = v
+        self._path = [v]
         self._t = 0
         self._dist = 0.0
         self._steps = 0
@@ -229,6 +233,7 @@ class AODEnv(gym.Env):
         else:
             prev = self._view
             self._view = int(self._tr.next_view[prev, a_type, a_range])
+            self._path.append(self._view)
             self._steps += int(self._tr.steps[prev, a_type, a_range])
             self._dist += float(self._tr.metres[prev, a_type, a_range])
             final, cost = t == cfg.t_max - 1, cfg.C * (a_range + 1)
@@ -249,6 +254,18 @@ class AODEnv(gym.Env):
                 **{"return": float(self._return)},
             )
         return self._obs(), float(reward), bool(final), False, info
+
+    def render(self) -> np.ndarray | None:
+        """With ``render_mode="rgb_array"``: the current view (read from the table's dataset
+        folder where it records one) beside a top-down map of the path so far, (256, 512, 3)
+        uint8; see :mod:`uevavd.env.render`. Otherwise None."""
+        if self.render_mode != "rgb_array":
+            return None
+        if not self._path:
+            raise RuntimeError("render() before reset()")
+        from .render import render_frame
+
+        return render_frame(self.table, self._scene, self._path, self._t)
 
     def action_masks(self) -> np.ndarray:
         """Allowed actions at the current view for sb3-contrib's MaskablePPO, in its

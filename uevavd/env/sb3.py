@@ -12,6 +12,9 @@ Episodes that end report SB3's ``terminal_observation`` (never ``TimeLimit.trunc
 AOD episode always terminates) and the ``final_*`` fields of the batched env;
 ``env_method("action_masks")`` gives each env's mask, so sb3-contrib's MaskablePPO works.
 Wrap it in SB3's ``VecMonitor`` for episode statistics.
+
+:class:`SB3Policy` goes the other way: a trained SB3 model (on ``DiscreteActions(AODEnv)``)
+as a policy for :func:`uevavd.env.evaluate.evaluate_policy`'s exhaustive evaluation.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
 from .vector import AODVectorEnv
@@ -82,3 +86,33 @@ class SB3VecEnv(VecEnv):
 
     def get_images(self) -> Sequence[np.ndarray | None]:
         return [None for _ in range(self.num_envs)]
+
+
+class SB3Policy:
+    """A Stable-Baselines3 model trained on ``DiscreteActions(AODEnv)`` as a uevavd evaluation
+    policy: the batched observations become the ones it was trained on (flat mask, ``t``)
+    and it acts deterministically. A recurrent model (sb3-contrib's RecurrentPPO) keeps its
+    state per row and restarts it where ``t == 0``."""
+
+    def __init__(self, model: Any, max_range: int, *, recurrent: bool | None = None) -> None:
+        self.model, self.a = model, int(max_range)
+        self.recurrent = type(model).__name__.startswith("Recurrent") if recurrent is None else recurrent
+        self.state = None
+
+    def reset(self, n: int) -> None:
+        self.state = None
+
+    def act(self, obs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        t = torch.as_tensor(obs["t"]).cpu()
+        n = len(t)
+        sb3_obs = {"features": torch.as_tensor(obs["features"]).float().cpu().numpy(),
+                   "box": torch.as_tensor(obs["box"]).float().cpu().numpy(),
+                   "action_mask": torch.as_tensor(obs["mask"]).reshape(n, -1).to(torch.int8).cpu().numpy(),
+                   "t": t.numpy()}
+        if self.recurrent:
+            flat, self.state = self.model.predict(sb3_obs, state=self.state, episode_start=(t == 0).numpy(),
+                                                  deterministic=True)
+        else:
+            flat, _ = self.model.predict(sb3_obs, deterministic=True)
+        flat = torch.as_tensor(np.asarray(flat), dtype=torch.int64).reshape(-1)
+        return flat // self.a, flat % self.a

@@ -39,6 +39,9 @@ def add_ablate(parser: argparse.ArgumentParser):
                         help="Ray: GPUs each run reserves, fractional to share one (e.g. 0.25 with --device cuda)")
     parser.add_argument("--data", default=None, help="a UEVAVD-layout dataset root (default: the preset's synthetic world)")
     parser.add_argument("--out", required=True, help="results directory (resumes if it holds this ablation)")
+    parser.add_argument("--sb3", default=None, metavar="AGENTS",
+                        help="also train Stable-Baselines3 agents (dqn, ppo; comma-separated) on the first method's "
+                             "table for as many env steps as its runs, as reference rows")
     _common(parser)
     return run_ablate
 
@@ -51,7 +54,7 @@ def run_ablate(args: argparse.Namespace) -> int:
                          sweeps=parse_sweeps(args.sweep) if args.sweep else None,
                          sweep_methods=args.sweep_methods, data=args.data, workers=args.workers,
                          backend=args.backend, device=args.device, episodes=args.episodes,
-                         gpus_per_run=args.gpus_per_run, recognizers=args.recognizers)
+                         gpus_per_run=args.gpus_per_run, recognizers=args.recognizers, sb3=args.sb3)
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("ablate", exc)

@@ -31,7 +31,7 @@ CURVE_METRICS: tuple[tuple[str, str], ...] = (
 )
 CURVE_SPLITS: tuple[tuple[str, str], ...] = (("train", "training contexts"), ("hard", "hard-test contexts"))
 _BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "visibility_oracle": "tab:purple",
-                     "oracle": "black"}
+                     "oracle": "black", "sb3_dqn": "tab:olive", "sb3_ppo": "tab:cyan"}
 
 
 #: Resolution of the PNG copy of a figure (the PDF beside it is vector).

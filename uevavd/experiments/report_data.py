@@ -22,11 +22,14 @@ import pandas as pd
 from .stats import Estimate
 
 #: Reference policies: constant lines/rows, not learning curves.
-BASELINES: tuple[str, ...] = ("random", "passive", "visibility_oracle", "oracle")
+BASELINES: tuple[str, ...] = ("random", "passive", "visibility_oracle", "oracle", "sb3_dqn", "sb3_ppo")
+"""Reference policies: the baselines and the off-the-shelf agents of ``ablate --sb3``
+(:data:`uevavd.experiments.references.SB3_AGENTS`); never counted among the learned methods."""
 #: Baselines that are deterministic (one row per recognizer, seed 0): exact with one recognizer.
 DETERMINISTIC: tuple[str, ...] = ("passive", "visibility_oracle", "oracle")
 #: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "visibility_oracle", "oracle")
+METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "sb3_dqn", "sb3_ppo",
+                                  "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
     "memo_map": "Memo-MAP",
@@ -35,6 +38,8 @@ LABELS: dict[str, str] = {
     "passive": "Passive",
     "visibility_oracle": "Visibility oracle",
     "oracle": "Class-knowing oracle (upper bound)",
+    "sb3_dqn": "SB3 DQN (reference)",
+    "sb3_ppo": "SB3 PPO (reference)",
 }
 #: A run's unit id in the loaded results: ``recognizer * UNIT + seed`` in column ``seed``
 #: (the RL seed alone in ``rl_seed``), so that every grouping by seed keeps the runs of

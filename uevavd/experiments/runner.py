@@ -39,7 +39,6 @@ CONTEXT_COLUMNS = [
 ]
 #: A finished run's exhaustive evaluation of its final policy (every context x 605 starts).
 FINAL_EVAL = "final_eval.json"
-BASELINES = ("random", "passive", "visibility_oracle", "oracle")
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
 SECTION_KEYS = {"world": {"seed", "size", "per_block"},
                 "ablation": {"methods", "seeds", "recognizers", "sweeps", "sweep_methods"}}
@@ -88,6 +87,9 @@ class Plan:
     #: recognizer seeds: each trains its own recognizer and builds its own tables; every
     #: method x setting x RL seed runs on each, so intervals include recognizer variance
     recognizers: list[int] = field(default_factory=lambda: [0])
+    #: off-the-shelf reference agents (``--sb3``), see :mod:`uevavd.experiments.references`;
+    #: not part of the fingerprint: adding them to a finished ablation retrains nothing
+    sb3: tuple[str, ...] = ()
 
     def settings(self, method: str) -> list[tuple[str, dict[str, float]]]:
         """(name, {thre, C}) of each setting this method runs: "default" plus its sweeps."""
@@ -148,6 +150,7 @@ def make_plan(
     episodes: int | None = None,
     gpus_per_run: float = 0.0,
     recognizers: int | None = None,
+    sb3: str | None = None,
 ) -> Plan:
     from ..config import known_methods
 
@@ -189,6 +192,12 @@ def make_plan(
         raise AblationError(f"--sweep-methods {unknown} are not among --methods {methods}")
     if not 0.0 <= float(gpus_per_run) <= 8.0:
         raise AblationError(f"--gpus-per-run {gpus_per_run}: expected a share of a GPU, e.g. 0.25 or 1")
+    from .references import parse_sb3
+
+    try:
+        sb3_agents = parse_sb3(sb3)
+    except ValueError as exc:
+        raise AblationError(str(exc)) from None
     if backend not in ("local", "ray"):
         raise AblationError(f"--backend {backend!r}: expected 'local' or 'ray'")
     from ..perception.train import TrainSettings
@@ -217,6 +226,7 @@ def make_plan(
         episodes=episodes,
         gpus_per_run=float(gpus_per_run),
         recognizers=list(range(n_rec)),
+        sb3=sb3_agents,
     )
 
 
@@ -689,8 +699,15 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
             for split, summary in (final or {}).get("splits", {}).items():
                 ctx_rows += [{**base, "split": split, **c} for c in summary["per_context"]]
         splits = sorted({r["split"] for r in rows}) or ["train", "hard"]
-        base_rows, base_ctx = baseline_rows(plan, {r: t[plan.methods[0]] for r, t in tables.items()}, splits, log)
+        first_tables = {r: t[plan.methods[0]] for r, t in tables.items()}
+        base_rows, base_ctx = baseline_rows(plan, first_tables, splits, log)
         rows += base_rows
+        if plan.sb3:
+            from .references import sb3_rows
+
+            ref_rows, ref_ctx = sb3_rows(plan, jobs, first_tables, splits, log)
+            rows += ref_rows
+            base_ctx += ref_ctx
         terrains = context_terrains(data)
         ctx_rows = [{**c, "terrain": terrains.get(int(c["context"]), "")} for c in ctx_rows + base_ctx]
         from .audit import audit_table, classifier_summary
