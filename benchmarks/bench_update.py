@@ -15,6 +15,13 @@ them alike (median of ``--repeats`` rounds of 30 updates each):
   (``uevavd.policy.agent.needed_observations``).
 
 All three compute the same loss (tests/policy/test_learner.py, tests/state/test_packed_gru.py).
+
+Beside each time it prints the floor: the matrix products of one update of that path (their
+shapes and layouts recorded by a torch dispatch mode, forward and backward) run bare, back
+to back, in the same process, and the share of the floor the update reaches (floor / time;
+the rest is element-wise work, gathers, Adam and Python), and the share of the rate of one
+large square product (2048^3) the update reaches (its FLOPs at that rate / its time): the
+update's products are small, so the same-shape floor is the one it can reach.
 """
 
 from __future__ import annotations
@@ -57,8 +64,9 @@ def main() -> None:
         "packed GRU": (agent.observed, current_supports),
         "current (packed GRU, no final o_L)": (current_needed, current_supports),
     }
+    peak = _square_gemm_rate()
     print(f"torch threads {torch.get_num_threads()}; batch {args.batch} episodes; median of {args.repeats} "
-          f"rounds x {args.updates} updates")
+          f"rounds x {args.updates} updates; square 2048 GEMM {peak:.0f} GFLOP/s")
     try:
         for method in args.methods.split(","):
             torch.manual_seed(0)
@@ -77,10 +85,76 @@ def main() -> None:
                     times[name].append(1000 * (time.perf_counter() - t0) / args.updates)
             base = statistics.median(times[next(iter(paths))])
             for name, ts in times.items():
+                agent.needed_observations, packed.supports_packed = paths[name]
+                gemms = _record_gemms(lambda lr=learner, rp=replay: lr.update(rp.sample(args.batch, 0.4), lookup))
+                floor_ms, gflop = _floor(gemms, args.repeats)
                 ms = statistics.median(ts)
-                print(f"{method:>9}  {name:36s} {ms:7.1f} ms per update   x{base / ms:4.2f}")
+                print(f"{method:>9}  {name:36s} {ms:7.1f} ms per update   x{base / ms:4.2f}   "
+                      f"{gflop:5.2f} GFLOP in {len(gemms)} GEMMs, floor {floor_ms:5.1f} ms "
+                      f"({1000 * gflop / floor_ms:4.0f} GFLOP/s bare), "
+                      f"at {100 * floor_ms / ms:3.0f} % of the floor, "
+                      f"{100 * 1000 * gflop / peak / ms:3.0f} % of the square-GEMM rate")
     finally:
         agent.needed_observations, packed.supports_packed = current_needed, current_supports
+
+
+def _record_gemms(fn) -> list[tuple[str, tuple, tuple]]:
+    """(op, operand shapes, operand strides) of every matrix product ``fn`` runs."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    mm = {torch.ops.aten.mm.default: "mm", torch.ops.aten.addmm.default: "addmm",
+          torch.ops.aten.bmm.default: "bmm", torch.ops.aten.baddbmm.default: "baddbmm"}
+    seen: list[tuple[str, tuple, tuple]] = []
+
+    class Record(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func in mm:
+                ts = [a for a in args if isinstance(a, torch.Tensor)]
+                seen.append((mm[func], tuple(tuple(t.shape) for t in ts), tuple(t.stride() for t in ts)))
+            return func(*args, **(kwargs or {}))
+
+    with Record():
+        fn()
+    return seen
+
+
+def _square_gemm_rate() -> float:
+    """GFLOP/s of a bare (2048 x 2048) @ (2048 x 2048) float32 product, best of 5."""
+    a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
+    a @ b
+    best = min(_timed(lambda: a @ b) for _ in range(5))
+    return 2 * 2048**3 / best / 1e9
+
+
+def _timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+def _floor(gemms, repeats: int) -> tuple[float, float]:
+    """(ms, GFLOP): the recorded products on fresh tensors of the same shapes and strides,
+    best of ``repeats`` rounds of 30."""
+    def operand(shape, stride):
+        size = 1 + sum((n - 1) * s for n, s in zip(shape, stride, strict=True))
+        return torch.randn(size).as_strided(shape, stride)
+
+    ops = {"mm": torch.mm, "addmm": torch.addmm, "bmm": torch.bmm, "baddbmm": torch.baddbmm}
+    calls = [(ops[op], [operand(sh, st) for sh, st in zip(shapes, strides, strict=True)]) for op, shapes, strides in gemms]
+    flop = 0
+    for op, shapes, _ in gemms:
+        a, b = shapes[-2], shapes[-1]
+        flop += 2 * (a[0] if op.startswith("b") else 1) * a[-2] * a[-1] * b[-1]
+    best = float("inf")
+    for _ in range(repeats):
+        for f, xs in calls:  # warm-up
+            f(*xs)
+        t0 = time.perf_counter()
+        for _ in range(30):
+            for f, xs in calls:
+                f(*xs)
+        best = min(best, (time.perf_counter() - t0) / 30)
+    return 1000 * best, flop / 1e9
 
 
 def _replay(tensors, t_max: int, n: int = 5000):
