@@ -84,8 +84,17 @@ def ablation(tiny) -> dict:
     write_meta(plan, data, "training")  # as an ablation killed during training leaves it
     jobs = plan_jobs(plan, tables)
     interrupted = next(j for j in jobs if j.method == "ibe_map")
-    train(load_method(interrupted.spec_path), Path(interrupted.table), out=Path(interrupted.out), seed=0,
-          device="cpu", progress=False, max_epochs=1)
+    import torch
+
+    from uevavd.experiments.backends import _threads
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(_threads(plan.workers))  # as the ablation's runs get (a resume checks it)
+    try:
+        train(load_method(interrupted.spec_path), Path(interrupted.table), out=Path(interrupted.out), seed=0,
+              device="cpu", progress=False, max_epochs=1)
+    finally:
+        torch.set_num_threads(threads)
     assert not is_done(interrupted)
     partial_epochs = len(Path(interrupted.out, "evals.jsonl").read_text().splitlines())
 
