@@ -37,9 +37,9 @@ from gymnasium import spaces
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
 from ..perception.table import ObservationTable, TableError
+from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
 
-ENV_ID = "uevavd/AOD-v0"
 F16_MAX = float(np.finfo(np.float16).max)
 
 
@@ -114,11 +114,11 @@ class AODEnv(gym.Env):
                 # features are stored as float16: its finite range bounds them
                 "features": spaces.Box(-F16_MAX, F16_MAX, (d,), np.float32),
                 "box": spaces.Box(0.0, 1.0, (4,), np.float32),
-                "action_mask": spaces.Box(0, 1, (7, cfg.max_range), np.int8),
+                "action_mask": spaces.Box(0, 1, (N_TYPES, cfg.max_range), np.int8),
                 "t": spaces.Discrete(cfg.t_max + 1),
             }
         )
-        self.action_space = spaces.MultiDiscrete([7, cfg.max_range])
+        self.action_space = spaces.MultiDiscrete([N_TYPES, cfg.max_range])
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode={render_mode!r}: expected None or one of {self.metadata['render_modes']}")
         self.render_mode = render_mode

@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from ..data.grid import N_VIEWS
+from ..data.grid import N_TYPES, N_VIEWS
 
 
 class EnvConfigError(ValueError):
@@ -84,7 +84,7 @@ class EnvConfig:
     @property
     def n_actions(self) -> int:
         """Size of the joint action space, 7 * A (type-major: index = type * A + range)."""
-        return 7 * self.max_range
+        return N_TYPES * self.max_range
 
     def replace(self, **changes: Any) -> EnvConfig:
         """A copy with some fields changed (validated); unknown names are an error."""

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..data.grid import STOP, transitions
+from ..data.grid import N_TYPES, STOP, transitions
 from ..perception.table import ObservationTable
 from .config import EnvConfig, make_config
 
@@ -50,7 +50,7 @@ def oracle_values(
     term = np.where(reco, cfg.xi1, -cfg.xi1).astype(np.float64)  # (S, V)
     cost = cfg.C * np.arange(1, a + 1, dtype=np.float64)  # (A,)
     value = np.zeros((s, cfg.t_max + 1, v))
-    q = np.zeros((s, cfg.t_max + 1, v, 7, a)) if with_q else None
+    q = np.zeros((s, cfg.t_max + 1, v, N_TYPES, a)) if with_q else None
     best_type = np.zeros((s, cfg.t_max + 1, v), np.int64)
     best_range = np.zeros((s, cfg.t_max + 1, v), np.int64)
     nxt = tr.next_view[:, :STOP, :]  # (V, 6, A)

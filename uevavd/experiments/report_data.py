@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..env.config import EnvConfig
 from .stats import Estimate
 
 #: Reference policies: constant lines/rows, not learning curves.
@@ -46,9 +47,9 @@ LABELS: dict[str, str] = {
 #: different recognizers apart; ``seed // UNIT`` is the recognizer.
 UNIT = 1000
 SPLITS: tuple[str, ...] = ("train", "simple", "hard")
-#: The paper's defaults: thre = 0.2, C = 0.02 (DESIGN.md section 2).
-DEFAULT_THRE = 0.2
-DEFAULT_C = 0.02
+#: The paper's defaults (DESIGN.md section 2), written once in EnvConfig.
+DEFAULT_THRE = EnvConfig.thre
+DEFAULT_C = EnvConfig.C
 METRICS: tuple[str, ...] = (
     "return", "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
 )

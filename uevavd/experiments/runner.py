@@ -22,11 +22,12 @@ import numpy as np
 
 from ..config import ConfigError, load_method
 from ..data.grid import N_VIEWS
+from ..env.config import EnvConfig
 from ..presets import load_preset
 from .io import atomic_write_text, write_csv
 
 #: The paper's default reward settings; sweeps vary one of them.
-DEFAULT_SETTING = {"thre": 0.2, "C": 0.02}
+DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
 SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
 RESULT_COLUMNS = [
     "method", "recognizer", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return",

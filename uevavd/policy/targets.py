@@ -12,7 +12,8 @@ from typing import Literal
 
 import torch
 
-STOP = 6
+from ..data.grid import STOP  # noqa: F401  (re-exported: heads import it from here)
+
 NEG = -1e9
 
 
