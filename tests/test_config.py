@@ -95,6 +95,23 @@ def test_overrides(base):
     spec = load_method(base, overrides={"state.name": "tstate2"})
     assert spec.component("state") == ("tstate2", {})
     assert parse_override("state.hidden=256") == ("state.hidden", 256)
+
+
+@pytest.mark.parametrize("order", ["name last", "name first"])
+def test_overrides_are_order_independent(order):
+    """`--set perception.encoder.weights=X --set perception.encoder.name=Y` used to drop X:
+    the name switch, applied last, wiped the arguments set before it."""
+    items = [("perception.encoder.weights", "classifier"), ("perception.encoder.name", "resnet18")]
+    if order == "name first":
+        items.reverse()
+    spec = load_method("map", overrides=dict(items))
+    assert spec["perception.encoder.name"] == "resnet18"
+    assert spec["perception.encoder.weights"] == "classifier"
+    again = load_method("map").with_overrides(dict(items))  # the spec method: the same rule
+    assert again.hash == spec.hash
+    # a switch alone still drops what the old builder took (map's resnet50 weights)
+    assert "weights" not in load_method("map", overrides={"perception.encoder.name": "resnet18"}).to_dict()[
+        "perception"]["encoder"]
     assert parse_override("head.dueling=false") == ("head.dueling", False)
     assert parse_override("state.kind=b") == ("state.kind", "b")
 

@@ -151,6 +151,19 @@ def parse_override(text: str) -> tuple[str, Any]:
     return key.strip(), value
 
 
+def apply_overrides(data: dict[str, Any], overrides: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Apply dotted ``overrides`` to the nested dict ``data`` in place, order-independently:
+    a component switch (``section.name`` to another name) first drops the old builder's
+    arguments, so every switch is applied before the other keys, shallow sections first
+    (``{"perception.encoder.weights": w, "perception.encoder.name": n}`` keeps ``w`` in either
+    order). Returns ``data``."""
+    items = list((overrides or {}).items())
+    items.sort(key=lambda kv: (not kv[0].endswith(".name") and kv[0] != "name", kv[0].count(".")))
+    for key, value in items:
+        _apply_override(data, key, value)
+    return data
+
+
 def _apply_override(data: dict[str, Any], key: str, value: Any) -> None:
     parts = key.split(".")
     node = data
@@ -352,6 +365,15 @@ class MethodSpec:
     def to_dict(self) -> dict[str, Any]:
         return _thaw(self.data)
 
+    def with_overrides(self, overrides: Mapping[str, Any] | None) -> MethodSpec:
+        """This spec with dotted ``overrides`` applied (order-independent, see
+        :func:`apply_overrides`) and validated; itself when there are none."""
+        if not overrides:
+            return self
+        data = apply_overrides(self.to_dict(), overrides)
+        validate(data, f"{self.source} with overrides {dict(overrides)}")
+        return MethodSpec(name=data["name"], data=_freeze(data), source=self.source)
+
     def get(self, dotted: str, default: Any = None) -> Any:
         value = _get(self.data, dotted)
         return default if value is None else value
@@ -403,8 +425,7 @@ def load_method(
     """
     path = _method_path(name_or_path)
     data = _resolve_file(path)
-    for key, value in (overrides or {}).items():
-        _apply_override(data, key, value)
+    apply_overrides(data, overrides)
     source = str(path) + (f" with overrides {dict(overrides)}" if overrides else "")
     validate(data, source)
     return MethodSpec(name=data["name"], data=_freeze(data), source=str(path))

@@ -130,10 +130,11 @@ class _PlainState(__import__("torch").nn.Module):
         return self.inner.step(features, boxes, hidden)
 
 
-def build_plain_state(**kwargs):
+def build_plain_state(*, feature_dim: int, input_dim: int = 544, box_dim: int = 32, state_dim: int = 512):
     from uevavd.state.single_view import build_single_view
 
-    return _PlainState(build_single_view(**kwargs))
+    return _PlainState(build_single_view(feature_dim=feature_dim, input_dim=input_dim, box_dim=box_dim,
+                                         state_dim=state_dim))
 
 
 def test_an_estimator_without_the_optional_fast_path_trains_and_is_evaluated(table, tmp_path):

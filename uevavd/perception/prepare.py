@@ -30,7 +30,7 @@ import numpy as np
 from filelock import FileLock
 
 from ..atomic import atomic_write
-from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
+from ..config import MethodSpec, load_method
 from ..data.grid import N_VIEWS
 from ..data.splits import TARGETS
 from ..paths import tables_dir
@@ -48,13 +48,7 @@ def resolve_spec(spec_or_method: MethodSpec | str | os.PathLike[str],
     dotted ``overrides`` applied and validated."""
     if not isinstance(spec_or_method, MethodSpec):
         return load_method(spec_or_method, overrides)
-    if not overrides:
-        return spec_or_method
-    data = spec_or_method.to_dict()
-    for k, v in overrides.items():
-        _apply_override(data, k, v)
-    validate(data, f"{spec_or_method.source} with overrides {dict(overrides)}")
-    return MethodSpec(name=data["name"], data=_freeze(data), source=spec_or_method.source)
+    return spec_or_method.with_overrides(overrides)
 
 
 def context_scenes(manifest) -> list[tuple[str, list]]:

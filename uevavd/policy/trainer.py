@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_write
-from ..config import MethodSpec, _apply_override, _freeze, load_method, validate
+from ..config import MethodSpec, load_method
 from ..env.config import EnvConfig
 from .agent import GreedyPolicy, Learner, TableLookup, random_actions
 from .checkpoint import (
@@ -82,14 +82,7 @@ def resolve_spec(run_dir: str | Path) -> MethodSpec:
 
 def apply_overrides(spec: MethodSpec, overrides: dict[str, Any] | None) -> MethodSpec:
     """The spec with dotted overrides (``{"train.batch_size": 32}``) applied and validated."""
-    if not overrides:
-        return spec
-    data = spec.to_dict()
-    for key, value in overrides.items():
-        _apply_override(data, key, value)
-    source = f"{spec.source} with overrides {dict(overrides)}"
-    validate(data, source)
-    return MethodSpec(name=data["name"], data=_freeze(data), source=spec.source)
+    return spec.with_overrides(overrides)
 
 
 def _write_json(path: Path, obj: Any) -> None:
