@@ -221,10 +221,11 @@ def _sb3_dqn(spec, table, env_cfg, seed: int, budget: float, eval_every: float) 
 
     from uevavd.env.aod_env import AODEnv
     from uevavd.env.wrappers import DiscreteActions
+    from uevavd.experiments.references import sb3_widths
 
     env = DiscreteActions(AODEnv(table, "train", env_cfg))
     model = DQN("MultiInputPolicy", env, learning_rate=float(spec["train.lr"]), gamma=env_cfg.gamma,
-                policy_kwargs={"net_arch": _widths(spec)}, seed=seed, device="cpu", verbose=0)
+                policy_kwargs={"net_arch": sb3_widths(spec)}, seed=seed, device="cpu", verbose=0)
     return _sb3_loop(model, table, env_cfg, budget, eval_every, recurrent=False)
 
 
@@ -233,18 +234,14 @@ def _sb3_recurrent_ppo(spec, table, env_cfg, seed: int, budget: float, eval_ever
 
     from uevavd.env.aod_env import AODEnv
     from uevavd.env.wrappers import DiscreteActions
+    from uevavd.experiments.references import sb3_widths
 
     env = DiscreteActions(AODEnv(table, "train", env_cfg))
-    g, s, h = _widths(spec)
+    g, s, h = sb3_widths(spec)
     model = RecurrentPPO("MultiInputLstmPolicy", env, learning_rate=float(spec["train.lr"]), gamma=env_cfg.gamma,
                          policy_kwargs={"lstm_hidden_size": g, "net_arch": [s, h]}, seed=seed, device="cpu",
                          verbose=0)
     return _sb3_loop(model, table, env_cfg, budget, eval_every, recurrent=True)
-
-
-def _widths(spec) -> list[int]:
-    """MAP's layer widths: g_t (= h_t for Memo-MAP), s_t, the head's hidden layer."""
-    return [int(spec["state.input_dim"]), int(spec["state.state_dim"]), int(spec["head.hidden"])]
 
 
 def _first(curve: list[dict], bar: float) -> float:

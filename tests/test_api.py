@@ -9,29 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uevavd.testing.worlds import write_tiny_world
+from uevavd.testing.worlds import tiny_preset, write_tiny_world
 
-TINY_PRESET = """
-name = "tiny"
-[overrides]
-"perception.encoder.name" = "resnet18"
-"perception.encoder.weights" = "classifier"
-"train.episodes" = 200
-"train.epoch_episodes" = 100
-"train.n_envs" = 16
-"train.learning_starts" = 50
-"train.eval_splits" = ["train", "hard"]
-"train.eval_contexts" = 1
+TINY_PRESET = tiny_preset(overrides="""\
 "state.input_dim" = 40
 "state.state_dim" = 32
 "head.hidden" = 32
 "train.threads" = 1
-
-[classifier]
-epochs = 2
-max_views = 40
-batch_size = 32
-"""
+""")
 
 
 def _readme_script() -> str:

@@ -160,17 +160,15 @@ def run_info(args: argparse.Namespace) -> int:
     for key in ("uevavd", "python", "platform", "torch", "device", "cpu_threads"):
         if key in data:
             print(f"{key:>12}: {data[key]}")
-    print("  components:")
-    for kind, names in data["components"].items():
-        print(f"{kind:>12}: {', '.join(names) or '-'}")
-    print("       paths:")
-    for key, value in data["paths"].items():
-        print(f"{key:>12}: {value}")
+    _print_section("components", {kind: ", ".join(names) or "-" for kind, names in data["components"].items()})
+    _print_section("paths", data["paths"])
     print(f"{'presets':>12}: {', '.join(data['presets'])}")
-    print("   libraries:")
-    for key, value in data["libraries"].items():
-        print(f"{key:>34}: {value}")
-    print("     weights:")
-    for key, value in data["weights"].items():
-        print(f"{key:>34}: {value}")
+    _print_section("libraries", data["libraries"], width=34)
+    _print_section("weights", data["weights"], width=34)
     return 0
+
+
+def _print_section(title: str, rows: dict[str, Any], width: int = 12) -> None:
+    print(f"{title + ':':>12}")
+    for key, value in rows.items():
+        print(f"{key:>{width}}: {value}")

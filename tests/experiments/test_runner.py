@@ -30,31 +30,9 @@ from uevavd.experiments.runner import (
     stage_world,
     write_meta,
 )
-from uevavd.testing.worlds import write_tiny_world
+from uevavd.testing.worlds import tiny_preset, write_tiny_world
 
-TINY_PRESET = """
-name = "tiny"
-description = "a few hundred episodes per run on the 16 px test world"
-
-[overrides]
-"perception.encoder.name" = "resnet18"
-"perception.encoder.weights" = "classifier"
-"train.episodes" = 200
-"train.epoch_episodes" = 100
-"train.n_envs" = 16
-"train.learning_starts" = 50
-"train.eval_splits" = ["train", "hard"]
-"train.eval_contexts" = 1
-
-[classifier]
-epochs = 2
-max_views = 40
-batch_size = 32
-
-[ablation]
-methods = ["map", "ibe_map"]
-seeds = 1
-"""
+TINY_PRESET = tiny_preset(ablation='methods = ["map", "ibe_map"]\nseeds = 1\n')
 
 
 @pytest.fixture(scope="module")

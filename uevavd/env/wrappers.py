@@ -43,8 +43,10 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def action_masks(self) -> np.ndarray:
         """(7 * A,) bool: the joint actions allowed at the current view (sb3-contrib's MaskablePPO)."""
-        mask = self.env.unwrapped._tr.mask[self.env.unwrapped._view]
-        return np.asarray(mask, dtype=bool).reshape(-1)
+        from .vector import action_masks
+
+        env = self.env.unwrapped
+        return action_masks(env._tr.mask[env._view][None], "flat")[0]
 
     def step(self, action: Any):
         if not self.action_space.contains(action) and not (

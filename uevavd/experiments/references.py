@@ -77,6 +77,12 @@ def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], 
     return rows, ctx_rows
 
 
+def sb3_widths(spec: Any) -> list[int]:
+    """The method's layer widths as an SB3 ``net_arch``: g_t (= h_t of a GRU estimator), s_t,
+    the head's hidden layer."""
+    return [int(spec["state.input_dim"]), int(spec["state.state_dim"]), int(spec["head.hidden"])]
+
+
 def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, steps: int, seed: int,
                         splits: list[str]) -> dict[str, Any]:
     import stable_baselines3 as sb3
@@ -93,7 +99,7 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
     spec = load_method(job.spec_path)
     table = ObservationTable.load(table_path)
     env = DiscreteActions(AODEnv(table, "train", config))
-    widths = [int(spec["state.input_dim"]), int(spec["state.state_dim"]), int(spec["head.hidden"])]
+    widths = sb3_widths(spec)
     threads = torch.get_num_threads()
     torch.set_num_threads(job.threads)  # as the method's runs
     try:

@@ -68,10 +68,7 @@ class Learner:
         self.optimizer = torch.optim.Adam(params, lr=lr, fused=fused or None)
         self.gamma, self.grad_clip, self.loss = gamma, grad_clip, loss
         self.updates = 0
-        #: the last update's diagnostics as 0-d tensors (read them rarely: each read syncs):
-        #: ``mean_q`` (Q of the taken actions), ``td_error`` (mean |TD error|), ``grad_norm``
-        #: (before clipping; only where grad_clip > 0, which computes it anyway)
-        self.stats: dict[str, torch.Tensor] = {}
+        self._last: tuple = ()  # the last update's tensors, reduced only when stats is read
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.net.state_dict())
@@ -102,15 +99,27 @@ class Learner:
         loss = (per * w * batch.weight[:, None, None]).sum() / w.sum().clamp_min(1.0)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        norm = None
         if self.grad_clip > 0:
-            self.stats["grad_norm"] = torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.grad_clip,
-                                                                     foreach=True)
+            norm = torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.grad_clip, foreach=True)
         self.optimizer.step()
         self.updates += 1
         td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
-        self.stats["td_error"] = td.mean()
-        self.stats["mean_q"] = (q_taken.detach() * w).sum() / w.sum().clamp_min(1.0)
+        self._last = (td, q_taken.detach(), w, norm)
         return float(loss.detach()), td
+
+    @property
+    def stats(self) -> dict[str, float]:
+        """The last update's diagnostics, reduced when read (not on every update): ``td_error``
+        (mean |TD error|), ``mean_q`` (Q of the taken actions) and, where grad_clip > 0 (which
+        computes it anyway), ``grad_norm`` before clipping."""
+        if not self._last:
+            return {}
+        td, q_taken, w, norm = self._last
+        out = {"td_error": float(td.mean()), "mean_q": float((q_taken * w).sum() / w.sum().clamp_min(1.0))}
+        if norm is not None:
+            out["grad_norm"] = float(norm)
+        return out
 
 
 def observed(batch: EpisodeBatch) -> torch.Tensor:

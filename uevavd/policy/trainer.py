@@ -390,7 +390,7 @@ def _log_update(writer: Any, learner: Learner, loss: float, eps: float, episodes
     step = learner.updates
     writer.add_scalar("update/loss", loss, step)
     for key, value in learner.stats.items():
-        writer.add_scalar(f"update/{key}", float(value), step)
+        writer.add_scalar(f"update/{key}", value, step)
     writer.add_scalar("update/epsilon", eps, step)
     writer.add_scalar("update/episodes_per_s", episodes_per_s, step)
 

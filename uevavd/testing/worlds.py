@@ -78,3 +78,28 @@ def write_tiny_world(root: Path, contexts=(1, 31), train605: bool = True, seed: 
 
 
 __all__ = ["SHAPES", "SIZE", "draw_view", "write_tiny_world"]
+
+
+def tiny_preset(*, overrides: str = "", ablation: str = "") -> str:
+    """A preset TOML for :func:`write_tiny_world`: a few hundred episodes per run and a
+    2-epoch recognizer. ``overrides`` adds lines to its ``[overrides]`` section, ``ablation``
+    gives it an ``[ablation]`` section."""
+    text = """name = "tiny"
+description = "a few hundred episodes per run on the 16 px test world"
+
+[overrides]
+"perception.encoder.name" = "resnet18"
+"perception.encoder.weights" = "classifier"
+"train.episodes" = 200
+"train.epoch_episodes" = 100
+"train.n_envs" = 16
+"train.learning_starts" = 50
+"train.eval_splits" = ["train", "hard"]
+"train.eval_contexts" = 1
+""" + overrides + """
+[classifier]
+epochs = 2
+max_views = 40
+batch_size = 32
+"""
+    return text + (f"\n[ablation]\n{ablation}" if ablation else "")
