@@ -54,6 +54,6 @@ def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatc
     other = uevavd.build_table(world, "map", classifier=namespace["recognizer"],
                                overrides={k: v for k, v in uevavd.load_preset(tmp_path / "tiny.toml")["overrides"].items()
                                           if k.startswith("perception.")})
-    with pytest.raises(ValueError, match="was trained on table .* not "):
+    with pytest.raises(ValueError, match="does not fit .*decompose: policy True, table False"):
         uevavd.load_policy_file(tmp_path / "ibe_map.safetensors", table=other)
     assert np.isfinite(frame.to_numpy()).all()

@@ -119,18 +119,11 @@ class Run:
         """A pandas DataFrame, one row per policy (this run's method, then random, passive,
         the visibility oracle where the table knows visible fractions, and the class-knowing
         oracle), from every context of ``split`` x all 605 starts, under the run's env config."""
-        import pandas as pd
+        from .env.baselines import evaluate_beside_baselines
 
-        from .env.baselines import reference_policies
-        from .env.evaluate import evaluate_policy
-
-        table, cfg = self.table(), self.env_config
-        policies = {self.settings["method"]: self.policy(device)}
-        if baselines:
-            policies.update(reference_policies(table, cfg))
-        rows = [{"policy": name, **evaluate_policy(table, split, p, cfg, device=device).summary()}
-                for name, p in policies.items()]
-        return pd.DataFrame(rows).set_index("policy")
+        name = self.settings["method"]
+        return evaluate_beside_baselines(self.table(), split, self.policy(device), name, self.env_config,
+                                         device=device, baselines=baselines)[0]
 
     def save_policy(self, path: str | os.PathLike[str]) -> Path:
         """The network alone (no optimizer, no replay buffer) as ``.safetensors``, with the
@@ -143,25 +136,32 @@ class Run:
                                 self.settings)
 
 
-def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, device: str = "cpu"):
-    """A policy saved by :meth:`Run.save_policy`: ``(GreedyPolicy, EnvConfig)``. With
-    ``table``, a table of another key (another perception config or dataset) is refused."""
+def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, method: str | None = None,
+                     device: str = "cpu"):
+    """A policy saved by :meth:`Run.save_policy` (or shipped in the model zoo):
+    ``(GreedyPolicy, EnvConfig)``. With ``table`` (an ObservationTable or its folder), a
+    table of another perception config (segmenter, decomposition, encoder or classifier
+    weights) is refused naming what differs, and the policy reads the table's features for
+    fast evaluation; with ``method``, a file of another method is refused."""
     from .config import loads_method
+    from .env.aod_env import load_table
     from .env.config import make_config
     from .policy.agent import GreedyPolicy
-    from .policy.checkpoint import read_policy_file
+    from .policy.checkpoint import check_policy_fits, load_net_state, read_policy_file
     from .policy.network import build_network
 
     path = Path(path)
     method_toml, settings, state = read_policy_file(path)
-    if table is not None:
-        from .env.aod_env import load_table
-
-        key = load_table(table).key
-        if key != settings["table_key"]:
-            raise ValueError(f"{path} was trained on table {settings['table_key']}, not {key}: evaluate it on "
-                             "the table of its own method and dataset")
+    cfg = make_config(settings["env"])
+    table = None if table is None else load_table(table)
+    check_policy_fits(path, settings, table=table, method=method, env=cfg)
     spec = loads_method(method_toml, source=str(path))
     net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
-    net.load_state_dict(state)
-    return GreedyPolicy(net, device=device), make_config(settings["env"])
+    load_net_state(net, state, path)
+    features = None
+    if table is not None:
+        import numpy as np
+        import torch
+
+        features = torch.from_numpy(np.array(table.features))  # a copy: the table is memory-mapped read-only
+    return GreedyPolicy(net, device=device, features=features), cfg

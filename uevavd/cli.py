@@ -19,9 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the ResNet18 recognizer on train_605"),
     "prepare": ("uevavd.perception.cli:add_prepare", "build the observation table of a dataset for a method"),
     "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map) on an observation table"),
-    "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run beside random, passive and oracle; table + JSON"),
+    "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run, or a model zoo policy (--pretrained), beside the baselines"),
     "train-sam-small": ("uevavd.perception.sam.cli:add_train_small", "train the small SAM from scratch on a world's ground truth"),
     "finetune-sam": ("uevavd.perception.sam.cli:add_finetune", "fine-tune a SAM checkpoint's mask decoder on ground-truth target masks"),
+    "zoo": ("uevavd.commands:add_zoo", "the model zoo: list, check or rebuild the shipped recognizer and policies"),
     "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
     "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
 }

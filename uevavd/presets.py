@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import difflib
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+from .hashing import json_digest
 
 ZOO = Path(__file__).resolve().parent / "model_zoo"
 
@@ -36,3 +39,23 @@ def load_preset(name_or_path: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"preset file {p} does not exist")
     with p.open("rb") as f:
         return tomllib.load(f)
+
+
+def world_root(preset: Mapping[str, Any]) -> Path:
+    """Where a preset's synthetic world is cached: ``<cache>/worlds/<name>-<digest of its
+    [world] table>`` (another seed, size or context count is another folder)."""
+    from .paths import cache_dir
+
+    return cache_dir() / "worlds" / f"{preset.get('name', 'world')}-{json_digest(preset['world'], 12)}"
+
+
+def world_contexts(preset: Mapping[str, Any], split: str | None = None) -> list[int]:
+    """The context ids of a preset's world (``[world] per_block``), only those of ``split``
+    (a split name or alias such as "test") when given."""
+    from .data.splits import resolve_split, split_of, subset
+
+    contexts = list(subset(preset["world"]["per_block"]))
+    if split is None:
+        return contexts
+    wanted = set(resolve_split(split))
+    return [c for c in contexts if split_of(c) in wanted]

@@ -141,3 +141,26 @@ def test_tensorboard_gets_update_diagnostics_and_the_settings(table, tmp_path, m
     steps = [e.step for e in events.Scalars("update/td_error")]
     assert steps[:3] == [5, 10, 15] and all(e.value >= 0 for e in events.Scalars("update/td_error"))
     assert "settings/text_summary" in events.Tags()["tensors"]
+
+
+def test_policy_file_of_another_method_or_action_space_is_refused_naming_it(table, tmp_path):
+    import uevavd
+    from uevavd.env.config import EnvConfig
+    from uevavd.policy.checkpoint import check_policy_fits, save_policy_file
+
+    run = train(load_method("map"), table, out=tmp_path / "m", episodes=100, progress=False,
+                overrides=small("map"), device="cpu")
+    path = run / "policy.safetensors"
+    policy, cfg = uevavd.load_policy_file(path, table=table, method="map")
+    assert cfg.max_range == 4 and policy.net is not None
+    with pytest.raises(CheckpointError, match="method: the file holds 'map', not 'ibe_map'"):
+        uevavd.load_policy_file(path, method="ibe_map")
+    method_toml, settings, state = read_policy_file(path)
+    with pytest.raises(CheckpointError, match="action space: the policy chooses among 4 ranges, the env config "
+                                              "has max_range 3"):
+        check_policy_fits(path, settings, env=EnvConfig(max_range=3))
+    # a header that claims another action space than the network it carries: named, not torch's message
+    forged = save_policy_file(tmp_path / "forged.safetensors", state, method_toml,
+                              {**settings, "env": {**settings["env"], "max_range": 3}})
+    with pytest.raises(CheckpointError, match=r"forged.safetensors: its network does not match the method it names \(shapes \(file vs network\): head"):
+        uevavd.load_policy_file(forged)

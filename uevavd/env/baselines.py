@@ -71,3 +71,21 @@ def reference_policies(table, config) -> dict:
         out["visibility_oracle"] = VisibilityOraclePolicy(table, config)
     out["oracle"] = OraclePolicy(table, config)
     return out
+
+
+def evaluate_beside_baselines(table, split: str, policy, name: str, config, *, device="cpu", baselines: bool = True,
+                              contexts=None):
+    """``(DataFrame, per-context DataFrame)``: one row per policy (``policy`` as ``name``,
+    then :func:`reference_policies` when ``baselines``), each evaluated exhaustively on
+    ``split`` (optionally only ``contexts``) under ``config``, with
+    :meth:`~uevavd.env.evaluate.EvalResult.summary`'s columns; and ``policy``'s rows per
+    context. What ``uevavd evaluate``, ``Run.evaluate`` and the model zoo print."""
+    import pandas as pd
+
+    from .evaluate import evaluate_policy
+
+    policies = {name: policy, **(reference_policies(table, config) if baselines else {})}
+    results = {n: evaluate_policy(table, split, p, config, device=device, contexts=contexts)
+               for n, p in policies.items()}
+    frame = pd.DataFrame([{"policy": n, **r.summary()} for n, r in results.items()]).set_index("policy")
+    return frame, results[name].per_context()

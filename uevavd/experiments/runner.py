@@ -9,7 +9,6 @@ rebuilt from the run directories at the end, plus ``DIR/report/``.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
@@ -20,9 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from ..atomic import atomic_write
 from ..config import ConfigError, load_method
 from ..data.grid import N_VIEWS
 from ..env.config import EnvConfig
+from ..hashing import json_digest
 from ..presets import load_preset
 from .io import atomic_write_text, write_csv
 
@@ -91,6 +92,9 @@ class Plan:
     #: off-the-shelf reference agents (``--sb3``), see :mod:`uevavd.experiments.references`;
     #: not part of the fingerprint: adding them to a finished ablation retrains nothing
     sb3: tuple[str, ...] = ()
+    #: take the recognizer from the model zoo when it is the one this plan would train
+    #: (same train_605 images, same settings; :meth:`uevavd.zoo.Zoo.recognizer_for`)
+    use_zoo: bool = True
 
     def settings(self, method: str) -> list[tuple[str, dict[str, float]]]:
         """(name, {thre, C}) of each setting this method runs: "default" plus its sweeps."""
@@ -152,6 +156,7 @@ def make_plan(
     gpus_per_run: float = 0.0,
     recognizers: int | None = None,
     sb3: str | None = None,
+    use_zoo: bool = True,
 ) -> Plan:
     from ..config import known_methods
 
@@ -228,6 +233,7 @@ def make_plan(
         gpus_per_run=float(gpus_per_run),
         recognizers=list(range(n_rec)),
         sb3=sb3_agents,
+        use_zoo=bool(use_zoo),
     )
 
 
@@ -253,10 +259,6 @@ class _Stage:
             self.log(f"[{self.name}] done in {dt:.1f} s")
 
 
-def _digest(obj: Any) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
 def stage_world(plan: Plan, log) -> Path:
     """The dataset root: ``--data`` as given, else the preset's synthetic world (cached)."""
     if plan.data is not None:
@@ -264,14 +266,12 @@ def stage_world(plan: Plan, log) -> Path:
 
         read_dataset(plan.data)  # fails early, naming the files it cannot parse
         return plan.data
-    from ..data.splits import subset
     from ..data.synthetic import write_world
-    from ..paths import cache_dir
+    from ..presets import world_contexts, world_root
 
     world = plan.preset["world"]
-    contexts = list(subset(world["per_block"]))
-    root = cache_dir() / "worlds" / f"{plan.preset.get('name', 'world')}-{_digest(world)}"
-    write_world(root, contexts=contexts, size=int(world["size"]), seed=int(world["seed"]),
+    root = world_root(plan.preset)
+    write_world(root, contexts=world_contexts(plan.preset), size=int(world["size"]), seed=int(world["seed"]),
                 workers=plan.workers, progress=True)
     from ..data.synthetic.quality import format_rows, read_visible, split_rows
 
@@ -293,12 +293,27 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
     for r in plan.recognizers:
         settings = TrainSettings(**{**plan.preset.get("classifier", {}), "seed": r})
         path = classifier_cache_path(digest, settings)
+        shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
         if path.is_file():
             log(f"  reusing classifier {path}")
+        elif shipped is not None:
+            atomic_write(path, shipped.read_bytes())
+            log(f"  recognizer {r}: the model zoo's ({shipped}, sha256 checked), trained by this preset's recipe on "
+                "these train_605 images (--no-zoo trains it here)")
         else:
             train_classifier(data, path, settings=settings, workers=plan.workers, progress=True)
         out[r] = path
     return out
+
+
+def _zoo_recognizer(plan: Plan, cache_name: str) -> Path | None:
+    """The zoo's recognizer when the plan allows it and it has this cache name."""
+    if not plan.use_zoo:
+        return None
+    from ..zoo import Zoo
+
+    zoo = Zoo.find(str(plan.preset.get("name", "")))
+    return None if zoo is None else zoo.recognizer_for(cache_name)
 
 
 def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
@@ -332,7 +347,7 @@ def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]
     by_perception: dict[str, Path] = {}
     for m in plan.methods:
         spec = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING))
-        key = _digest(spec.to_dict().get("perception", {}))
+        key = json_digest(spec.to_dict().get("perception", {}), 12)
         if key not in by_perception and plan.backend == "ray":
             by_perception[key] = prepare_table_ray(data, spec, classifier_path=classifier, progress=True)
         elif key not in by_perception:

@@ -40,6 +40,7 @@ import numpy as np
 from ..atomic import atomic_dir
 from ..data.grid import N_VIEWS
 from ..data.splits import SPLITS, TARGETS, resolve_split
+from ..hashing import file_sha256, json_digest
 
 SCHEMA_VERSION = 1
 ARRAYS = ("features", "probs", "boxes", "visible")
@@ -59,13 +60,7 @@ _BACKDATE_NS = 10**9
 
 def _meta_digest(meta: dict) -> str:
     """sha256 of a table's metadata (without its own digest), as JSON with sorted keys."""
-    body = {k: v for k, v in meta.items() if k != "meta_sha256"}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def _file_sha256(path: Path) -> str:
-    with open(path, "rb") as fh:
-        return hashlib.file_digest(fh, "sha256").hexdigest()
+    return json_digest({k: v for k, v in meta.items() if k != "meta_sha256"})
 
 
 def _digest_arrays(*arrays: np.ndarray) -> str:
@@ -132,7 +127,7 @@ class ObservationTable:
             "class_names": list(class_names),
             "config": config,
             "key": key or _digest_arrays(features, probs, boxes, visible)
-            + hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:8],
+            + json_digest(config, 8),
             "versions": _versions(),
         }
         table = cls(features, probs, boxes, visible, tuple(scenes), ctx, tgt, tuple(splits), meta)
@@ -201,7 +196,7 @@ class ObservationTable:
             if rec is None:
                 raise TableError(f"{self.path}: no integrity record for {f.name} in {META_FILE} (written by an "
                                  "older uevavd); values are still checked, but a checksum cannot be")
-            if _file_sha256(f) != rec["sha256"]:
+            if file_sha256(f) != rec["sha256"]:
                 raise TableError(f"{f}: sha256 differs from the one recorded when the table was written; "
                                  "the file was changed or damaged: rebuild the table")
         self.check(where=str(self.path))
@@ -219,6 +214,16 @@ class ObservationTable:
     @property
     def feature_dim(self) -> int:
         return int(self.features.shape[2])
+
+    @property
+    def perception_identity(self) -> dict[str, Any]:
+        """What made the table's numbers apart from the dataset: the identities of its
+        segmenter, decomposition, encoder and classifier (with their weights hashes) and the
+        schema, i.e. the table key's parts without the dataset fingerprint. A policy trained
+        on one table may act on another table of the same identity (another dataset root,
+        another split); ``{}`` for tables made with ``from_arrays``."""
+        parts = (self.meta.get("config") or {}).get("key_parts") or {}
+        return {k: v for k, v in sorted(parts.items()) if k != "dataset"}
 
     def __len__(self) -> int:
         return len(self.scenes)
@@ -261,7 +266,7 @@ class ObservationTable:
                 st = f.stat()
                 os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns - _BACKDATE_NS))
                 st = f.stat()
-                files[f.name] = {"bytes": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": _file_sha256(f)}
+                files[f.name] = {"bytes": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": file_sha256(f)}
             meta = dict(self.meta)
             meta.update(
                 scenes=list(self.scenes),
@@ -352,7 +357,7 @@ class ObservationTable:
                     continue  # untouched since save, which checked its values
             # No record (an older table) or changed since written: scan it, then compare its hash.
             table._check_values(str(path), (name,))
-            if rec is not None and _file_sha256(f) != rec["sha256"]:
+            if rec is not None and file_sha256(f) != rec["sha256"]:
                 raise TableError(f"{f}: changed since the table was written (sha256 differs from {META_FILE}); "
                                  "rebuild the table, or write changed arrays with from_arrays(...).save()")
         return table

@@ -362,7 +362,7 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "che
     """The greedy policy of a training run directory (its latest checkpoint). With
     ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
     its actions are the same either way."""
-    from .checkpoint import ARCH_KEYS, load_checkpoint
+    from .checkpoint import ARCH_KEYS, load_checkpoint, load_net_state
     from .trainer import read_settings, resolve_spec
 
     run_dir = Path(run_dir)
@@ -372,7 +372,7 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "che
 
     net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
     state = load_checkpoint(run_dir / weights, expect=settings, keys=ARCH_KEYS)  # the network, not a resume
-    net.load_state_dict(state["net"])
+    load_net_state(net, state["net"], run_dir / weights)
     return GreedyPolicy(net, device=device, features=table_features(settings) if with_table else None)
 
 

@@ -80,7 +80,7 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
 POLICY_FILE = "policy.safetensors"
 POLICY_FORMAT = "uevavd-policy/1"
 #: The run settings a policy file carries (what loading it must check and rebuild).
-POLICY_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "env", "seed")
+POLICY_KEYS = ("method", "spec_hash", "table_key", "table_identity", "feature_dim", "env", "seed")
 
 
 def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Tensor], method_toml: str,
@@ -93,7 +93,7 @@ def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Te
 
     tensors = {k: v.detach().cpu().contiguous() for k, v in net_state.items()}
     meta = {"format": POLICY_FORMAT, "method_toml": method_toml,
-            "settings": json.dumps({k: settings[k] for k in POLICY_KEYS})}
+            "settings": json.dumps({k: settings.get(k) for k in POLICY_KEYS})}
     return atomic_save(Path(path), lambda tmp: save_file(tensors, tmp, metadata=meta))
 
 
@@ -116,3 +116,49 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any],
         raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected "
                               f"{POLICY_FORMAT!r})")
     return meta["method_toml"], json.loads(meta["settings"]), state
+
+
+def check_policy_fits(path: str | os.PathLike[str], settings: dict[str, Any], *, table: Any = None,
+                      method: str | None = None, env: Any = None) -> None:
+    """Refuse a policy file (its header ``settings``) for another method, another table
+    config or another action space, naming what differs. ``table``: an observation table it
+    would act on; it must have the perception identity the policy was trained with (same
+    segmenter, decomposition, encoder and classifier weights; the dataset may differ, so a
+    shipped policy acts on a freshly generated world). ``env``: an EnvConfig whose action
+    space (``max_range`` ranges of 7 action types) the network must produce."""
+    problems = []
+    if method is not None and settings.get("method") != method:
+        problems.append(f"method: the file holds {settings.get('method')!r}, not {method!r}")
+    if table is not None:
+        if int(table.feature_dim) != int(settings["feature_dim"]):
+            problems.append(f"features: the policy reads {settings['feature_dim']}-d features, the table has "
+                            f"{table.feature_dim}-d")
+        mine, theirs = settings.get("table_identity") or {}, getattr(table, "perception_identity", {}) or {}
+        if mine and theirs:
+            problems += [f"{k}: policy {mine.get(k)!r}, table {theirs.get(k)!r}"
+                         for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
+        elif table.key != settings.get("table_key"):
+            problems.append(f"table: trained on table {settings.get('table_key')}, not {table.key}")
+    if env is not None and int(env.max_range) != int(settings["env"]["max_range"]):
+        problems.append(f"action space: the policy chooses among {settings['env']['max_range']} ranges, the env "
+                        f"config has max_range {env.max_range}")
+    if problems:
+        raise CheckpointError(f"{path} does not fit ({'; '.join(problems)}): use it with the table and env config "
+                              "of its own method (the file's header records them)")
+
+
+def load_net_state(net: torch.nn.Module, state: dict[str, torch.Tensor], path: str | os.PathLike[str]) -> None:
+    """``net.load_state_dict(state)``, or a one-line error naming the file and the tensors
+    whose names or shapes differ (a policy of another action space or size) instead of
+    torch's multi-line message."""
+    own = net.state_dict()
+    diffs = [f"{k} {tuple(state[k].shape)} vs {tuple(v.shape)}" for k, v in own.items()
+             if k in state and tuple(state[k].shape) != tuple(v.shape)]
+    missing, extra = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    if diffs or missing or extra:
+        parts = ([f"shapes (file vs network): {', '.join(diffs[:3])}"] if diffs else []) + \
+            ([f"missing {', '.join(missing[:3])}"] if missing else []) + ([f"unexpected {', '.join(extra[:3])}"]
+                                                                        if extra else [])
+        raise CheckpointError(f"{path}: its network does not match the method it names ({'; '.join(parts)}); "
+                              "it was written for another action space or network size")
+    net.load_state_dict(state)

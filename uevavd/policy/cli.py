@@ -88,20 +88,57 @@ def add_train(p: argparse.ArgumentParser):
 
 
 def add_evaluate(p: argparse.ArgumentParser):
-    p.add_argument("run_dir", type=Path, help="training run directory")
+    p.add_argument("run_dir", type=Path, nargs="?", default=None, help="training run directory")
+    p.add_argument("--pretrained", default=None, metavar="METHOD",
+                   help="evaluate the model zoo's policy of METHOD (map, memo_map, ibe_map) instead of a run: "
+                        "generates the quick world's contexts of --split, builds their table with the shipped "
+                        "recognizer and prints the result beside the numbers published with the zoo")
     p.add_argument("--split", default="hard",
                    help="train, simple, hard or test (simple + hard); the table must hold contexts of it")
+    p.add_argument("--workers", type=int, default=None, help="--pretrained: processes for world generation "
+                                                              "(default: the number of cores)")
     p.add_argument("--table", type=Path, default=None, help="observation table (default: the run's)")
     p.add_argument("--json", type=Path, default=None, help="output JSON (default RUN_DIR/eval_<split>.json)")
     p.add_argument("--device", default="cpu")
 
     def run(args: argparse.Namespace) -> int:
+        if (args.run_dir is None) == (args.pretrained is None):
+            return _error("evaluate", "give a training run directory or --pretrained METHOD (one of the two)")
         try:
-            return _evaluate(args)
+            return _evaluate_pretrained(args) if args.pretrained else _evaluate(args)
         except BAD_INPUT as exc:
             return _error("evaluate", exc)
 
     return run
+
+
+def _evaluate_pretrained(args: argparse.Namespace) -> int:
+    import time
+
+    import pandas as pd
+
+    from ..zoo import PUBLISHED, evaluate_pretrained
+
+    t0 = time.perf_counter()
+    frame, published, _ = evaluate_pretrained(args.pretrained, args.split, workers=args.workers or os.cpu_count() or 1,
+                                           device=args.device)
+    print(f"model zoo {args.pretrained} on split {args.split!r} ({time.perf_counter() - t0:.0f} s)")
+    with pd.option_context("display.width", 160, "display.max_columns", 12, "display.precision", 4):
+        print(frame[["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"]])
+    if published is None:
+        print(f"no published numbers for split {args.split!r} (the zoo publishes train, simple and hard)")
+        return 0
+    got = frame.loc[args.pretrained]
+    diff = max(abs(float(got[k]) - published[k]) for k in PUBLISHED)
+    print("published: " + ", ".join(f"{k} {published[k]:.4f}" for k in PUBLISHED))
+    print("reproduced exactly" if diff == 0 else f"differs from the published numbers by up to {diff:.2e}")
+    if args.json:
+        from .trainer import _write_json
+
+        _write_json(args.json, {"split": args.split, "results": frame.reset_index().to_dict("records"),
+                                "published": published})
+        print(f"wrote {args.json}")
+    return 0
 
 
 def _evaluate(args: argparse.Namespace) -> int:

@@ -214,6 +214,7 @@ def train(
     settings = {
         "method": spec.name, "spec_hash": spec.hash, "table_key": table.key,
         "table_path": str(table.path) if table.path else None, "feature_dim": table.feature_dim,
+        "table_identity": table.perception_identity,
         "seed": seed, "train": cfg.to_dict(), "env": env_cfg.to_dict(), "n_types": 7,
         "n_ranges": env_cfg.max_range, "t_max": env_cfg.t_max, "state": state_name, "head": head_name,
         "device": str(dev), "versions": _versions(),

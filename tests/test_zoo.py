@@ -1,0 +1,60 @@
+"""The model zoo: the shipped files match the world, the preset and the methods, and a
+shipped policy reproduces its published numbers on a freshly generated context."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from uevavd.presets import load_preset, world_contexts
+from uevavd.zoo import MANIFEST, PUBLISHED, Zoo, ZooError, evaluate_pretrained, scene_digest
+
+
+def test_shipped_zoo_matches_the_world_generator_the_preset_and_the_methods():
+    zoo = Zoo.load("quick")
+    assert zoo.problems() == [], "the zoo is stale: rebuild it with `uevavd zoo build`"
+    assert zoo.methods == ["ibe_map", "map", "memo_map"]
+    for name in zoo.manifest["files"]:
+        zoo.verified(name)  # every file hashes to its record
+    preset = load_preset("quick")
+    assert set(zoo.manifest["world"]["scenes"]) >= {f"{c:03d}" for c in world_contexts(preset)}
+    for m in zoo.methods:
+        assert set(zoo.manifest["policies"][m]["published"]) == {"train", "simple", "hard"}
+    assert sum(r["bytes"] for r in zoo.manifest["files"].values()) < 25e6
+
+
+def test_pretrained_policy_reproduces_its_published_numbers_on_a_fresh_context(tmp_path, monkeypatch):
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    zoo = Zoo.load("quick")
+    frame, published, per_context = evaluate_pretrained("map", "hard", contexts=[26], workers=1, progress=False,
+                                                        baselines=False)
+    # the world was rendered here, byte for byte the one the zoo was trained and evaluated on
+    scene = next((tmp_path / "cache" / "worlds").glob("quick-*-26")) / "026" / "scene.json"
+    assert scene_digest(scene) == zoo.manifest["world"]["scenes"]["026"]
+    assert list(per_context["context"]) == [26]
+    assert {k: float(frame.loc["map", k]) for k in PUBLISHED} == published
+
+
+def test_an_altered_or_stale_zoo_is_refused_naming_the_file(tmp_path):
+    root = tmp_path / "zoo"
+    shutil.copytree(Zoo.load("quick").root, root)
+    data = bytearray((root / "map.safetensors").read_bytes())
+    data[-1] ^= 1
+    (root / "map.safetensors").write_bytes(bytes(data))
+    zoo = Zoo.load(root=root)
+    with pytest.raises(ZooError, match=r"map.safetensors: sha256 .* does not match the manifest"):
+        zoo.policy("map")
+    with pytest.raises(ZooError, match="map.safetensors: sha256"):
+        evaluate_pretrained("map", "hard", zoo=zoo, progress=False)
+    zoo.recognizer()  # the other files are still fine
+    with pytest.raises(ZooError, match=r"no pretrained 'sac' in the zoo: it ships \['ibe_map', 'map', 'memo_map'\]"):
+        zoo.policy("sac")
+    manifest = json.loads((root / MANIFEST).read_text())
+    manifest["world"]["generator_version"] -= 1
+    (root / MANIFEST).write_text(json.dumps(manifest))
+    stale = Zoo.load(root=root)
+    assert any("generator version" in p for p in stale.problems())
+    with pytest.raises(ZooError, match="is stale .*generator version.*uevavd zoo build"):
+        evaluate_pretrained("ibe_map", "hard", zoo=stale, progress=False)

@@ -1,0 +1,293 @@
+"""The model zoo: trained models that ship with the package, for the quick preset's world.
+
+``model_zoo/pretrained/<preset>/`` holds the recognizer (recognizer seed 0) and one policy
+per method (RL seed 0, default reward setting), each trained by the quick preset's own
+pipeline, and ``manifest.json``: every file's sha256 and size, the world they belong to
+(generator version, the preset's ``[world]`` table, the hashes of its scenes' files), the
+recognizer's cache name and settings, each policy's method spec hash, and each policy's
+*published* numbers: its exhaustive evaluation on every split, computed by
+:func:`evaluate_pretrained`'s own code when the zoo was built.
+
+- ``uevavd evaluate --pretrained ibe_map --split hard`` (:func:`evaluate_pretrained`)
+  generates only that split's contexts (no ``train_605``: the recognizer ships), builds
+  their table with the shipped recognizer and evaluates the shipped policy beside the
+  baselines, next to its published numbers.
+- ``uevavd ablate`` and ``uevavd demo`` take the shipped recognizer instead of training it
+  when its cache name matches, i.e. the same ``train_605`` image bytes and the same
+  training settings (:meth:`Zoo.recognizer_for`); ``--no-zoo`` trains it.
+- ``uevavd zoo build`` (:func:`build_zoo`) rebuilds everything after the world, the
+  preset or a method changes; ``uevavd zoo check`` (:meth:`Zoo.problems`) says whether the
+  shipped files still match, and a test fails when they do not.
+
+Every file is checked against its sha256 before use; a mismatch is refused naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .atomic import atomic_write
+from .hashing import file_sha256, json_digest
+from .presets import ZOO, load_preset, world_contexts, world_root
+
+FORMAT = "uevavd-zoo/1"
+MANIFEST = "manifest.json"
+RECOGNIZER = "recognizer.safetensors"
+#: The summary columns a published number is given for (``EvalResult.summary``).
+PUBLISHED = ("mean_return", "accuracy", "recognition_rate", "path_m", "stop_rate")
+REBUILD = "uevavd zoo build"
+
+
+class ZooError(ValueError):
+    """A zoo file is missing, altered or stale; the message names it and what to do."""
+
+
+def zoo_dir(preset: str = "quick") -> Path:
+    return ZOO / "pretrained" / preset
+
+
+def world_identity(preset: Mapping[str, Any]) -> dict[str, Any]:
+    """What the shipped models depend on in the world: the generator's version and the
+    preset's ``[world]`` table (seed, crop size, contexts)."""
+    from .data.synthetic.writer import VERSION
+
+    return {"generator_version": VERSION, "world": dict(preset["world"])}
+
+
+def scene_digest(scene_json: Path) -> str:
+    """sha256 over the file hashes a scene's ``scene.json`` records (its images, boxes and
+    segmentations), so a renderer change without a version bump is caught too."""
+    return json_digest(json.loads(scene_json.read_text(encoding="utf-8"))["files"])
+
+
+@dataclass(frozen=True)
+class Zoo:
+    """A zoo folder and its manifest."""
+
+    root: Path
+    manifest: dict[str, Any]
+
+    @classmethod
+    def load(cls, preset: str = "quick", root: str | os.PathLike[str] | None = None) -> Zoo:
+        root = Path(root) if root is not None else zoo_dir(preset)
+        path = root / MANIFEST
+        try:
+            manifest = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ZooError(f"{path}: no model zoo for preset {preset!r} (build one with `{REBUILD}`)") from None
+        except (OSError, ValueError) as exc:
+            raise ZooError(f"{path}: unreadable zoo manifest ({exc}); restore it from git or run `{REBUILD}`") from None
+        if manifest.get("format") != FORMAT:
+            raise ZooError(f"{path}: format {manifest.get('format')!r}, expected {FORMAT!r}; run `{REBUILD}`")
+        return cls(root, manifest)
+
+    @classmethod
+    def find(cls, preset: str) -> Zoo | None:
+        """The preset's zoo, or None when the package ships none for it."""
+        return cls.load(preset) if (zoo_dir(preset) / MANIFEST).is_file() else None
+
+    @property
+    def methods(self) -> list[str]:
+        return sorted(self.manifest["policies"])
+
+    def verified(self, name: str) -> Path:
+        """The path of zoo file ``name`` after checking it against the manifest's sha256."""
+        record = self.manifest["files"].get(name)
+        path = self.root / name
+        if record is None:
+            raise ZooError(f"{path}: not listed in {self.root / MANIFEST}")
+        if not path.is_file():
+            raise ZooError(f"{path}: missing (git lfs or a partial checkout?); restore it or run `{REBUILD}`")
+        digest = file_sha256(path)
+        if digest != record["sha256"]:
+            raise ZooError(f"{path}: sha256 {digest[:16]}... does not match the manifest's {record['sha256'][:16]}...; "
+                           f"the file was altered or damaged: restore it from git or run `{REBUILD}`")
+        return path
+
+    def recognizer(self) -> Path:
+        return self.verified(RECOGNIZER)
+
+    def policy(self, method: str) -> Path:
+        if method not in self.manifest["policies"]:
+            raise ZooError(f"no pretrained {method!r} in the zoo: it ships {self.methods}")
+        return self.verified(self.manifest["policies"][method]["file"])
+
+    def published(self, method: str, split: str, contexts: Sequence[int] | None = None) -> dict[str, float] | None:
+        """The numbers recorded for ``method`` on ``split`` when the zoo was built (with
+        ``contexts``: those of one context as recorded, the mean over several)."""
+        rec = self.manifest["policies"].get(method, {}).get("published", {}).get(split)
+        if rec is None or contexts is None:
+            return None if rec is None else {k: rec[k] for k in PUBLISHED}
+        rows = [rec["per_context"][str(c)] for c in contexts]
+        return {k: rows[0][k] if len(rows) == 1 else sum(r[k] for r in rows) / len(rows) for k in PUBLISHED}
+
+    def recognizer_for(self, cache_name: str) -> Path | None:
+        """The shipped recognizer when it is the one the pipeline would train under
+        ``cache_name`` (:func:`~uevavd.perception.classifier.classifier_cache_path`'s file
+        name: the ``train_605`` images' hash and the training settings), else None."""
+        if self.manifest["recognizer"].get("cache_name") != cache_name:
+            return None
+        return self.recognizer()
+
+    def problems(self, preset: Mapping[str, Any] | None = None) -> list[str]:
+        """Why the shipped files no longer match the current world, preset or methods
+        (empty when they do): checked without rendering anything."""
+        from .config import load_method
+
+        preset = preset or load_preset(self.manifest["preset"])
+        out = []
+        want = world_identity(preset)
+        if self.manifest["world"]["generator_version"] != want["generator_version"]:
+            out.append(f"built for world generator version {self.manifest['world']['generator_version']}, "
+                       f"the generator is at version {want['generator_version']}")
+        if self.manifest["world"]["world"] != want["world"]:
+            out.append(f"built for [world] {self.manifest['world']['world']}, the preset has {want['world']}")
+        if self.manifest["recognizer"]["settings"] != recognizer_settings(preset, 0):
+            out.append("the preset's [classifier] recipe changed since the recognizer was trained")
+        for m, rec in self.manifest["policies"].items():
+            spec = load_method(m, overrides=dict(preset.get("overrides", {})))
+            if spec.hash != rec["spec_hash"]:
+                out.append(f"method {m!r} with the preset's overrides now hashes to {spec.hash}, the shipped "
+                           f"policy was trained as {rec['spec_hash']}")
+        return out
+
+    def check(self, preset: Mapping[str, Any] | None = None) -> None:
+        problems = self.problems(preset)
+        if problems:
+            raise ZooError(f"the model zoo in {self.root} is stale ({'; '.join(problems)}): rebuild it with "
+                           f"`{REBUILD}`")
+
+
+def recognizer_settings(preset: Mapping[str, Any], seed: int) -> dict[str, Any]:
+    """The recognizer's training settings under a preset (``TrainSettings`` as a dict)."""
+    from .perception.train import TrainSettings
+
+    return json.loads(json.dumps(TrainSettings(**{**preset.get("classifier", {}), "seed": seed}).__dict__))
+
+
+def _world_of(preset: Mapping[str, Any], contexts: Sequence[int], label: str, *, workers: int,
+              progress: bool) -> Path:
+    """A dataset root holding ``contexts`` of the preset's world: the full world when the
+    cache holds them already, else just those contexts (no ``00``/``train_605``: the
+    recognizer ships) under ``<world root>-<label>``."""
+    from .data.splits import scene_name
+    from .data.synthetic import write_world
+
+    full = world_root(preset)
+    try:
+        card = json.loads((full / "uevavd.json").read_text(encoding="utf-8"))
+        if {scene_name(c) for c in contexts} <= set(card.get("scenes", [])):
+            return full
+    except (OSError, ValueError):
+        pass
+    world = preset["world"]
+    return write_world(full.with_name(f"{full.name}-{label}"), contexts=contexts, size=int(world["size"]),
+                       seed=int(world["seed"]), workers=workers, include_unoccluded=False, progress=progress)
+
+
+def evaluate_pretrained(method: str, split: str = "hard", *, preset: str = "quick", workers: int = 2,
+                        device: str = "cpu", baselines: bool = True, progress: bool = True,
+                        contexts: Sequence[int] | None = None, zoo: Zoo | None = None):
+    """Evaluate the zoo's ``method`` policy on ``split`` of the preset's world (or on some
+    of its ``contexts``), beside the baselines: ``(DataFrame, published)``, where
+    ``published`` holds the numbers recorded when the zoo was built, for the same contexts
+    (None for a split it was not evaluated on), and the policy's per-context rows."""
+    from .api import load_policy_file
+    from .config import loads_method
+    from .data.splits import resolve_split
+    from .env.baselines import evaluate_beside_baselines
+    from .perception.prepare import prepare_table
+    from .perception.table import ObservationTable
+    from .policy.checkpoint import read_policy_file
+
+    resolve_split(split)  # an unknown split is refused before any work
+    zoo = zoo or Zoo.load(preset)
+    cfg_preset = load_preset(zoo.manifest["preset"])
+    zoo.check(cfg_preset)
+    path = zoo.policy(method)
+    recognizer = zoo.recognizer()
+    in_split = world_contexts(cfg_preset, split)
+    label = "+".join(resolve_split(split))
+    if contexts is not None:
+        outside = sorted(set(contexts) - set(in_split))
+        if outside or not contexts:
+            raise ZooError(f"contexts {outside or list(contexts)}: expected some of the {split} contexts of the "
+                           f"{zoo.manifest['preset']} world, {in_split}")
+        in_split, label = sorted(set(contexts)), "-".join(str(c) for c in sorted(set(contexts)))
+    spec = loads_method(read_policy_file(path)[0], source=str(path))
+    data = _world_of(cfg_preset, in_split, label, workers=workers, progress=progress)
+    table = ObservationTable.load(prepare_table(data, spec, classifier_path=recognizer, workers=workers,
+                                                progress=progress))
+    policy, cfg = load_policy_file(path, table=table, method=method, device=device)
+    frame, per_context = evaluate_beside_baselines(table, split, policy, method, cfg, device=device,
+                                                   baselines=baselines, contexts=None if contexts is None else in_split)
+    return frame, zoo.published(method, split, None if contexts is None else in_split), per_context
+
+
+def build_zoo(out: str | os.PathLike[str] | None = None, *, preset: str = "quick", work: str | os.PathLike[str] | None = None,
+              workers: int | None = None, log: Callable[[str], None] = print) -> Path:
+    """Train the zoo's models with the preset's own pipeline (``uevavd ablate`` with one RL
+    seed and one recognizer, the recognizer trained, not taken from the zoo), evaluate each
+    policy on every split and write the files and the manifest to ``out`` (default: the
+    package's zoo folder). Resumable: the runs live under ``work``."""
+    from . import __version__
+    from .data.reader import read_dataset
+    from .experiments.runner import make_plan, run_ablation
+    from .paths import cache_dir
+    from .perception.classifier import classifier_cache_path, data_hash, train_records
+    from .perception.train import TrainSettings
+    from .policy.checkpoint import POLICY_FILE, read_policy_file
+
+    out = Path(out) if out is not None else zoo_dir(preset)
+    work = Path(work) if work is not None else cache_dir() / "zoo-build" / preset
+    t0 = time.perf_counter()
+    plan = make_plan(preset=preset, out=work, seeds=1, recognizers=1, workers=workers, use_zoo=False)
+    run_ablation(plan, log=log)
+    cfg = plan.preset
+    data = world_root(cfg)
+    recognizer = classifier_cache_path(data_hash(train_records(read_dataset(data))),
+                                       TrainSettings(**recognizer_settings(cfg, 0)))
+    out.mkdir(parents=True, exist_ok=True)
+    files: dict[str, dict[str, Any]] = {}
+
+    def ship(src: Path, name: str) -> None:
+        atomic_write(out / name, lambda fh: shutil.copyfileobj(open(src, "rb"), fh))
+        files[name] = {"sha256": file_sha256(out / name), "bytes": (out / name).stat().st_size}
+
+    ship(recognizer, RECOGNIZER)
+    manifest: dict[str, Any] = {
+        "format": FORMAT, "preset": preset, "built_by": REBUILD, "uevavd": __version__,
+        "world": {**world_identity(cfg), "scenes": {
+            p.parent.name: scene_digest(p) for p in sorted(data.glob("*/scene.json"))}},
+        "recognizer": {"file": RECOGNIZER, "cache_name": recognizer.name, "settings": recognizer_settings(cfg, 0)},
+        "policies": {},
+    }
+    for method in plan.methods:
+        name = f"{method}.safetensors"
+        ship(work / "runs" / method / "default" / "rec0" / "seed0" / POLICY_FILE, name)
+        settings = read_policy_file(out / name)[1]
+        manifest["policies"][method] = {"file": name, "seed": settings["seed"], "spec_hash": settings["spec_hash"]}
+    staged = Zoo(out, {**manifest, "files": files})
+    for method in plan.methods:  # the published numbers: evaluate_pretrained's own code, on every split
+        published = {}
+        for split in ("train", "simple", "hard"):
+            if world_contexts(cfg, split):
+                frame, _, per_context = evaluate_pretrained(method, split, preset=preset, workers=plan.workers,
+                                                            baselines=False, progress=False, zoo=staged)
+                published[split] = {k: float(frame.loc[method, k]) for k in PUBLISHED}
+                published[split]["per_context"] = {
+                    str(int(row["context"])): {k: float(row[k]) for k in PUBLISHED}
+                    for row in per_context.to_dict("records")}
+        manifest["policies"][method]["published"] = published
+    manifest["files"] = files
+    atomic_write(out / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    log(f"zoo: {len(files)} files, {sum(f['bytes'] for f in files.values()) / 1e6:.1f} MB in {out} "
+        f"({time.perf_counter() - t0:.0f} s)")
+    return out
