@@ -185,3 +185,29 @@ def test_train_605_is_unoccluded_and_consistent(tmp_path):
     assert len(segs) == 5 * N_VIEWS and set(meta["visible"].values()) == {1.0}
     assert {v["terrain"] for v in meta["stages"]} == {"urban", "woodland"}
     assert set().union(*(np.unique(s).tolist() for s in segs.values())) <= set(cats)
+
+
+def test_a_scene_killed_while_being_rewritten_is_not_complete(world, tmp_path, monkeypatch):
+    """View files are written in place; scene.json is the commit record, so a rewrite that
+    dies half-way leaves the scene incomplete (redone on resume), never a stale record that
+    vouches for files of two runs."""
+    from uevavd.data.synthetic import writer
+
+    out = tmp_path / "w"
+    shutil.copytree(world, out)
+    calls = {"n": 0}
+    real_png = writer._png
+
+    def dying_png(image, path):
+        calls["n"] += 1
+        if calls["n"] == 40:
+            raise KeyboardInterrupt
+        return real_png(image, path)
+
+    monkeypatch.setattr(writer, "_png", dying_png)
+    with pytest.raises(KeyboardInterrupt):
+        writer.write_scene(out, "005", size=SIZE, seed=3)
+    assert not scene_complete(out / "005", size=SIZE, seed=3)
+    monkeypatch.setattr(writer, "_png", real_png)
+    write_world(out, contexts=[5], size=SIZE, seed=3, include_unoccluded=False, progress=False)
+    assert _tree_bytes(out / "005") == _tree_bytes(world / "005")

@@ -243,12 +243,14 @@ def _pixel_dirs(size: int, basis: np.ndarray) -> np.ndarray:
 
 
 def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *, cull: bool = True,
-                exclude: tuple[int, ...] = ()) -> View:
+                exclude: tuple[int, ...] = (), shade: bool = True) -> View:
     """Render one viewpoint (grid index 0..604) of ``scene`` at ``size`` x ``size`` px.
 
     ``cull=False`` casts every primitive over the whole frame (the slow reference the
     benchmark compares against; the images are identical). ``exclude``: instance ids the
-    camera does not see (they still cast their shadows)."""
+    camera does not see (they still cast their shadows). ``shade=False`` skips the colours
+    (``rgb`` is then all zeros; segmentation, box and visible fraction are unchanged): the
+    validity rule needs only the visible fractions."""
     prep = prep or _Prep(scene)
     p = prep.p
     origin = view_coords(view)
@@ -302,7 +304,8 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     seg.put(h, p["h_inst"].take(pid_f.take(h)))
     seg.put(e, p["e_inst"].take(pid_f.take(e)))
     seg = seg.reshape(size, size)
-    rgb = _shade(scene, prep, pts, ground_rgb, h, e, pid_f, face_f).reshape(size, size, 3)
+    rgb = (_shade(scene, prep, pts, ground_rgb, h, e, pid_f, face_f).reshape(size, size, 3) if shade
+           else np.zeros((size, size, 3), np.uint8))
     vis = seg == TARGET_ID
     whole = np.isfinite(ttar)
     full = int(whole.sum())
@@ -526,11 +529,12 @@ def _facade(pts, normal, wall, par) -> np.ndarray:
     return out
 
 
-def render_views(scene: Scene, size: int, views=None) -> ContextViews:
-    """Render ``views`` (default: all 605, in grid order) of a scene."""
+def render_views(scene: Scene, size: int, views=None, *, shade: bool = True) -> ContextViews:
+    """Render ``views`` (default: all 605, in grid order) of a scene (``shade``: see
+    :func:`render_view`)."""
     views = range(N_VIEWS) if views is None else views
     prep = _Prep(scene)
-    out = [render_view(scene, v, size, prep) for v in views]
+    out = [render_view(scene, v, size, prep, shade=shade) for v in views]
     return ContextViews(
         rgb=np.stack([o.rgb for o in out]),
         seg=np.stack([o.seg for o in out]),

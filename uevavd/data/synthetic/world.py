@@ -369,7 +369,7 @@ def context_draw(context_id: int, *, seed: int) -> int:
 
     for draw in range(VALIDITY.max_draws):
         scene = draw_context(context_id, seed=seed, draw=draw)
-        if VALIDITY.passes(render_views(scene, VALIDITY.check_size).visible, margin=VALIDITY.margin):
+        if VALIDITY.passes(render_views(scene, VALIDITY.check_size, shade=False).visible, margin=VALIDITY.margin):
             return draw
     raise RuntimeError(f"context {context_id} (seed {seed}): no draw among {VALIDITY.max_draws} passes the "
                        f"validity rule ({VALIDITY.describe()}); the generator's ranges are broken")

@@ -9,8 +9,12 @@ when it exists, matches the requested settings and every recorded file hashes to
 record, so an interrupted run resumes by redoing just the incomplete scenes. The dataset
 card ``uevavd.json`` and ``manifest.json`` (sha256 and size of every file) come last.
 
-All files are written atomically (temp file in the same folder, then ``os.replace``), PNGs
-with a fixed compression level, so the same (seed, context, size) gives identical bytes.
+A scene's view files are written in place: its ``scene.json``, written last and atomically
+(temp file in the same folder, then ``os.replace``) with the hash of every file, is the
+scene's commit record, so a file cut short by a kill fails its hash and the scene is redone
+(one rename per scene instead of 1,815 saves a tenth of the generation time). The dataset
+card and ``manifest.json`` are written atomically. PNGs use a fixed compression level, so
+the same (seed, context, size) gives identical bytes.
 """
 
 from __future__ import annotations
@@ -130,6 +134,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
     (folder / layout.SEG_DIR).mkdir(parents=True, exist_ok=True)
     for stale in [*folder.glob(".*.tmp*"), *(folder / layout.SEG_DIR).glob(".*.tmp*")]:
         stale.unlink(missing_ok=True)  # left by an interrupted run
+    (folder / layout.SCENE_META).unlink(missing_ok=True)  # the scene is incomplete until it is rewritten
     files: dict[str, str] = {}
     visible: dict[str, float] = {}
     categories: dict[int, str] = {}
@@ -160,7 +165,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
                 (stem + layout.BOX_EXT, (" ".join(str(int(b)) for b in view.box) + "\n").encode()),
                 (f"{layout.SEG_DIR}/{stem}{layout.IMAGE_EXT}", _png(shift[view.seg].astype(np.uint16), folder / stem)),
             ):
-                _atomic_write(folder / rel, data)
+                (folder / rel).write_bytes(data)  # in place: scene.json below is the commit record
                 files[rel] = _sha256(data)
             visible[stem] = round(float(view.visible), 6)
             order.append(((TARGETS.index(scene.target), int(v)), stem))
@@ -168,7 +173,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
     cats = {str(k): v for k, v in sorted(categories.items())}
     data = (json.dumps(cats, indent=1) + "\n").encode()
     rel = f"{layout.SEG_DIR}/{layout.CATEGORIES}"
-    _atomic_write(folder / rel, data)
+    (folder / rel).write_bytes(data)
     files[rel] = _sha256(data)
     unocc = name in (UNOCCLUDED_SCENE, CLASSIFIER_SCENE)
     meta = {
