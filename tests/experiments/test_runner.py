@@ -439,3 +439,59 @@ def test_sb3_reference_rows_are_added_to_a_finished_ablation_without_retraining(
     assert (run / "final_eval.json").stat().st_mtime_ns == mtime  # cached: not trained again
     with pytest.raises(AblationError, match="--sb3 'a2c'"):
         make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], sb3="a2c")
+
+
+class _FirstRangeUp:
+    """A plugin's baseline: one move of the first range in action type 0, then stop."""
+
+    needs_features = False
+
+    def reset(self, n):
+        pass
+
+    def act(self, obs):
+        import torch
+
+        n = obs["view"].shape[0]
+        a_type = torch.where(obs["t"] == 0, torch.zeros(n, dtype=torch.int64), torch.full((n,), 6))
+        return a_type, torch.zeros(n, dtype=torch.int64)
+
+
+def build_first_range_up(*, table, config, seed=0):
+    return _FirstRangeUp()
+
+
+def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learned(ablation, tiny, tmp_path):
+    import shutil
+    import types
+
+    from uevavd.env.baselines import reference_policies
+    from uevavd.experiments.report_data import learned
+    from uevavd.plugins import hookimpl
+    from uevavd.plugins.manager import manager
+
+    @hookimpl
+    def register_baselines(registry):
+        registry.add("first_range_up", f"{__name__}:build_first_range_up", summary="one move up, then stop")
+
+    manager.register_plugin(types.SimpleNamespace(register_baselines=register_baselines), name="baseline-test")
+    try:
+        out = tmp_path / "with_plugin_baseline"
+        shutil.copytree(ablation["plan"].out, out)
+        results = run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1),
+                               log=lambda *_: None)
+        df = pd.read_csv(results)
+        rows = df[df["method"] == "first_range_up"]
+        assert sorted(rows["split"]) == ["hard", "train"] and (rows["episodes"] == -1).all()
+        assert (rows["steps"] == 2.0).all()  # it really flew once and stopped
+        assert learned(df["method"].unique()) == ["map", "ibe_map"]
+        assert "first_range_up" in (out / "report" / "report.md").read_text()
+        from uevavd.api import load_run
+
+        run = load_run(ablation["plan"].out / "runs" / "map" / "default" / "rec0" / "seed0")
+        assert list(reference_policies(run.table(), run.env_config)) == [
+            "random", "passive", "visibility_oracle", "oracle", "first_range_up"]
+        assert list(run.evaluate("hard").index) == ["map", "random", "passive", "visibility_oracle", "oracle",
+                                                    "first_range_up"]
+    finally:
+        manager.unregister_plugin("baseline-test")

@@ -56,20 +56,54 @@ class PassivePolicy:
         return torch.full((n,), STOP, dtype=torch.int64, device=dev), torch.zeros(n, dtype=torch.int64, device=dev)
 
 
-def reference_policies(table, config) -> dict:
-    """The baselines every evaluation shows beside a learned policy, by name: random (seed 0),
-    passive, the visibility oracle (where the table knows visible fractions) and the
-    class-knowing oracle (an upper bound)."""
+def build_random(*, table=None, config=None, seed: int = 0) -> RandomPolicy:
+    return RandomPolicy(seed)
+
+
+def build_passive(*, table=None, config=None, seed: int = 0) -> PassivePolicy:
+    return PassivePolicy()
+
+
+def build_visibility_oracle(*, table, config, seed: int = 0):
+    """The visibility oracle, or None for a table without visible fractions."""
     import numpy as np
 
+    if np.isnan(np.asarray(table.visible)).all():
+        return None
+    from .visibility_oracle import VisibilityOraclePolicy
+
+    return VisibilityOraclePolicy(table, config)
+
+
+def build_oracle(*, table, config, seed: int = 0):
     from .oracle import OraclePolicy
 
-    out = {"random": RandomPolicy(0), "passive": PassivePolicy()}
-    if not np.isnan(np.asarray(table.visible)).all():
-        from .visibility_oracle import VisibilityOraclePolicy
+    return OraclePolicy(table, config)
 
-        out["visibility_oracle"] = VisibilityOraclePolicy(table, config)
-    out["oracle"] = OraclePolicy(table, config)
+
+def baseline_entries() -> list:
+    """The registered baselines (:func:`uevavd.plugins.hookspecs.register_baselines`), in
+    registration order."""
+    from ..plugins.manager import manager
+
+    return manager.registry.in_order("baseline")
+
+
+def baseline_names() -> tuple[str, ...]:
+    """Names of the registered baselines: the policies the report and the claims never
+    count as learned."""
+    return tuple(e.name for e in baseline_entries())
+
+
+def reference_policies(table, config, *, seed: int = 0) -> dict:
+    """The baselines every evaluation shows beside a learned policy, by name, in
+    registration order (built in: random (``seed``), passive, the visibility oracle where
+    the table knows visible fractions, and the class-knowing oracle, an upper bound)."""
+    out = {}
+    for entry in baseline_entries():
+        policy = entry.load()(table=table, config=config, seed=seed)
+        if policy is not None:
+            out[entry.name] = policy
     return out
 
 

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import pandas as pd
 
 from .report_data import (
-    BASELINES,
     SPLITS,
+    baselines,
     curve_rows,
     default_setting,
     estimate,
@@ -207,7 +207,7 @@ def diagnose(results: pd.DataFrame, claims: list[Claim]) -> list[str]:
     final = final_rows(results)
     setting = default_setting(final)
     notes: list[str] = []
-    runs = final[~final["method"].isin(BASELINES) & (final["episodes"] >= 0)]
+    runs = final[~final["method"].isin(baselines()) & (final["episodes"] >= 0)]
     if any(c.verdict != AGREES for c in claims):
         n_seeds = runs.groupby("method")["seed"].nunique()
         if len(n_seeds) and n_seeds.min() < 5:

@@ -20,7 +20,8 @@ import seaborn as sns  # noqa: E402
 
 from ..atomic import atomic_save  # noqa: E402
 from ..data.grid import ACTION_TYPES, STOP, XS, YS, ZS, view_coords  # noqa: E402
-from .report_data import BASELINES, label, order_methods  # noqa: E402
+from .report_data import baselines as reference_names  # noqa: E402
+from .report_data import label, order_methods  # noqa: E402
 from .stats import smooth  # noqa: E402
 
 #: Fig. 9 panels: (column, y-axis label).
@@ -129,18 +130,18 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
                         ax.fill_between(g["episodes"].to_numpy(), g["lo"].to_numpy(), g["hi"].to_numpy(),
                                         where=ok, color=palette[policy], alpha=0.2, linewidth=0)
             base = baselines[baselines["split"] == split]
-            for m in BASELINES:
+            for m in reference_names():
                 vals = base.loc[base["method"] == m, col]
                 if len(vals):
-                    ax.axhline(float(vals.mean()), ls="--", lw=1.2, color=_BASELINE_COLOURS[m])
+                    ax.axhline(float(vals.mean()), ls="--", lw=1.2, color=_BASELINE_COLOURS.get(m, "0.3"))
             ax.set_xlabel("training episodes")
             ax.set_ylabel(ylabel)
             ax.set_title(f"({'abc'[i]}) {ylabel}, {title}", fontsize=10)
             ax.grid(alpha=0.3)
     handles = [plt.Line2D([], [], color=palette[h], lw=2, label=h) for h in hue_order]
     present = set(baselines["method"])
-    handles += [plt.Line2D([], [], color=_BASELINE_COLOURS[m], ls="--", label=label(m))
-                for m in BASELINES if m in present]
+    handles += [plt.Line2D([], [], color=_BASELINE_COLOURS.get(m, "0.3"), ls="--", label=label(m))
+                for m in reference_names() if m in present]
     fig.legend(handles=handles, loc="lower center", ncol=max(1, len(handles)), frameon=False,
                bbox_to_anchor=(0.5, -0.01))
     nested = curves["seed"].nunique() > 0 and (curves["seed"] // 1000).nunique() > 1  # several recognizers

@@ -28,14 +28,14 @@ import pandas as pd
 from ..atomic import atomic_write
 from .claims import Claim, check_claims, diagnose
 from .report_data import (
-    BASELINES,
     DEFAULT_C,
     DEFAULT_THRE,
-    DETERMINISTIC,
     METRICS,
     SPLITS,
+    baselines,
     curve_rows,
     default_setting,
+    deterministic,
     estimate,
     estimate_units,
     final_rows,
@@ -99,13 +99,13 @@ def summary_table(final: pd.DataFrame) -> pd.DataFrame:
     exact for deterministic baselines), plus ``episodes`` (max over seeds)."""
     default = default_setting(final)
     rank = {m: i for i, m in enumerate(order_methods(final["method"].unique()))}
-    rows = []
+    rows, fixed = [], deterministic()
     for (setting, m, split), sel in final.groupby(["setting", "method", "split"], sort=False):
         row = {"setting": setting, "method": m, "split": split, "thre": float(sel["thre"].iloc[0]),
                "C": float(sel["C"].iloc[0]), "n": int(sel["seed"].nunique()), "episodes": int(sel["episodes"].max())}
         for metric in METRICS:
             sel = sel.sort_values("seed")
-            e = estimate_units(sel["seed"].to_numpy(), sel[metric].to_numpy(dtype=np.float64), m in DETERMINISTIC)
+            e = estimate_units(sel["seed"].to_numpy(), sel[metric].to_numpy(dtype=np.float64), m in fixed)
             row.update({f"{metric}_mean": e.mean, f"{metric}_std": e.std,
                         f"{metric}_ci_lo": e.lo, f"{metric}_ci_hi": e.hi})
         rows.append(row)
@@ -135,7 +135,7 @@ def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame
     out += [
         f"- Preset: `{meta.get('preset', 'unknown')}`",
         f"- Methods: {', '.join(label(m) for m in methods)}; references: "
-        f"{', '.join(label(m) for m in BASELINES if m in set(results['method']))}",
+        f"{', '.join(label(m) for m in baselines() if m in set(results['method']))}",
         f"- Seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)}) on each of {len(recognizers)} recognizer(s) "
         f"({', '.join(str(r) for r in recognizers)}): {len(seeds) * len(recognizers)} runs per method and setting",
         *[f"- Perception of {label(m)}: {v}" if m in set(methods) else f"- {m.capitalize()}: {v}"

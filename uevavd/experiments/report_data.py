@@ -22,12 +22,25 @@ import pandas as pd
 from ..env.config import EnvConfig
 from .stats import Estimate
 
-#: Reference policies: constant lines/rows, not learning curves.
-BASELINES: tuple[str, ...] = ("random", "passive", "visibility_oracle", "oracle", "sb3_dqn", "sb3_ppo")
-"""Reference policies: the baselines and the off-the-shelf agents of ``ablate --sb3``
-(:data:`uevavd.experiments.references.SB3_AGENTS`); never counted among the learned methods."""
-#: Baselines that are deterministic (one row per recognizer, seed 0): exact with one recognizer.
-DETERMINISTIC: tuple[str, ...] = ("passive", "visibility_oracle", "oracle")
+
+def baselines() -> tuple[str, ...]:
+    """Reference policies, never counted among the learned methods: the registered baselines
+    (kind ``"baseline"``, :func:`uevavd.plugins.hookspecs.register_baselines`) and the
+    off-the-shelf agents of ``ablate --sb3`` (:data:`uevavd.experiments.references.SB3_AGENTS`)."""
+    from ..plugins.manager import manager
+    from .references import SB3_AGENTS
+
+    return (*(e.name for e in manager.registry.in_order("baseline")), *SB3_AGENTS)
+
+
+def deterministic() -> tuple[str, ...]:
+    """Registered baselines that do not depend on the seed (not tagged "seeded"): one row
+    per recognizer, exact with one recognizer."""
+    from ..plugins.manager import manager
+
+    return tuple(e.name for e in manager.registry.in_order("baseline") if "seeded" not in e.tags)
+
+
 #: Display order and names of the methods (unknown methods follow, by name).
 METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "sb3_dqn", "sb3_ppo",
                                   "visibility_oracle", "oracle")
@@ -81,7 +94,7 @@ def order_methods(methods) -> list[str]:
 
 def learned(methods) -> list[str]:
     """The methods that are trained (not baselines), in report order."""
-    return [m for m in order_methods(methods) if m not in BASELINES]
+    return [m for m in order_methods(methods) if m not in baselines()]
 
 
 def _as_bool(col: pd.Series, path: Path) -> pd.Series:
@@ -150,7 +163,7 @@ def groups_of(units) -> np.ndarray:
 
 def is_baseline(df: pd.DataFrame) -> pd.Series:
     """Rows of reference policies: a baseline method name or ``episodes < 0``."""
-    return df["method"].isin(BASELINES) | (df["episodes"] < 0)
+    return df["method"].isin(baselines()) | (df["episodes"] < 0)
 
 
 def final_rows(df: pd.DataFrame) -> pd.DataFrame:
@@ -259,7 +272,7 @@ def estimate(final: pd.DataFrame, method: str, split: str, metric: str, setting:
     """Mean and 95 % interval over runs (:func:`estimate_units`); exact for a deterministic
     baseline (passive, the oracles) with one recognizer."""
     units, v = _per_unit(final, method, split, metric, setting)
-    return estimate_units(units, v, method in DETERMINISTIC)
+    return estimate_units(units, v, method in deterministic())
 
 
 def _gengap_units(final: pd.DataFrame, method: str, setting: str, test: str):
@@ -278,4 +291,4 @@ def gengap(final: pd.DataFrame, method: str, setting: str, test: str = "hard") -
 
 def gengap_estimate(final: pd.DataFrame, method: str, setting: str, test: str = "hard") -> Estimate:
     units, v = _gengap_units(final, method, setting, test)
-    return estimate_units(units, v, method in DETERMINISTIC)
+    return estimate_units(units, v, method in deterministic())

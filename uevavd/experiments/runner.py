@@ -526,36 +526,34 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
 
 def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], log
                   ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Random (one per seed), passive, the visibility oracle (where the table has visible
-    fractions) and the class-knowing oracle under every setting, on every split, on each
+    """Every registered baseline (:func:`uevavd.env.baselines.baseline_entries`; a
+    "seeded" one once per RL seed) under every setting, on every split, on each
     recognizer's table. Returns (result rows, per-context rows)."""
-    from ..env.baselines import PassivePolicy, RandomPolicy
+    from ..env.baselines import baseline_entries
     from ..env.evaluate import evaluate_policy
-    from ..env.oracle import OraclePolicy
-    from ..env.visibility_oracle import VisibilityOraclePolicy
     from ..perception.table import ObservationTable
 
     cache = plan.out / "baselines.json"
     done = json.loads(cache.read_text()) if cache.is_file() else {}
+    entries = baseline_entries()
     rows, ctx_rows = [], []
     for r, table in tables.items():
         tbl = ObservationTable.load(table)
-        has_visible = not bool(np.isnan(tbl.visible).all())
         for setting_name, setting in plan.all_settings():
             config = env_config(plan, setting)
-            policies = {"passive": PassivePolicy, "oracle": lambda t=tbl, c=config: OraclePolicy(t, c)}
-            if has_visible:
-                policies["visibility_oracle"] = lambda t=tbl, c=config: VisibilityOraclePolicy(t, c)
+            todo = [(e, 0) for e in entries if "seeded" not in e.tags]
+            todo += [(e, s) for e in entries if "seeded" in e.tags for s in plan.seeds]
             for split in splits:
-                todo = [(name, 0, make) for name, make in policies.items()]
-                todo += [("random", s, lambda s=s: RandomPolicy(seed=s)) for s in plan.seeds]
-                for name, seed, make in todo:
-                    key = f"{tbl.key}|{setting_name}|{split}|{name}|{seed}"
+                for entry, seed in todo:
+                    key = f"{tbl.key}|{setting_name}|{split}|{entry.name}|{seed}"
                     if key not in done or "per_context" not in done[key]:
-                        res = evaluate_policy(tbl, split, make(), config)
+                        policy = entry.load()(table=tbl, config=config, seed=seed)
+                        if policy is None:  # does not apply to this table
+                            continue
+                        res = evaluate_policy(tbl, split, policy, config)
                         done[key] = {**res.summary(), "contexts": int(np.unique(res.context).size),
                                      "per_context": _per_context(res)}
-                    base = {"method": name, "recognizer": r, "seed": seed, "setting": setting_name}
+                    base = {"method": entry.name, "recognizer": r, "seed": seed, "setting": setting_name}
                     rows.append({**base, **setting, "episodes": -1, "final": True, "split": split,
                                  "eval_contexts": _contexts(done[key]), **_metric_row(done[key]), "wall_s": 0.0})
                     ctx_rows += [{**base, "split": split, **c} for c in done[key]["per_context"]]

@@ -82,3 +82,20 @@ def register_methods(registry: KindRegistry) -> None:
 
         registry.add("my_map", "my_pkg:methods/my_map.toml", summary="MAP with a ViT")
     """
+
+
+@hookspec
+def register_baselines(registry: KindRegistry) -> None:
+    """Register baseline policies (kind ``"baseline"``): reference policies every evaluation
+    and ablation shows beside the learned methods, and which the report and the claims
+    never count as learned.
+
+    A builder takes keyword arguments ``table`` (the ObservationTable), ``config`` (the
+    run's EnvConfig) and ``seed`` and returns a policy under the protocol of
+    :mod:`uevavd.env.evaluate` (``reset(n)``, ``act(obs)``), or None where it does not
+    apply (the visibility oracle on a table without visible fractions). Tag it
+    ``"seeded"`` when it differs per seed: ablations then run it once per RL seed. Example::
+
+        registry.add("random", "uevavd.env.baselines:build_random", summary="uniform over allowed actions",
+                     tags=("seeded",))
+    """

@@ -28,6 +28,7 @@ DEFAULT_PLUGINS: tuple[str, ...] = (
     "uevavd.perception.plugin",
     "uevavd.state.plugin",
     "uevavd.policy.plugin",
+    "uevavd.env.plugin",
     "uevavd.plugins.methods",
 )
 

@@ -22,6 +22,7 @@ KINDS: dict[str, str] = {
     "state": "register_state_estimators",
     "head": "register_heads",
     "method": "register_methods",
+    "baseline": "register_baselines",
 }
 
 
@@ -50,6 +51,9 @@ class Entry:
     summary: str
     plugin: str  #: name of the plugin that registered it
     plugin_version: str
+    #: traits the host reads without building the component, e.g. a baseline's "seeded"
+    #: (it differs per seed, so ablations run it once per RL seed)
+    tags: tuple[str, ...] = ()
 
     def load(self) -> Any:
         """Import and return the builder (or, for methods, the TOML path)."""
@@ -103,6 +107,11 @@ class Registry:
         self._check_kind(kind)
         return sorted(self.entries[kind])
 
+    def in_order(self, kind: str) -> list[Entry]:
+        """The entries of ``kind`` in registration order (built-ins first, then plugins)."""
+        self._check_kind(kind)
+        return list(self.entries[kind].values())
+
     def get(self, kind: str, name: str) -> Entry:
         self._check_kind(kind)
         try:
@@ -145,10 +154,11 @@ class KindRegistry:
         self._version = plugin_version
         self._staged = staged
 
-    def add(self, name: str, target: str, *, summary: str = "") -> None:
-        """Register component ``name`` built by ``target`` ("module:attr")."""
+    def add(self, name: str, target: str, *, summary: str = "", tags: tuple[str, ...] = ()) -> None:
+        """Register component ``name`` built by ``target`` ("module:attr"); ``tags``: traits
+        the host reads without building it (see the kind's hook)."""
         self._staged.append(
-            Entry(self.kind, name, target, summary, self._plugin, self._version)
+            Entry(self.kind, name, target, summary, self._plugin, self._version, tuple(tags))
         )
 
     def __repr__(self) -> str:

@@ -1,0 +1,17 @@
+"""Built-in baselines: what every evaluation shows beside a learned policy."""
+
+from __future__ import annotations
+
+from ..plugins import hookimpl
+
+
+@hookimpl
+def register_baselines(registry):
+    registry.add("random", "uevavd.env.baselines:build_random", tags=("seeded",),
+                 summary="uniform over the distinct allowed actions (one run per RL seed)")
+    registry.add("passive", "uevavd.env.baselines:build_passive", summary="stop at once: classify the first view")
+    registry.add("visibility_oracle", "uevavd.env.baselines:build_visibility_oracle",
+                 summary="knows every view's visible fraction, flies the cheapest path to the most visible "
+                         "reachable view (tables with visible fractions)")
+    registry.add("oracle", "uevavd.env.baselines:build_oracle",
+                 summary="knows the class: the optimal return (an upper bound, not a reachable target)")
