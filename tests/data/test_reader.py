@@ -347,6 +347,15 @@ def test_synthetic_round_trip_with_unoccluded_scenes(tmp_path):
     _check_round_trip(tmp_path, m)
 
 
+def test_an_unchecked_read_of_a_clean_checked_root_is_served_from_memory(tmp_path, write_scene_fn, monkeypatch):
+    from uevavd.data import reader
+
+    write_scene_fn(tmp_path / "001", target="sedan", token="001")
+    checked = read_dataset(tmp_path)
+    monkeypatch.setattr(reader, "scan", lambda *a, **k: pytest.fail("scanned again"))
+    assert read_dataset(tmp_path, check=False) is checked
+
+
 def test_a_second_read_sees_every_change(tmp_path, write_scene_fn):
     """read_dataset serves an unchanged root from memory; any change under it is read."""
     files = write_scene_fn(tmp_path / "001", target="sedan", token="001")

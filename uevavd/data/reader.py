@@ -610,6 +610,9 @@ def _scan_cached(root: str | Path, check: bool) -> tuple[Manifest, list[Problem]
     hit = _READ_CACHE.get(key)
     if hit is not None and hit[0] == signature:
         return hit[1], list(hit[2])
+    checked = _READ_CACHE.get((*key[:2], True)) if not check else None
+    if checked is not None and checked[0] == signature and all(p.kind in UNUSED_FILE_KINDS for p in checked[2]):
+        return checked[1], list(checked[2])  # a clean checked read is what an unchecked one would give
     manifest, problems = scan(root, check=check)
     if _tree_signature(path) == signature:  # unchanged while it was read
         _READ_CACHE.pop(key, None)
