@@ -305,6 +305,28 @@ def test_a_context_that_breaks_the_validity_rule_is_redrawn_deterministically():
     assert VALIDITY.passes(render_views(scene, VALIDITY.check_size).visible, margin=VALIDITY.margin)
 
 
+def test_the_recorded_draws_are_what_the_search_finds_and_a_stale_record_is_ignored(tmp_path, monkeypatch):
+    """draws.json (the presets' seed) spares writers the validity search: its entries must be
+    the search's own answers, and it must be ignored once the generator or the rule moves."""
+    import json
+
+    from uevavd.data.synthetic import world
+
+    recorded = world.recorded_draws()
+    assert len(recorded) == 150, "draws.json is stale: python -m uevavd.data.synthetic.draws"
+    for c in (26, 29, 118):  # draws 0, 1 and 2
+        assert world.search_draw(c, seed=0) == recorded[(0, c)], c
+    stale = json.loads(world.DRAWS_FILE.read_text())
+    stale["version"] -= 1
+    (tmp_path / "draws.json").write_text(json.dumps(stale))
+    monkeypatch.setattr(world, "DRAWS_FILE", tmp_path / "draws.json")
+    world.recorded_draws.cache_clear()
+    try:
+        assert world.recorded_draws() == {}
+    finally:
+        world.recorded_draws.cache_clear()
+
+
 @pytest.mark.parametrize("preset", ["quick", "paper"])
 @pytest.mark.slow
 def test_every_context_of_a_preset_passes_the_validity_rule(preset):

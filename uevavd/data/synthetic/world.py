@@ -16,8 +16,11 @@ the same scene.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import json
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -98,6 +101,17 @@ class ValidityRule:
 
 #: Fixed before any learning run (see docs/synthetic_world.md); never tuned to results.
 VALIDITY = ValidityRule()
+
+#: Generator version: bump it whenever the world or the renderer changes what they write,
+#: so that resumed or cached worlds written by an older generator are redone.
+#: 4: the hard split holds shifted-urban and woodland contexts; the validity rule.
+VERSION = 4
+
+#: The first valid draw of every context for the presets' world seed, recorded so that writing
+#: a preset's world does not repeat the validity search (a fifth of its time). Written by
+#: ``python -m uevavd.data.synthetic.draws``; read only when it was made by this generator
+#: version under this validity rule (tests recompute entries); other seeds search.
+DRAWS_FILE = Path(__file__).with_name("draws.json")
 
 
 def target_of(context_id: int) -> str:
@@ -361,10 +375,36 @@ def draw_context(context_id: int, *, seed: int, draw: int, target: str | None = 
     return replace(scene, draw=int(draw))
 
 
+def draws_record() -> dict:
+    """What :data:`DRAWS_FILE` must say about its making to be used."""
+    return {"version": VERSION, "rule": dataclasses.asdict(VALIDITY)}
+
+
+@functools.lru_cache(maxsize=1)
+def recorded_draws() -> dict[tuple[int, int], int]:
+    """``{(seed, context): draw}`` from :data:`DRAWS_FILE`, empty when it is missing or was
+    made by another generator version or validity rule."""
+    try:
+        data = json.loads(DRAWS_FILE.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if {k: data.get(k) for k in ("version", "rule")} != draws_record():
+        return {}
+    return {(int(s), int(c)): int(d) for s, by_context in data["draws"].items() for c, d in by_context.items()}
+
+
 @functools.lru_cache(maxsize=512)
 def context_draw(context_id: int, *, seed: int) -> int:
     """The first draw of a context that passes :data:`VALIDITY` at its check size (with the
-    block's own target). Rendering 605 small views per draw tried; cached per process."""
+    block's own target): recorded in :data:`DRAWS_FILE` for the presets' seed, else
+    :func:`search_draw`; cached per process."""
+    recorded = recorded_draws().get((int(seed), int(context_id)))
+    return recorded if recorded is not None else search_draw(context_id, seed=seed)
+
+
+def search_draw(context_id: int, *, seed: int) -> int:
+    """The validity search: draws 0, 1, ... of the context until one passes, rendering its
+    605 views at the check size (visible fractions only) per draw tried."""
     from .render import render_views
 
     for draw in range(VALIDITY.max_draws):

@@ -38,6 +38,7 @@ from .world import (
     TARGET_ID,
     TRAIN_STAGES,
     VALIDITY,
+    VERSION,
     Scene,
     build_context,
     build_training_stage,
@@ -47,10 +48,6 @@ from .world import (
 )
 
 FORMAT = "uevavd-synthetic"
-#: Generator version: bump it whenever the world or the renderer changes what they write,
-#: so that resumed or cached worlds written by an older generator are redone.
-#: 4: the hard split holds shifted-urban and woodland contexts; the validity rule.
-VERSION = 4
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
