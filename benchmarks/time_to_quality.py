@@ -67,7 +67,7 @@ def main() -> None:
     from uevavd.env.baselines import reference_policies
     from uevavd.env.config import make_config
     from uevavd.env.evaluate import evaluate_policy
-    from uevavd.experiments.runner import DEFAULT_SETTING, make_plan, method_overrides
+    from uevavd.experiments.plan import DEFAULT_SETTING, make_plan, method_overrides
 
     plan = make_plan(preset="quick", out=tempfile.mkdtemp(prefix="ttq-plan-"), methods=["map", "memo_map"],
                      seeds=1, recognizers=1)
@@ -125,7 +125,7 @@ def main() -> None:
 
 def _quick_table(plan) -> Path:
     """The quick preset's MAP table, as `uevavd ablate --preset quick` builds it (recognizer 0)."""
-    from uevavd.experiments.runner import stage_classifier, stage_tables, stage_world
+    from uevavd.experiments.stages import stage_classifier, stage_tables, stage_world
 
     def log(msg: str) -> None:
         print(msg, flush=True)

@@ -187,7 +187,8 @@ def add_zoo(parser: argparse.ArgumentParser):
 
 def run_zoo(args: argparse.Namespace) -> int:
     from .cli import error
-    from .zoo import PUBLISHED, Zoo, ZooError, build_zoo
+    from .experiments.zoo_build import build_zoo
+    from .zoo import PUBLISHED, Zoo, ZooError
 
     try:
         if args.zoo_command == "build":

@@ -26,15 +26,22 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .atomic import atomic_write
+from .api import load_policy_file
+from .config import load_method, loads_method
+from .data.splits import resolve_split, scene_name
+from .data.synthetic import write_world
+from .data.synthetic.writer import VERSION
+from .env.baselines import evaluate_beside_baselines
 from .hashing import file_sha256, json_digest
+from .perception.prepare import prepare_table
+from .perception.table import ObservationTable
+from .perception.train import TrainSettings
+from .policy.checkpoint import read_policy_file
 from .presets import ZOO, load_preset, world_contexts, world_root
 
 FORMAT = "uevavd-zoo/1"
@@ -56,7 +63,6 @@ def zoo_dir(preset: str = "quick") -> Path:
 def world_identity(preset: Mapping[str, Any]) -> dict[str, Any]:
     """What the shipped models depend on in the world: the generator's version and the
     preset's ``[world]`` table (seed, crop size, contexts)."""
-    from .data.synthetic.writer import VERSION
 
     return {"generator_version": VERSION, "world": dict(preset["world"])}
 
@@ -139,7 +145,6 @@ class Zoo:
     def problems(self, preset: Mapping[str, Any] | None = None) -> list[str]:
         """Why the shipped files no longer match the current world, preset or methods
         (empty when they do): checked without rendering anything."""
-        from .config import load_method
 
         preset = preset or load_preset(self.manifest["preset"])
         out = []
@@ -167,7 +172,6 @@ class Zoo:
 
 def recognizer_settings(preset: Mapping[str, Any], seed: int) -> dict[str, Any]:
     """The recognizer's training settings under a preset (``TrainSettings`` as a dict)."""
-    from .perception.train import TrainSettings
 
     return json.loads(json.dumps(TrainSettings(**{**preset.get("classifier", {}), "seed": seed}).__dict__))
 
@@ -177,8 +181,6 @@ def _world_of(preset: Mapping[str, Any], contexts: Sequence[int], label: str, *,
     """A dataset root holding ``contexts`` of the preset's world: the full world when the
     cache holds them already, else just those contexts (no ``00``/``train_605``: the
     recognizer ships) under ``<world root>-<label>``."""
-    from .data.splits import scene_name
-    from .data.synthetic import write_world
 
     full = world_root(preset)
     try:
@@ -199,13 +201,6 @@ def evaluate_pretrained(method: str, split: str = "hard", *, preset: str = "quic
     of its ``contexts``), beside the baselines: ``(DataFrame, published)``, where
     ``published`` holds the numbers recorded when the zoo was built, for the same contexts
     (None for a split it was not evaluated on), and the policy's per-context rows."""
-    from .api import load_policy_file
-    from .config import loads_method
-    from .data.splits import resolve_split
-    from .env.baselines import evaluate_beside_baselines
-    from .perception.prepare import prepare_table
-    from .perception.table import ObservationTable
-    from .policy.checkpoint import read_policy_file
 
     resolve_split(split)  # an unknown split is refused before any work
     zoo = zoo or Zoo.load(preset)
@@ -229,65 +224,3 @@ def evaluate_pretrained(method: str, split: str = "hard", *, preset: str = "quic
     frame, per_context = evaluate_beside_baselines(table, split, policy, method, cfg, device=device,
                                                    baselines=baselines, contexts=None if contexts is None else in_split)
     return frame, zoo.published(method, split, None if contexts is None else in_split), per_context
-
-
-def build_zoo(out: str | os.PathLike[str] | None = None, *, preset: str = "quick", work: str | os.PathLike[str] | None = None,
-              workers: int | None = None, log: Callable[[str], None] = print) -> Path:
-    """Train the zoo's models with the preset's own pipeline (``uevavd ablate`` with one RL
-    seed and one recognizer, the recognizer trained, not taken from the zoo), evaluate each
-    policy on every split and write the files and the manifest to ``out`` (default: the
-    package's zoo folder). Resumable: the runs live under ``work``."""
-    from . import __version__
-    from .data.reader import read_dataset
-    from .experiments.runner import make_plan, run_ablation
-    from .paths import cache_dir
-    from .perception.classifier import classifier_cache_path, data_hash, train_records
-    from .perception.train import TrainSettings
-    from .policy.checkpoint import POLICY_FILE, read_policy_file
-
-    out = Path(out) if out is not None else zoo_dir(preset)
-    work = Path(work) if work is not None else cache_dir() / "zoo-build" / preset
-    t0 = time.perf_counter()
-    plan = make_plan(preset=preset, out=work, seeds=1, recognizers=1, workers=workers, use_zoo=False)
-    run_ablation(plan, log=log)
-    cfg = plan.preset
-    data = world_root(cfg)
-    recognizer = classifier_cache_path(data_hash(train_records(read_dataset(data))),
-                                       TrainSettings(**recognizer_settings(cfg, 0)))
-    out.mkdir(parents=True, exist_ok=True)
-    files: dict[str, dict[str, Any]] = {}
-
-    def ship(src: Path, name: str) -> None:
-        atomic_write(out / name, lambda fh: shutil.copyfileobj(open(src, "rb"), fh))
-        files[name] = {"sha256": file_sha256(out / name), "bytes": (out / name).stat().st_size}
-
-    ship(recognizer, RECOGNIZER)
-    manifest: dict[str, Any] = {
-        "format": FORMAT, "preset": preset, "built_by": REBUILD, "uevavd": __version__,
-        "world": {**world_identity(cfg), "scenes": {
-            p.parent.name: scene_digest(p) for p in sorted(data.glob("*/scene.json"))}},
-        "recognizer": {"file": RECOGNIZER, "cache_name": recognizer.name, "settings": recognizer_settings(cfg, 0)},
-        "policies": {},
-    }
-    for method in plan.methods:
-        name = f"{method}.safetensors"
-        ship(work / "runs" / method / "default" / "rec0" / "seed0" / POLICY_FILE, name)
-        settings = read_policy_file(out / name)[1]
-        manifest["policies"][method] = {"file": name, "seed": settings["seed"], "spec_hash": settings["spec_hash"]}
-    staged = Zoo(out, {**manifest, "files": files})
-    for method in plan.methods:  # the published numbers: evaluate_pretrained's own code, on every split
-        published = {}
-        for split in ("train", "simple", "hard"):
-            if world_contexts(cfg, split):
-                frame, _, per_context = evaluate_pretrained(method, split, preset=preset, workers=plan.workers,
-                                                            baselines=False, progress=False, zoo=staged)
-                published[split] = {k: float(frame.loc[method, k]) for k in PUBLISHED}
-                published[split]["per_context"] = {
-                    str(int(row["context"])): {k: float(row[k]) for k in PUBLISHED}
-                    for row in per_context.to_dict("records")}
-        manifest["policies"][method]["published"] = published
-    manifest["files"] = files
-    atomic_write(out / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
-    log(f"zoo: {len(files)} files, {sum(f['bytes'] for f in files.values()) / 1e6:.1f} MB in {out} "
-        f"({time.perf_counter() - t0:.0f} s)")
-    return out

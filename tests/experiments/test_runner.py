@@ -14,22 +14,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from uevavd.experiments.runner import (
-    FINAL_EVAL,
-    RESULT_COLUMNS,
-    AblationError,
-    final_eval,
-    is_done,
-    make_plan,
-    parse_sweeps,
-    pick_trajectory_start,
-    plan_jobs,
-    run_ablation,
-    stage_classifier,
-    stage_tables,
-    stage_world,
-    write_meta,
-)
+from uevavd.experiments.jobs import plan_jobs
+from uevavd.experiments.plan import AblationError, make_plan, parse_sweeps
+from uevavd.experiments.results import FINAL_EVAL, RESULT_COLUMNS, final_eval, is_done
+from uevavd.experiments.runner import run_ablation, write_meta
+from uevavd.experiments.stages import stage_classifier, stage_tables, stage_world
+from uevavd.experiments.trajectories import pick_trajectory_start
 from uevavd.testing.worlds import tiny_preset, write_tiny_world
 
 TINY_PRESET = tiny_preset(ablation='methods = ["map", "ibe_map"]\nseeds = 1\n')
@@ -383,7 +373,7 @@ def test_threads_follow_the_workers_asked_for_not_the_runs_left(monkeypatch):
     monkeypatch.setattr(backends.os, "cpu_count", lambda: 4)
     seen = []
     monkeypatch.setattr(backends, "run_local", lambda jobs, workers, log: seen.extend(jobs) or [])
-    from uevavd.experiments.runner import Job
+    from uevavd.experiments.jobs import Job
 
     job = Job("map", "default", 0, "spec.toml", "table", "out")
     backends.run_jobs([job], workers=2)
@@ -397,7 +387,7 @@ def test_a_dead_worker_names_its_run_in_one_line(capsys, monkeypatch):
 
     from uevavd.cli import os_fault
     from uevavd.experiments.backends import job_result
-    from uevavd.experiments.runner import Job
+    from uevavd.experiments.jobs import Job
 
     job = Job("ibe_map", "thre=0.4", 3, "spec.toml", "table", "/runs/ibe_map/thre=0.4/rec1/seed3", recognizer=1)
     fut = Future()

@@ -1,6 +1,6 @@
 """Where training runs execute: local worker processes, or Ray tasks.
 
-Both call :func:`uevavd.experiments.runner.run_job`, which resumes a run from its last
+Both call :func:`uevavd.experiments.jobs.run_job`, which resumes a run from its last
 checkpoint, so a retried Ray task (or a rerun after a kill) continues where it stopped.
 Each job gets ``cores // parallel`` torch threads on both backends, so the same seeds
 give the same results whichever backend ran them.
@@ -13,7 +13,7 @@ import errno
 import os
 from collections.abc import Callable, Sequence
 
-from .runner import Job, run_job
+from .jobs import Job, run_job
 
 
 def _threads(workers: int) -> int:

@@ -23,34 +23,18 @@ from typing import Any
 import numpy as np
 
 from ..atomic import atomic_write
-
-#: The agents ``--sb3`` accepts, by their row name: SB3 class name.
-SB3_AGENTS: dict[str, str] = {"sb3_dqn": "DQN", "sb3_ppo": "PPO"}
-
-
-def parse_sb3(text: str | None) -> tuple[str, ...]:
-    """``"dqn,ppo"`` -> ``("sb3_dqn", "sb3_ppo")``; an unknown name is a ValueError naming the accepted ones."""
-    if not text:
-        return ()
-    names = []
-    for part in text.split(","):
-        name = f"sb3_{part.strip().lower()}"
-        if name not in SB3_AGENTS:
-            raise ValueError(f"--sb3 {part.strip()!r}: expected a comma-separated list of "
-                             f"{[n.removeprefix('sb3_') for n in SB3_AGENTS]}")
-        names.append(name)
-    try:
-        import stable_baselines3  # noqa: F401
-    except ImportError:
-        raise ValueError("--sb3 needs stable-baselines3: pip install -e \".[sb3]\"") from None
-    return tuple(dict.fromkeys(names))
+from ..config import load_method
+from ..env.aod_env import AODEnv
+from ..env.evaluate import evaluate_policy
+from ..env.wrappers import DiscreteActions
+from ..perception.table import ObservationTable
+from .plan import DEFAULT_SETTING, SB3_AGENTS, env_config
+from .results import _contexts, _metric_row, _per_context
 
 
 def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], log
              ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """(result rows, per-context rows) of every agent of ``plan.sb3`` (see the module doc)."""
-    from .runner import DEFAULT_SETTING, _contexts, _metric_row, env_config
-
     first = plan.methods[0]
     runs = {(j.recognizer, j.seed): j for j in jobs if j.method == first and j.setting == "default"}
     config = env_config(plan, DEFAULT_SETTING)
@@ -88,13 +72,7 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
     import stable_baselines3 as sb3
     import torch
 
-    from ..config import load_method
-    from ..env.aod_env import AODEnv
-    from ..env.evaluate import evaluate_policy
     from ..env.sb3 import SB3Policy
-    from ..env.wrappers import DiscreteActions
-    from ..perception.table import ObservationTable
-    from .runner import _per_context
 
     spec = load_method(job.spec_path)
     table = ObservationTable.load(table_path)

@@ -20,15 +20,15 @@ import numpy as np
 import pandas as pd
 
 from ..env.config import EnvConfig
+from ..plugins.manager import manager
+from .plan import SB3_AGENTS
 from .stats import Estimate
 
 
 def baselines() -> tuple[str, ...]:
     """Reference policies, never counted among the learned methods: the registered baselines
     (kind ``"baseline"``, :func:`uevavd.plugins.hookspecs.register_baselines`) and the
-    off-the-shelf agents of ``ablate --sb3`` (:data:`uevavd.experiments.references.SB3_AGENTS`)."""
-    from ..plugins.manager import manager
-    from .references import SB3_AGENTS
+    off-the-shelf agents of ``ablate --sb3`` (:data:`uevavd.experiments.plan.SB3_AGENTS`)."""
 
     return (*(e.name for e in manager.registry.in_order("baseline")), *SB3_AGENTS)
 
@@ -36,7 +36,6 @@ def baselines() -> tuple[str, ...]:
 def deterministic() -> tuple[str, ...]:
     """Registered baselines that do not depend on the seed (not tagged "seeded"): one row
     per recognizer, exact with one recognizer."""
-    from ..plugins.manager import manager
 
     return tuple(e.name for e in manager.registry.in_order("baseline") if "seeded" not in e.tags)
 

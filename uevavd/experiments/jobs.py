@@ -1,0 +1,61 @@
+"""Training runs: one :class:`Job` per method x setting x recognizer x seed, and the
+function a worker process or Ray task runs for it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..config import load_method
+from ..policy.trainer import train
+from ..runtime import tune_malloc
+from .plan import Plan, method_overrides
+from .results import final_eval
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training run: a method at one setting and seed, on one recognizer's table."""
+
+    method: str
+    setting: str
+    seed: int
+    spec_path: str  #: resolved method spec (TOML), written by the driver
+    table: str  #: observation table folder
+    out: str  #: run directory
+    threads: int = 1
+    device: str = "cpu"
+    recognizer: int = 0  #: which recognizer (its training seed) the table's probabilities come from
+
+    @property
+    def key(self) -> str:
+        return f"{self.method}/{self.setting}/rec{self.recognizer}/seed{self.seed}"
+
+def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
+    jobs = []
+    for m in plan.methods:
+        for setting_name, setting in plan.settings(m):
+            spec = load_method(m, overrides=method_overrides(plan, m, setting))
+            spec_path = plan.out / "specs" / f"{m}-{setting_name}.toml"
+            if not spec_path.is_file() or load_method(spec_path).hash != spec.hash:
+                spec.save(spec_path)
+            for r in plan.recognizers:
+                for seed in plan.seeds:
+                    out = plan.out / "runs" / m / setting_name / f"rec{r}" / f"seed{seed}"
+                    jobs.append(Job(m, setting_name, seed, str(spec_path), str(tables[r][m]), str(out),
+                                    device=plan.device, recognizer=r))
+    return jobs
+
+
+def run_job(job: Job) -> str:
+    """Train (or resume, or skip a finished) run, then evaluate its final policy on every
+    context (:func:`final_eval`). Runs in a worker process or Ray task."""
+    import torch
+
+
+    tune_malloc()  # a spawned worker: reuse freed memory as the CLI's process does
+    torch.set_num_threads(max(1, job.threads))
+    spec = load_method(job.spec_path)
+    train(spec, Path(job.table), out=Path(job.out), seed=job.seed, device=job.device, progress=False)
+    final_eval(job)
+    return job.key

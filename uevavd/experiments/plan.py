@@ -1,0 +1,238 @@
+"""What an ablation runs: the preset checked and resolved into a :class:`Plan` (methods,
+seeds, recognizers, reward settings), and the method overrides and env config each setting
+gives its runs."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..config import ConfigError, known_methods, load_method
+from ..env.config import EnvConfig, make_config
+from ..perception.train import TrainSettings
+from ..presets import load_preset
+
+#: The paper's default reward settings; sweeps vary one of them.
+DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
+SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
+
+PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
+SECTION_KEYS = {"world": {"seed", "size", "per_block"},
+                "ablation": {"methods", "seeds", "recognizers", "sweeps", "sweep_methods"}}
+
+
+#: The agents ``--sb3`` accepts, by their row name: SB3 class name.
+SB3_AGENTS: dict[str, str] = {"sb3_dqn": "DQN", "sb3_ppo": "PPO"}
+
+
+def parse_sb3(text: str | None) -> tuple[str, ...]:
+    """``"dqn,ppo"`` -> ``("sb3_dqn", "sb3_ppo")``; an unknown name is a ValueError naming the accepted ones."""
+    if not text:
+        return ()
+    names = []
+    for part in text.split(","):
+        name = f"sb3_{part.strip().lower()}"
+        if name not in SB3_AGENTS:
+            raise ValueError(f"--sb3 {part.strip()!r}: expected a comma-separated list of "
+                             f"{[n.removeprefix('sb3_') for n in SB3_AGENTS]}")
+        names.append(name)
+    try:
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        raise ValueError("--sb3 needs stable-baselines3: pip install -e \".[sb3]\"") from None
+    return tuple(dict.fromkeys(names))
+
+
+
+class AblationError(ValueError):
+    """Bad ablation input; the message names the value and what is accepted."""
+
+
+@dataclass
+class Plan:
+    """What an ablation will run, resolved from preset + command line."""
+
+    preset: dict[str, Any]
+    methods: list[str]
+    seeds: list[int]
+    sweeps: dict[str, list[float]]
+    sweep_methods: list[str]
+    out: Path
+    data: Path | None = None
+    workers: int = 1
+    backend: str = "local"
+    device: str = "cpu"
+    episodes: int | None = None
+    gpus_per_run: float = 0.0
+    stages: dict[str, float] = field(default_factory=dict)
+    #: recognizer seeds: each trains its own recognizer and builds its own tables; every
+    #: method x setting x RL seed runs on each, so intervals include recognizer variance
+    recognizers: list[int] = field(default_factory=lambda: [0])
+    #: off-the-shelf reference agents (``--sb3``), see :mod:`uevavd.experiments.references`;
+    #: not part of the fingerprint: adding them to a finished ablation retrains nothing
+    sb3: tuple[str, ...] = ()
+    #: take the recognizer from the model zoo when it is the one this plan would train
+    #: (same train_605 images, same settings; :meth:`uevavd.zoo.Zoo.recognizer_for`)
+    use_zoo: bool = True
+
+    def settings(self, method: str) -> list[tuple[str, dict[str, float]]]:
+        """(name, {thre, C}) of each setting this method runs: "default" plus its sweeps."""
+        out = [("default", dict(DEFAULT_SETTING))]
+        if method in self.sweep_methods:
+            for key, values in self.sweeps.items():
+                for v in values:
+                    s = dict(DEFAULT_SETTING, **{key: float(v)})
+                    if s != DEFAULT_SETTING:
+                        out.append((f"{key}={v:g}", s))
+        return out
+
+    def all_settings(self) -> list[tuple[str, dict[str, float]]]:
+        seen: dict[str, dict[str, float]] = {}
+        for m in self.methods:
+            for name, s in self.settings(m):
+                seen.setdefault(name, s)
+        return list(seen.items())
+
+    def fingerprint(self) -> dict[str, Any]:
+        """What makes two ablations comparable: the preset's content and the data source."""
+        preset = {k: v for k, v in self.preset.items() if k not in ("ablation", "description")}
+        return {"preset": preset, "data": str(self.data) if self.data else None, "episodes": self.episodes,
+                "workers": self.workers}
+
+
+def parse_sweeps(items: Sequence[str] | None) -> dict[str, list[float]]:
+    """``["thre=0.2,0.4", "C=0,0.02"]`` -> ``{"thre": [0.2, 0.4], "C": [0.0, 0.02]}``."""
+    sweeps: dict[str, list[float]] = {}
+    for item in items or []:
+        key, sep, values = item.partition("=")
+        key = key.strip()
+        if not sep or key not in SWEEPABLE:
+            raise AblationError(
+                f"--sweep {item!r}: expected KEY=V1,V2,... with KEY one of {sorted(SWEEPABLE)}"
+            )
+        try:
+            sweeps[key] = [float(v) for v in values.split(",") if v.strip()]
+        except ValueError:
+            raise AblationError(f"--sweep {item!r}: values must be numbers separated by commas") from None
+        if not sweeps[key]:
+            raise AblationError(f"--sweep {item!r}: no values")
+    return sweeps
+
+
+def make_plan(
+    *,
+    preset: str,
+    out: str | os.PathLike[str],
+    methods: Sequence[str] | None = None,
+    seeds: int | None = None,
+    sweeps: dict[str, list[float]] | None = None,
+    sweep_methods: Sequence[str] | None = None,
+    data: str | os.PathLike[str] | None = None,
+    workers: int | None = None,
+    backend: str = "local",
+    device: str = "cpu",
+    episodes: int | None = None,
+    gpus_per_run: float = 0.0,
+    recognizers: int | None = None,
+    sb3: str | None = None,
+    use_zoo: bool = True,
+) -> Plan:
+
+    try:
+        cfg = load_preset(preset)
+    except (ValueError, OSError) as exc:  # unknown name (lists the known ones), missing or bad TOML
+        raise AblationError(f"--preset: {exc}") from None
+    unknown_sections = sorted(set(cfg) - PRESET_SECTIONS)
+    if unknown_sections:
+        raise AblationError(f"preset {preset!r}: unknown section(s) {unknown_sections}; "
+                            f"accepted: {sorted(PRESET_SECTIONS)}")
+    for section, keys in SECTION_KEYS.items():
+        extra = sorted(set(cfg.get(section, {})) - keys)
+        if extra:
+            raise AblationError(f"preset {preset!r} [{section}]: unknown key(s) {extra}; accepted: {sorted(keys)}")
+    if data is None and "world" not in cfg:
+        raise AblationError(f"preset {preset!r} has no [world] section: pass --data DATASET_ROOT")
+    abl = cfg.get("ablation", {})
+    methods = list(methods or abl.get("methods", ["map", "memo_map", "ibe_map"]))
+    known = known_methods()
+    for m in methods:
+        if m not in known:
+            raise AblationError(f"unknown method {m!r}: known methods are {known} (see `uevavd plugins`)")
+    n_seeds = int(seeds if seeds is not None else abl.get("seeds", 1))
+    if n_seeds < 1:
+        raise AblationError(f"--seeds {n_seeds}: expected at least 1")
+    n_rec = int(recognizers if recognizers is not None else abl.get("recognizers", 1))
+    if n_rec < 1:
+        raise AblationError(f"--recognizers {n_rec}: expected at least 1")
+    sweeps = dict(sweeps if sweeps is not None else {k: list(v) for k, v in abl.get("sweeps", {}).items()})
+    for key in sweeps:
+        if key not in SWEEPABLE:
+            raise AblationError(f"sweep over {key!r}: accepted keys are {sorted(SWEEPABLE)}")
+    if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
+        sweep_methods = [m for m in abl.get("sweep_methods", [methods[-1]]) if m in methods]
+    sweep_methods = list(sweep_methods)
+    unknown = [m for m in sweep_methods if m not in methods]
+    if unknown:
+        raise AblationError(f"--sweep-methods {unknown} are not among --methods {methods}")
+    if not 0.0 <= float(gpus_per_run) <= 8.0:
+        raise AblationError(f"--gpus-per-run {gpus_per_run}: expected a share of a GPU, e.g. 0.25 or 1")
+    try:
+        sb3_agents = parse_sb3(sb3)
+    except ValueError as exc:
+        raise AblationError(str(exc)) from None
+    if backend not in ("local", "ray"):
+        raise AblationError(f"--backend {backend!r}: expected 'local' or 'ray'")
+
+    try:
+        TrainSettings(**cfg.get("classifier", {})).check()
+    except (TypeError, ValueError) as exc:
+        raise AblationError(f"preset {preset!r} [classifier]: {exc} (accepted keys: "
+                            f"{sorted(TrainSettings.__dataclass_fields__)})") from None
+    for m in methods:
+        try:
+            load_method(m, overrides=dict(cfg.get("overrides", {})))
+        except ConfigError as exc:
+            raise AblationError(f"preset {preset!r} [overrides] for method {m!r}: {exc}") from None
+    return Plan(
+        preset=cfg,
+        methods=methods,
+        seeds=list(range(n_seeds)),
+        sweeps=sweeps,
+        sweep_methods=sweep_methods,
+        out=Path(out).resolve(),
+        data=Path(data).resolve() if data else None,
+        workers=int(workers or default_workers()),
+        backend=backend,
+        device=device,
+        episodes=episodes,
+        gpus_per_run=float(gpus_per_run),
+        recognizers=list(range(n_rec)),
+        sb3=sb3_agents,
+        use_zoo=bool(use_zoo),
+    )
+
+
+def default_workers() -> int:
+    """Parallel processes when ``--workers`` is not given: the number of cores."""
+    return max(1, os.cpu_count() or 1)
+
+
+# -- stages ---------------------------------------------------------------------------------
+
+def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
+    over = dict(plan.preset.get("overrides", {}))
+    over.update({SWEEPABLE[k]: v for k, v in setting.items()})
+    if plan.episodes is not None:
+        over["train.episodes"] = int(plan.episodes)
+    return over
+
+
+def env_config(plan: Plan, setting: dict[str, float]):
+    """The env config of a setting as the runs see it: the preset's ``env.*`` overrides (of
+    the first method; env keys are shared) with the setting's thre and C. The baselines and
+    the trajectories use it, so they are judged under the runs' own reward and horizon."""
+    spec = load_method(plan.methods[0], overrides=method_overrides(plan, plan.methods[0], setting))
+    return make_config(dict(spec.get("env", {}) or {}))

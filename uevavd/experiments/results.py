@@ -1,0 +1,196 @@
+"""Result rows: each finished run's exhaustive final evaluation (cached beside it), its
+per-epoch rows, the registered baselines under every setting, and per-context rows."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..data.grid import N_VIEWS
+from ..env.baselines import baseline_entries
+from ..env.config import make_config
+from ..env.evaluate import evaluate_policy
+from ..perception.table import ObservationTable
+from ..policy.agent import load_policy
+from ..policy.trainer import read_settings
+from .io import atomic_write_text
+from .plan import AblationError, Plan, env_config
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .jobs import Job
+
+RESULT_COLUMNS = [
+    "method", "recognizer", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return",
+    "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
+]
+#: Per-context rows of every final evaluation (``contexts.csv``).
+CONTEXT_COLUMNS = [
+    "method", "recognizer", "seed", "setting", "split", "context", "target", "terrain", "return", "accuracy",
+    "recognition", "path_m", "stop_rate", "steps",
+]
+#: A finished run's exhaustive evaluation of its final policy (every context x 605 starts).
+FINAL_EVAL = "final_eval.json"
+
+def is_done(job: Job) -> bool:
+    return (Path(job.out) / "done.json").is_file()
+
+
+def _final_eval_key(run: Path) -> dict[str, Any]:
+    """What the cached final evaluation depends on: the finished run (its episode and
+    update counts), its env config, its table and the splits."""
+
+    settings = read_settings(run)
+    done = json.loads((run / "done.json").read_text(encoding="utf-8"))
+    splits = list(settings.get("train", {}).get("eval_splits") or ["train", "hard"])
+    return {"protocol": "every context of the split x all 605 start views, greedy policy",
+            "episodes": int(done["episodes"]), "updates": int(done.get("updates", -1)),
+            "wall_s": float(done.get("wall_s", float("nan"))), "env": settings["env"],
+            "table_key": settings["table_key"], "splits": splits}
+
+
+def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
+    """The exhaustive evaluation of a finished run's final policy: every context of each
+    of the run's ``train.eval_splits`` x all 605 start views, greedy, under the run's own
+    env config (its setting's thre and C). Cached in ``<run>/final_eval.json`` (written
+    atomically; recomputed when missing, unreadable or made for another run state).
+    Returns ``{"key": ..., "splits": {split: summary + "contexts"}}``, or None for an
+    unfinished run.
+
+    The per-epoch evaluations in ``evals.jsonl`` use only ``train.eval_contexts`` evenly
+    spaced contexts per split; the results' ``final`` rows come from here instead, so they
+    are comparable with the baselines, which are evaluated on every context too.
+    """
+
+    run = Path(job.out)
+    if not is_done(job):
+        return None
+    key = json.loads(json.dumps(_final_eval_key(run)))  # as it reads back from JSON
+    path = run / FINAL_EVAL
+    if path.is_file():
+        try:
+            cached = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError:
+            cached = None  # a damaged cache is recomputed
+        if isinstance(cached, dict) and cached.get("key") == key and all(
+                "per_context" in v for v in cached.get("splits", {}).values()):
+            return cached
+    table = ObservationTable.load(Path(job.table))
+    if table.key != key["table_key"]:
+        raise AblationError(f"{run}: the run was trained on table {key['table_key']}, but {job.table} holds "
+                            f"table {table.key}; cannot evaluate its final policy")
+    config = make_config(key["env"])
+    dev = device or job.device
+    policy = load_policy(run, device=dev)
+    splits = {}
+    for split in key["splits"]:
+        res = evaluate_policy(table, split, policy, config, device=dev)
+        splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
+                         "per_context": _per_context(res)}
+    out = {"key": key, "splits": splits}
+    atomic_write_text(path, json.dumps(out, indent=1))
+    return out
+
+def _per_context(res) -> list[dict[str, Any]]:
+    """One record per context of an evaluation: context, target and the summary's means."""
+    df = res.per_context()
+    return [{"context": int(r["context"]), "target": str(r["target"]), **_metric_row(r)}
+            for r in df.to_dict(orient="records")]
+
+
+def context_terrains(data: Path | None) -> dict[int, str]:
+    """``{context: "urban (training)" | "urban (shifted)" | "woodland (training)"}`` from the
+    scenes' ``scene.json`` (synthetic worlds); empty where the data does not record it."""
+    out: dict[int, str] = {}
+    if data is None:
+        return out
+    for meta_path in Path(data).glob("[0-9][0-9][0-9]/scene.json"):
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if isinstance(meta, dict) and meta.get("context") is not None and meta.get("terrain"):
+            out[int(meta["context"])] = f"{meta['terrain']} ({meta.get('placement', 'training')})"
+    return out
+
+
+def _metric_row(summary: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "return": summary["mean_return"],
+        "accuracy": summary["accuracy"],
+        "recognition": summary["recognition_rate"],
+        "path_m": summary["path_m"],
+        "path_steps": summary["path_steps"],
+        "stop_rate": summary["stop_rate"],
+        "steps": summary["steps_per_episode"],
+    }
+
+
+def _contexts(summary: dict[str, Any]) -> int:
+    """Contexts an evaluation covered (each from all 605 start views); -1 if unknown."""
+    if "contexts" in summary:
+        return int(summary["contexts"])
+    n = summary.get("eval_episodes", summary.get("episodes"))
+    return int(n) // N_VIEWS if n is not None else -1
+
+
+def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) -> list[dict[str, Any]]:
+    """Rows of one run: its learning curve from ``evals.jsonl`` (one row per epoch x split,
+    ``train.eval_contexts`` contexts each, ``final=False``) and, for a finished run, the
+    exhaustive evaluation of its final policy (:func:`final_eval`: every context,
+    ``final=True``, at the run's last episode count)."""
+    path = Path(job.out) / "evals.jsonl"
+    rows = []
+    base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting, **setting}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            if not line.strip():
+                continue
+            r = json.loads(line)
+            rows.append({**base, "episodes": int(r["episodes"]), "final": False, "split": r["split"],
+                         "eval_contexts": _contexts(r), **_metric_row(r),
+                         "wall_s": float(r.get("wall_s", float("nan")))})
+    final = final_eval(job, device=device)
+    if final is not None:
+        for split, summary in final["splits"].items():
+            rows.append({**base, "episodes": int(final["key"]["episodes"]), "final": True, "split": split,
+                         "eval_contexts": _contexts(summary), **_metric_row(summary),
+                         "wall_s": float(final["key"]["wall_s"])})
+    return rows
+
+
+def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], log
+                  ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Every registered baseline (:func:`uevavd.env.baselines.baseline_entries`; a
+    "seeded" one once per RL seed) under every setting, on every split, on each
+    recognizer's table. Returns (result rows, per-context rows)."""
+
+    cache = plan.out / "baselines.json"
+    done = json.loads(cache.read_text()) if cache.is_file() else {}
+    entries = baseline_entries()
+    rows, ctx_rows = [], []
+    for r, table in tables.items():
+        tbl = ObservationTable.load(table)
+        for setting_name, setting in plan.all_settings():
+            config = env_config(plan, setting)
+            todo = [(e, 0) for e in entries if "seeded" not in e.tags]
+            todo += [(e, s) for e in entries if "seeded" in e.tags for s in plan.seeds]
+            for split in splits:
+                for entry, seed in todo:
+                    key = f"{tbl.key}|{setting_name}|{split}|{entry.name}|{seed}"
+                    if key not in done or "per_context" not in done[key]:
+                        policy = entry.load()(table=tbl, config=config, seed=seed)
+                        if policy is None:  # does not apply to this table
+                            continue
+                        res = evaluate_policy(tbl, split, policy, config)
+                        done[key] = {**res.summary(), "contexts": int(np.unique(res.context).size),
+                                     "per_context": _per_context(res)}
+                    base = {"method": entry.name, "recognizer": r, "seed": seed, "setting": setting_name}
+                    rows.append({**base, **setting, "episodes": -1, "final": True, "split": split,
+                                 "eval_contexts": _contexts(done[key]), **_metric_row(done[key]), "wall_s": 0.0})
+                    ctx_rows += [{**base, "split": split, **c} for c in done[key]["per_context"]]
+    atomic_write_text(cache, json.dumps(done, indent=1))
+    return rows, ctx_rows

@@ -1,0 +1,107 @@
+"""The ablation's build stages, each reusing what exists: the world (cached by its
+settings), the recognizers (cached by the train_605 images and the recipe, or taken from the
+model zoo), the observation tables (cached by the hash of everything that made them)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from ..atomic import atomic_write
+from ..config import load_method
+from ..data.reader import read_dataset
+from ..data.synthetic import write_world
+from ..data.synthetic.quality import format_rows, read_visible, split_rows
+from ..hashing import json_digest
+from ..perception.classifier import classifier_cache_path, data_hash, train_records
+from ..perception.prepare import prepare_table, prepare_table_ray
+from ..perception.train import TrainSettings, train_classifier
+from ..presets import world_contexts, world_root
+from ..zoo import Zoo
+from .plan import DEFAULT_SETTING, Plan, method_overrides
+
+
+class _Stage:
+    def __init__(self, plan: Plan, name: str, log):
+        self.plan, self.name, self.log = plan, name, log
+
+    def __enter__(self):
+        self.t0 = time.perf_counter()
+        self.log(f"[{self.name}] ...")
+        return self
+
+    def __exit__(self, *exc):
+        dt = time.perf_counter() - self.t0
+        self.plan.stages[self.name] = self.plan.stages.get(self.name, 0.0) + dt
+        if exc[0] is None:
+            self.log(f"[{self.name}] done in {dt:.1f} s")
+
+
+def stage_world(plan: Plan, log) -> Path:
+    """The dataset root: ``--data`` as given, else the preset's synthetic world (cached)."""
+    if plan.data is not None:
+
+        read_dataset(plan.data)  # fails early, naming the files it cannot parse
+        return plan.data
+
+    world = plan.preset["world"]
+    root = world_root(plan.preset)
+    write_world(root, contexts=world_contexts(plan.preset), size=int(world["size"]), seed=int(world["seed"]),
+                workers=plan.workers, progress=True)
+
+    log("  visibility per split:\n" + format_rows(split_rows(read_visible(root))))
+    return root
+
+
+def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
+    """The recognizers, one per recognizer seed (``TrainSettings.seed``: its initialisation of
+    the head, held-out viewpoints and augmentation), each cached by (hash of the dataset's
+    train_605 images, training settings): a regenerated world under the same path never
+    reuses an old classifier."""
+
+    digest = data_hash(train_records(read_dataset(data)))
+    out = {}
+    for r in plan.recognizers:
+        settings = TrainSettings(**{**plan.preset.get("classifier", {}), "seed": r})
+        path = classifier_cache_path(digest, settings)
+        shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
+        if path.is_file():
+            log(f"  reusing classifier {path}")
+        elif shipped is not None:
+            atomic_write(path, shipped.read_bytes())
+            log(f"  recognizer {r}: the model zoo's ({shipped}, sha256 checked), trained by this preset's recipe on "
+                "these train_605 images (--no-zoo trains it here)")
+        else:
+            train_classifier(data, path, settings=settings, workers=plan.workers, progress=True)
+        out[r] = path
+    return out
+
+
+def _zoo_recognizer(plan: Plan, cache_name: str) -> Path | None:
+    """The zoo's recognizer when the plan allows it and it has this cache name."""
+    if not plan.use_zoo:
+        return None
+    zoo = Zoo.find(str(plan.preset.get("name", "")))
+    return None if zoo is None else zoo.recognizer_for(cache_name)
+
+def stage_tables(plan: Plan, data: Path, classifiers: dict[int, Path], log) -> dict[int, dict[str, Path]]:
+    """``{recognizer: {method: table}}``: per recognizer, one table per distinct perception
+    config among the methods (MAP and Memo-MAP share)."""
+    return {r: _tables_of(plan, data, path, log) for r, path in classifiers.items()}
+
+
+def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
+
+    tables: dict[str, Path] = {}
+    by_perception: dict[str, Path] = {}
+    for m in plan.methods:
+        spec = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING))
+        key = json_digest(spec.to_dict().get("perception", {}), 12)
+        if key not in by_perception and plan.backend == "ray":
+            by_perception[key] = prepare_table_ray(data, spec, classifier_path=classifier, progress=True)
+        elif key not in by_perception:
+            by_perception[key] = prepare_table(data, spec, classifier_path=classifier, workers=plan.workers,
+                                               progress=True)
+        tables[m] = by_perception[key]
+        log(f"  {m}: table {tables[m]}")
+    return tables
