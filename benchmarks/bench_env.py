@@ -33,7 +33,7 @@ from uevavd.data.grid import N_VIEWS
 from uevavd.env import AODEnv, BatchedAODEnv, EnvConfig, OraclePolicy, PassivePolicy, RandomPolicy
 from uevavd.env.evaluate import evaluate_policy
 from uevavd.env.oracle import oracle_values
-from uevavd.perception.table import ObservationTable
+from uevavd.table import ObservationTable
 
 
 def synthetic_table(n_contexts: int = 25, dim: int = 544, seed: int = 0) -> ObservationTable:

@@ -26,7 +26,7 @@ def test_files_and_folders_get_the_umask_permissions_not_tempfiles_0600(tmp_path
     with atomic_dir(tmp_path / "table") as d:
         (d / "x.npy").write_bytes(b"")
     assert _mode(tmp_path / "table") == DIR_MODE
-    from uevavd.perception.table import ObservationTable
+    from uevavd.table import ObservationTable
 
     t = ObservationTable.from_arrays(np.zeros((1, 605, 2)), np.full((1, 605, 5), 0.2), np.zeros((1, 605, 4)),
                                      scenes=["001"], targets=[0], splits=["train"])

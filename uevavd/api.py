@@ -48,9 +48,9 @@ def build_table(data: str | os.PathLike[str], method: Any, *, classifier: str | 
                 workers: int = 2, progress: bool = True):
     """The observation table of ``method`` (a name, a TOML path or a spec, with dotted
     ``overrides``) over dataset ``data``, built or found in the cache; returns the
-    :class:`~uevavd.perception.table.ObservationTable`."""
+    :class:`~uevavd.table.ObservationTable`."""
     from .perception.prepare import prepare_table
-    from .perception.table import ObservationTable
+    from .table import ObservationTable
 
     path = prepare_table(data, method, classifier_path=classifier, overrides=dict(overrides or {}) or None,
                          out_dir=out_dir, workers=workers, progress=progress)
@@ -101,7 +101,7 @@ class Run:
 
     def table(self):
         """The run's observation table (from the path it was trained on)."""
-        from .perception.table import ObservationTable
+        from .table import ObservationTable
 
         table = ObservationTable.load(self.settings["table_path"])
         if table.key != self.settings["table_key"]:

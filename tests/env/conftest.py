@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from uevavd.data.grid import N_VIEWS
-from uevavd.perception.table import ObservationTable
+from uevavd.table import ObservationTable
 
 
 def make_table(

@@ -11,7 +11,7 @@ from gymnasium.utils.env_checker import check_env
 import uevavd.env  # noqa: F401  (registers uevavd/AOD-v0)
 from uevavd.data.grid import N_VIEWS, STOP, view_index
 from uevavd.env import AODEnv, DiscreteActions, EnvConfig, EnvConfigError
-from uevavd.perception.table import ObservationTable, TableError
+from uevavd.table import ObservationTable, TableError
 
 from .conftest import make_table
 
@@ -198,7 +198,7 @@ def test_check_env_passes_on_a_table_without_visible_fractions_and_through_gym_m
     """The real release (and from_arrays' default) has no visible fractions: the env used to
     put NaN in info, and NaN != NaN failed Gymnasium's determinism check. DiscreteActions
     around gym.make(...) used to break env.spec.make() and so check_env."""
-    from uevavd.perception.table import ObservationTable
+    from uevavd.table import ObservationTable
 
     bare = ObservationTable.from_arrays(table.features, table.probs, table.boxes, scenes=table.scenes,
                                         targets=table.targets, splits=table.splits, contexts=table.contexts)

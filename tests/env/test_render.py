@@ -10,7 +10,7 @@ from uevavd.data.grid import N_VIEWS
 from uevavd.env import AODEnv
 from uevavd.env.render import PANEL
 from uevavd.perception.images import read_rgb
-from uevavd.perception.table import ObservationTable
+from uevavd.table import ObservationTable
 
 
 def test_frames_show_the_dataset_view_and_the_path(tmp_path):

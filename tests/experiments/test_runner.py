@@ -149,7 +149,7 @@ def test_workers_default_to_the_number_of_cores(tiny, monkeypatch):
 
 def _one_hard_scene(good_views, visible):
     """A table of one hard-test scene (hatchback) recognised only at ``good_views``."""
-    from uevavd.perception.table import ObservationTable
+    from uevavd.table import ObservationTable
 
     probs = np.full((1, 605, 5), 0.2375, np.float32)
     probs[0, :, 0] = 0.05

@@ -12,7 +12,7 @@ import pytest
 
 import uevavd.perception.prepare as prep
 from uevavd.data.grid import N_VIEWS
-from uevavd.perception.table import ObservationTable, TableError
+from uevavd.table import ObservationTable, TableError
 
 
 @pytest.fixture(scope="module")
@@ -295,7 +295,7 @@ def test_ray_backend_builds_the_same_table(world_605, tiny_classifier, tmp_path)
     """Scenes sharded over Ray tasks (a local 2-CPU instance) give the local build's table."""
     ray = pytest.importorskip("ray")
     from uevavd.perception.prepare import prepare_table, prepare_table_ray
-    from uevavd.perception.table import ObservationTable
+    from uevavd.table import ObservationTable
     from uevavd.testing.worlds import write_tiny_world
 
     world = write_tiny_world(tmp_path / "w", contexts=(1, 26, 31), train605=False)

@@ -196,7 +196,7 @@ def test_prepare_builds_a_decomposed_table_with_sam(one_context_world, random_cl
     from uevavd.perception.images import read_rgb
     from uevavd.perception.prepare import plan_table, prepare_table
     from uevavd.perception.sam import SamSegmenter
-    from uevavd.perception.table import ObservationTable
+    from uevavd.table import ObservationTable
     from uevavd.testing import check_segmenter
 
     method = tmp_path / "tiny_sam.toml"
@@ -235,7 +235,7 @@ def test_ibe_map_table_with_the_sam_segmenter(tiny_world, tiny_classifier, base,
     """`prepare` builds a pre-decomposed observation table with `sam` like any segmenter."""
     from uevavd.data.grid import N_VIEWS
     from uevavd.perception.prepare import prepare_table
-    from uevavd.perception.table import ObservationTable
+    from uevavd.table import ObservationTable
 
     method = tmp_path / "tiny_sam.toml"
     method.write_text(method_toml.format(decompose="true").replace(

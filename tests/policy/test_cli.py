@@ -73,7 +73,7 @@ def test_evaluate_bad_input_is_one_line(run, tmp_path, capsys, monkeypatch):
 
 
 def test_train_bad_input_is_one_line_and_exit_2(table, tmp_path, capsys, monkeypatch):
-    from uevavd.perception.table import TableError
+    from uevavd.table import TableError
 
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     path = table.save(tmp_path / "table")

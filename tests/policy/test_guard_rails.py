@@ -49,7 +49,7 @@ def test_zero_episodes_are_refused(table, tmp_path, capsys, monkeypatch):
 def test_a_table_of_another_perception_config_is_refused(table, tmp_path):
     """IBE-MAP on a table whose meta.json says raw (undecomposed) features, or MAP's
     ResNet50 on a ResNet18 table: refused, naming what differs."""
-    from uevavd.perception.table import ObservationTable
+    from uevavd.table import ObservationTable
 
     raw = {"segmenter": {"name": "none"}, "decompose": False, "encoder": {"name": "resnet18", "weights": "imagenet"},
            "classifier": {"name": "resnet18"}}

@@ -110,7 +110,7 @@ def test_max_epochs_stop_always_checkpoints(table, tmp_path):
 
 @pytest.mark.parametrize("splits, missing", [(("hard", "hard"), "train"), (("train", "train"), "hard")])
 def test_table_without_a_split_leaves_the_run_directory_untouched(tmp_path, splits, missing):
-    from uevavd.perception.table import TableError
+    from uevavd.table import TableError
     from uevavd.testing.policy import toy_table
 
     t = toy_table(n_train=2, n_hard=0, feature_dim=8)

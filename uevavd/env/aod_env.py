@@ -36,7 +36,7 @@ import numpy as np
 from gymnasium import spaces
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
-from ..perception.table import ObservationTable, TableError
+from ..table import ObservationTable, TableError
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
 

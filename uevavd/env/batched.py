@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from ..data.grid import N_VIEWS, STOP, transitions
-from ..perception.table import ObservationTable
+from ..table import ObservationTable
 from .aod_env import load_table, select_scenes
 from .config import EnvConfig, make_config
 

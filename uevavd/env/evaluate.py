@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..data.grid import N_VIEWS
-from ..perception.table import ObservationTable
+from ..table import ObservationTable
 from .aod_env import load_table
 from .batched import EnvTensors
 from .config import EnvConfig, make_config

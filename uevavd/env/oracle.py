@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ..data.grid import N_TYPES, STOP, transitions
-from ..perception.table import ObservationTable
+from ..table import ObservationTable
 from .config import EnvConfig, make_config
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from ..data.grid import N_VIEWS, STOP, transitions
-from ..perception.table import ObservationTable
+from ..table import ObservationTable
 from .config import EnvConfig, make_config
 
 _COST_DECIMALS = 9

@@ -25,7 +25,7 @@ BINS = (0.0, 0.1, 0.3, 0.5, 0.7, 0.9, 1.0001)
 
 def audit_table(table, terrains: Mapping[int, str] | None = None) -> dict[str, Any]:
     """``{split: {"clear_views", "clear_accuracy", "accuracy", "contexts": [...],
-    "by_visible": [...]}}`` of an :class:`~uevavd.perception.table.ObservationTable`
+    "by_visible": [...]}}`` of an :class:`~uevavd.table.ObservationTable`
     (or its folder). Splits without visible fractions report accuracy only."""
     from ..env.aod_env import load_table
 

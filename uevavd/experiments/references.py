@@ -27,7 +27,7 @@ from ..config import load_method
 from ..env.aod_env import AODEnv
 from ..env.evaluate import evaluate_policy
 from ..env.wrappers import DiscreteActions
-from ..perception.table import ObservationTable
+from ..table import ObservationTable
 from .plan import DEFAULT_SETTING, SB3_AGENTS, env_config
 from .results import _contexts, _metric_row, _per_context
 

@@ -14,9 +14,9 @@ from ..data.grid import N_VIEWS
 from ..env.baselines import baseline_entries
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
-from ..perception.table import ObservationTable
 from ..policy.agent import load_policy
 from ..policy.trainer import read_settings
+from ..table import ObservationTable
 from .io import atomic_write_text
 from .plan import AblationError, Plan, env_config
 

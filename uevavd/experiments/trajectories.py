@@ -13,8 +13,8 @@ from ..env.baselines import RandomPolicy
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
 from ..env.oracle import OraclePolicy
-from ..perception.table import ObservationTable
 from ..policy.agent import load_policy
+from ..table import ObservationTable
 from .jobs import Job
 from .plan import DEFAULT_SETTING, Plan, env_config
 from .results import is_done
@@ -27,7 +27,7 @@ def pick_trajectory_start(table, config) -> tuple[int, int]:
     view. The first hard scene (table order) that has such a start is taken, and in it
     the start whose target is least visible (ties: the lowest view index). Deterministic.
 
-    ``table``: an :class:`~uevavd.perception.table.ObservationTable` or its folder;
+    ``table``: an :class:`~uevavd.table.ObservationTable` or its folder;
     ``config``: the env config of the episodes (thre, C, T_max). Without such a start in
     the hard split it falls back to the least visible start where passive fails, then to
     view 0 of the first hard scene.

@@ -34,9 +34,9 @@ from ..config import MethodSpec, load_method
 from ..data.grid import N_VIEWS
 from ..data.splits import TARGETS
 from ..paths import tables_dir
+from ..table import SCHEMA_VERSION, ObservationTable, TableError
 from .decompose import decompose, view_seed
 from .images import Decoder
-from .table import SCHEMA_VERSION, ObservationTable, TableError
 
 log = logging.getLogger(__name__)
 SHARD_ARRAYS = ("features", "probs", "boxes", "visible")

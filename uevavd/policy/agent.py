@@ -380,7 +380,7 @@ def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
     """The run's table features (S, 605, D) float16 (memory-mapped), or None if not on disk."""
     import numpy as np
 
-    from ..perception.table import ObservationTable
+    from ..table import ObservationTable
 
     path = settings.get("table_path")
     if not path or not Path(path).is_dir():

@@ -69,12 +69,12 @@ def check_head(head: Any, *, state_dim: int | None = None, n_types: int = 7, n_r
 
 
 def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed: int = 0) -> Any:
-    """An :class:`~uevavd.perception.table.ObservationTable` where recognisability is
+    """An :class:`~uevavd.table.ObservationTable` where recognisability is
     learnable: each scene has a random "good" region of views (near a random viewpoint)
     whose probabilities favour the true class, and the features encode the view's
     position and a noisy recognisability signal. For tests and development only."""
     from ..data.grid import N_VIEWS, view_coords
-    from ..perception.table import ObservationTable
+    from ..table import ObservationTable
 
     rng = np.random.default_rng(seed)
     s = n_train + n_hard

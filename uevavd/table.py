@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import atomic_dir
-from ..data.grid import N_VIEWS
-from ..data.splits import SPLITS, TARGETS, resolve_split
-from ..hashing import file_sha256, json_digest
+from .atomic import atomic_dir
+from .data.grid import N_VIEWS
+from .data.splits import SPLITS, TARGETS, resolve_split
+from .hashing import file_sha256, json_digest
 
 SCHEMA_VERSION = 1
 ARRAYS = ("features", "probs", "boxes", "visible")
@@ -364,7 +364,7 @@ class ObservationTable:
 
 
 def _versions() -> dict[str, str]:
-    from .. import __version__
+    from . import __version__
 
     out = {"uevavd": __version__, "numpy": np.__version__}
     try:  # torch is optional for tables built from arrays
