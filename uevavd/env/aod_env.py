@@ -236,13 +236,9 @@ class AODEnv(gym.Env):
             self._path.append(self._view)
             self._steps += int(self._tr.steps[prev, a_type, a_range])
             self._dist += float(self._tr.metres[prev, a_type, a_range])
-            final, cost = t == cfg.t_max - 1, cfg.C * (a_range + 1)
+            final, cost = t == cfg.t_max - 1, cfg.move_cost(a_range)
         self._t = t + 1
-        if final:
-            reco = bool(self._reco[self._scene, self._view])
-            reward = (cfg.xi1 if reco else -cfg.xi1) - cost
-        else:
-            reward = -cfg.xi2 - cost
+        reward = cfg.reward(final, bool(self._reco[self._scene, self._view]), cost)
         self._return += cfg.gamma**t * reward
         info = self._info()
         if final:

@@ -136,11 +136,9 @@ class EnvTensors:
         final = stopped | (t >= cfg.t_max - 1)
         at = local_scene * N_VIEWS + nv
         reco = self._reco_flat.index_select(0, at)
-        # float64 arithmetic in AODEnv's order (no float32 constant), so rewards and returns agree exactly
-        cost = torch.where(stopped, 0.0, cfg.C * (a_range + 1).double())
-        xi1 = torch.tensor(cfg.xi1, dtype=torch.float64, device=reco.device)  # not a float32 scalar
-        term = torch.where(reco, xi1, -xi1)
-        reward = torch.where(final, term, -cfg.xi2) - cost
+        # EnvConfig's rule in float64, so rewards and returns agree exactly with AODEnv's
+        cost = torch.where(stopped, 0.0, cfg.move_cost(a_range.double()))
+        reward = cfg.reward(final, reco, cost)
         return {
             "next_view": nv,
             "reward": reward,

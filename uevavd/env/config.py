@@ -11,7 +11,24 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from ..data.grid import N_TYPES, N_VIEWS
+
+
+def _where(cond: Any, a: Any, b: Any) -> Any:
+    """``a if cond else b`` for a bool, ``np.where`` for an array, ``torch.where`` (scalars as
+    float64 tensors on ``cond``'s device) for a tensor."""
+    if isinstance(cond, bool | np.bool_):
+        return a if cond else b
+    if isinstance(cond, np.ndarray):
+        return np.where(cond, a, b)
+    import torch  # only callers that hold tensors get here, and they have torch loaded
+
+    def f64(x: Any) -> Any:
+        return x if isinstance(x, torch.Tensor) else torch.tensor(x, dtype=torch.float64, device=cond.device)
+
+    return torch.where(cond, f64(a), f64(b))
 
 
 class EnvConfigError(ValueError):
@@ -64,6 +81,25 @@ class EnvConfig:
         if not 0.0 <= self.thre < 1.0:
             raise bad("thre", "a probability threshold in [0, 1)")
         _ = self.start_view  # validates start
+
+    # -- the reward (Eq. 2, 3): the one place it is written ------------------------------------
+    # The Gymnasium env (Python scalars), the batched env and evaluation (torch tensors), the
+    # class-knowing oracle's DP and the visibility oracle's path costs (numpy arrays) all call
+    # these, so a new reward term is written here and nowhere else.
+    def move_cost(self, range_index: Any) -> Any:
+        """sigma * r of a move: ``C`` times the requested grid steps (range index + 1)."""
+        return self.C * (range_index + 1)
+
+    def terminal_reward(self, recognized: Any) -> Any:
+        """``+xi1`` where the final view is recognised, ``-xi1`` where not."""
+        return _where(recognized, self.xi1, -self.xi1)
+
+    def reward(self, final: Any, recognized: Any, cost: Any) -> Any:
+        """R_t: ``terminal_reward(recognized) - cost`` where the decision ends the episode,
+        ``-xi2 - cost`` where it does not (``cost`` is :meth:`move_cost`, 0 for stop).
+        Elementwise on bools, numpy arrays or torch tensors (float64 there: no float32
+        constant, so every path gives the same bits)."""
+        return _where(final, self.terminal_reward(recognized), -self.xi2) - cost
 
     @property
     def start_view(self) -> int | None:

@@ -47,18 +47,18 @@ def oracle_values(
     reco = table.correct(cfg.thre)  # (S, V)
     s, v = reco.shape
     a = cfg.max_range
-    term = np.where(reco, cfg.xi1, -cfg.xi1).astype(np.float64)  # (S, V)
-    cost = cfg.C * np.arange(1, a + 1, dtype=np.float64)  # (A,)
+    term = cfg.terminal_reward(reco).astype(np.float64)  # (S, V)
+    cost = cfg.move_cost(np.arange(a, dtype=np.float64))  # (A,)
     value = np.zeros((s, cfg.t_max + 1, v))
     q = np.zeros((s, cfg.t_max + 1, v, N_TYPES, a)) if with_q else None
     best_type = np.zeros((s, cfg.t_max + 1, v), np.int64)
     best_range = np.zeros((s, cfg.t_max + 1, v), np.int64)
     nxt = tr.next_view[:, :STOP, :]  # (V, 6, A)
     for k in range(1, cfg.t_max + 1):
-        if k == 1:
-            moves = term[:, nxt] - cost  # (S, V, 6, A)
+        if k == 1:  # the last decision: every move ends the episode
+            moves = cfg.reward(True, reco[:, nxt], cost)  # (S, V, 6, A)
         else:
-            moves = -cfg.xi2 - cost + cfg.gamma * value[:, k - 1][:, nxt]
+            moves = cfg.reward(False, False, cost) + cfg.gamma * value[:, k - 1][:, nxt]
         if q is not None:
             q[:, k, :, :STOP, :] = moves
             q[:, k, :, STOP, :] = term[:, :, None]

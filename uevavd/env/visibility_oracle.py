@@ -54,7 +54,8 @@ def _cheapest_paths(max_range: int, t_max: int, xi2: float, c: float):
     dst = tr.next_view[u, t, r]
     order = np.lexsort((u, r, t, dst))
     edges = np.stack([u[order], t[order], r[order], dst[order]], axis=1)
-    step_cost = xi2 + c * (edges[:, 2] + 1)
+    rule = EnvConfig(max_range=max_range, t_max=t_max, xi2=xi2, C=c)
+    step_cost = -rule.reward(False, False, rule.move_cost(edges[:, 2]))  # xi2 + C r: Eq. 2's cost of a move
     starts = np.flatnonzero(np.r_[True, edges[1:, 3] != edges[:-1, 3]])  # first edge of each 'to' view
     index = np.arange(len(edges))
     prev = np.full((N_VIEWS, N_VIEWS), np.inf)
