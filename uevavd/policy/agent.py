@@ -55,6 +55,17 @@ def random_actions(mask: torch.Tensor, generator: torch.Generator) -> tuple[torc
     return a_type, a_range
 
 
+def epsilon_greedy(a_type: torch.Tensor, a_range: torch.Tensor, mask: torch.Tensor, epsilon: float,
+                   generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exploration, the one place it is written: each row's greedy action is replaced, with
+    probability ``epsilon``, by :func:`random_actions` over its allowed actions. The uniform
+    and the random actions are drawn for every row, so the random stream does not depend on
+    which rows explore (training and a seeded ``GreedyPolicy`` stay reproducible)."""
+    explore = torch.rand(a_type.shape[0], generator=generator, device=a_type.device) < epsilon
+    r_type, r_range = random_actions(mask, generator)
+    return torch.where(explore, r_type, a_type), torch.where(explore, r_range, a_range)
+
+
 class Learner:
     """Online and target networks, Adam, and the double-DQN update over episode batches."""
 
@@ -337,11 +348,8 @@ class GreedyPolicy:
                 self.hidden.index_copy_(0, live, hidden)
                 a_type.index_copy_(0, live, greedy_type)
                 a_range.index_copy_(0, live, greedy_range)
-        if self.epsilon > 0:  # drawn for all n rows, so the random stream does not depend on "done"
-            explore = torch.rand(n, generator=self.generator, device=self.device) < self.epsilon
-            r_type, r_range = random_actions(full_mask, self.generator)
-            a_type = torch.where(explore, r_type, a_type)
-            a_range = torch.where(explore, r_range, a_range)
+        if self.epsilon > 0:  # every row, so the random stream does not depend on "done"
+            a_type, a_range = epsilon_greedy(a_type, a_range, full_mask, self.epsilon, self.generator)
         return a_type, a_range
 
 

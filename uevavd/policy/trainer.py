@@ -25,7 +25,7 @@ import torch
 from ..atomic import atomic_write
 from ..config import MethodSpec, load_method
 from ..env.config import EnvConfig
-from .agent import GreedyPolicy, Learner, TableLookup, random_actions
+from .agent import GreedyPolicy, Learner, TableLookup, epsilon_greedy
 from .checkpoint import (
     POLICY_FILE,
     CheckpointError,
@@ -304,10 +304,7 @@ def train(
             q, hidden = net.step(obs["features"], obs["box"], hidden)
             a_type, a_range = net.head.greedy(q, obs["mask"])
             eps = cfg.epsilon(loop["episodes"])
-            explore = torch.rand(n, generator=act_gen, device=dev) < eps
-            r_type, r_range = random_actions(obs["mask"], act_gen)
-            a_type = torch.where(explore, r_type, a_type)
-            a_range = torch.where(explore, r_range, a_range)
+            a_type, a_range = epsilon_greedy(a_type, a_range, obs["mask"], eps, act_gen)
         ep_views[ar, t] = obs["view"]
         ep_type[ar, t] = a_type
         ep_range[ar, t] = a_range
