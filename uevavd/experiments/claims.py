@@ -12,7 +12,7 @@ Comparisons between methods are differences of means over independent seeds (Wel
 interval); a deterministic baseline (passive) is an exact constant; a sweep trend is
 the least-squares slope over all (setting, seed) points with its t interval. Every
 comparison uses the final evaluation point (for learned runs: the exhaustive evaluation of
-the final policy on every context, see :func:`uevavd.experiments.runner.final_eval`).
+the final policy on every context, see :func:`uevavd.experiments.results.final_eval`).
 """
 
 from __future__ import annotations
