@@ -23,6 +23,8 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any
 
+from .policy.rundir import RunDir
+
 
 def train_classifier(data: str | os.PathLike[str], out: str | os.PathLike[str] | None = None, *,
                      workers: int = 2, progress: bool = True, **settings: Any) -> Path:
@@ -97,7 +99,7 @@ class Run:
 
     @property
     def finished(self) -> bool:
-        return (self.path / "done.json").is_file()
+        return RunDir(self.path).finished
 
     def table(self):
         """The run's observation table (from the path it was trained on)."""
@@ -131,8 +133,8 @@ class Run:
         reads it back. (A finished run has already written it as ``policy.safetensors``.)"""
         from .policy.checkpoint import ARCH_KEYS, load_checkpoint, save_policy_file
 
-        state = load_checkpoint(self.path / "checkpoint.pt", expect=self.settings, keys=ARCH_KEYS)
-        return save_policy_file(path, state["net"], (self.path / "method.toml").read_text(encoding="utf-8"),
+        state = load_checkpoint(RunDir(self.path).checkpoint, expect=self.settings, keys=ARCH_KEYS)
+        return save_policy_file(path, state["net"], RunDir(self.path).method.read_text(encoding="utf-8"),
                                 self.settings)
 
 

@@ -16,10 +16,11 @@ import pytest
 
 from uevavd.experiments.jobs import plan_jobs
 from uevavd.experiments.plan import AblationError, make_plan, parse_sweeps
-from uevavd.experiments.results import FINAL_EVAL, RESULT_COLUMNS, final_eval, is_done
+from uevavd.experiments.results import RESULT_COLUMNS, final_eval, is_done
 from uevavd.experiments.runner import run_ablation, write_meta
 from uevavd.experiments.stages import stage_classifier, stage_tables, stage_world
 from uevavd.experiments.trajectories import pick_trajectory_start
+from uevavd.policy.rundir import RunDir
 from uevavd.testing.worlds import tiny_preset, write_tiny_world
 
 TINY_PRESET = tiny_preset(ablation='methods = ["map", "ibe_map"]\nseeds = 1\n')
@@ -101,7 +102,7 @@ def test_final_rows_are_the_exhaustive_evaluation_of_the_final_policy(ablation):
 
     df = pd.read_csv(ablation["results"])
     for job in ablation["jobs"]:
-        cached = json.loads(Path(job.out, FINAL_EVAL).read_text())
+        cached = json.loads(RunDir(job.out).final_eval.read_text())
         assert cached["key"]["env"]["thre"] == 0.2 and cached["key"]["splits"] == ["train", "hard"]
         for split in ("train", "hard"):
             res = evaluate_policy(job.table, split, load_policy(job.out), EnvConfig(thre=0.2, C=0.02))
@@ -132,11 +133,11 @@ def test_final_eval_is_recomputed_when_missing_or_stale(ablation, tmp_path):
     want = evaluate_policy(copy.table, "hard", load_policy(copy.out), EnvConfig(thre=0.6, C=0.0)).summary()
     assert first["splits"]["hard"]["mean_return"] == pytest.approx(want["mean_return"], abs=1e-9)
     assert first["splits"]["hard"]["recognition_rate"] == pytest.approx(want["recognition_rate"], abs=1e-9)
-    mtime = Path(copy.out, FINAL_EVAL).stat().st_mtime_ns
-    assert final_eval(copy) == first and Path(copy.out, FINAL_EVAL).stat().st_mtime_ns == mtime  # reused
-    Path(copy.out, FINAL_EVAL).unlink()
+    mtime = RunDir(copy.out).final_eval.stat().st_mtime_ns
+    assert final_eval(copy) == first and RunDir(copy.out).final_eval.stat().st_mtime_ns == mtime  # reused
+    RunDir(copy.out).final_eval.unlink()
     assert final_eval(copy) == first  # recomputed, same numbers
-    assert not list(Path(copy.out).glob(f".{FINAL_EVAL}.*"))  # atomic write, no temp left
+    assert not list(Path(copy.out).glob(f".{RunDir(copy.out).final_eval.name}.*"))  # atomic write, no temp left
 
 
 def test_workers_default_to_the_number_of_cores(tiny, monkeypatch):

@@ -27,6 +27,7 @@ from ..config import load_method
 from ..env.aod_env import AODEnv
 from ..env.evaluate import evaluate_policy
 from ..env.wrappers import DiscreteActions
+from ..policy.rundir import RunDir
 from ..table import ObservationTable
 from .plan import DEFAULT_SETTING, SB3_AGENTS, env_config
 from .results import _contexts, _metric_row, _per_context
@@ -43,12 +44,12 @@ def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], 
         for r in plan.recognizers:
             for seed in plan.seeds:
                 out = plan.out / "runs" / agent / "default" / f"rec{r}" / f"seed{seed}"
-                cache = out / "final_eval.json"
+                cache = RunDir(out).final_eval
                 if cache.is_file():
                     done = json.loads(cache.read_text(encoding="utf-8"))
                 else:
                     job = runs[(r, seed)]
-                    steps = int(json.loads((Path(job.out) / "done.json").read_text(encoding="utf-8"))["env_steps"])
+                    steps = int(json.loads(RunDir(job.out).done.read_text(encoding="utf-8"))["env_steps"])
                     log(f"  {agent} rec{r} seed{seed}: {steps:,} env steps on {first}'s table")
                     done = _train_and_evaluate(agent, job, tables[r], config, steps, seed, splits)
                     atomic_write(cache, json.dumps(done, indent=1))

@@ -15,6 +15,7 @@ from ..env.baselines import baseline_entries
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
 from ..policy.agent import load_policy
+from ..policy.rundir import RunDir
 from ..policy.trainer import read_settings
 from ..table import ObservationTable
 from .io import atomic_write_text
@@ -32,11 +33,9 @@ CONTEXT_COLUMNS = [
     "method", "recognizer", "seed", "setting", "split", "context", "target", "terrain", "return", "accuracy",
     "recognition", "path_m", "stop_rate", "steps",
 ]
-#: A finished run's exhaustive evaluation of its final policy (every context x 605 starts).
-FINAL_EVAL = "final_eval.json"
 
 def is_done(job: Job) -> bool:
-    return (Path(job.out) / "done.json").is_file()
+    return RunDir(job.out).finished
 
 
 def _final_eval_key(run: Path) -> dict[str, Any]:
@@ -44,7 +43,7 @@ def _final_eval_key(run: Path) -> dict[str, Any]:
     update counts), its env config, its table and the splits."""
 
     settings = read_settings(run)
-    done = json.loads((run / "done.json").read_text(encoding="utf-8"))
+    done = json.loads(RunDir(run).done.read_text(encoding="utf-8"))
     splits = list(settings.get("train", {}).get("eval_splits") or ["train", "hard"])
     return {"protocol": "every context of the split x all 605 start views, greedy policy",
             "episodes": int(done["episodes"]), "updates": int(done.get("updates", -1)),
@@ -69,7 +68,7 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
     if not is_done(job):
         return None
     key = json.loads(json.dumps(_final_eval_key(run)))  # as it reads back from JSON
-    path = run / FINAL_EVAL
+    path = RunDir(run).final_eval
     if path.is_file():
         try:
             cached = json.loads(path.read_text(encoding="utf-8"))
@@ -142,7 +141,7 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
     ``train.eval_contexts`` contexts each, ``final=False``) and, for a finished run, the
     exhaustive evaluation of its final policy (:func:`final_eval`: every context,
     ``final=True``, at the run's last episode count)."""
-    path = Path(job.out) / "evals.jsonl"
+    path = RunDir(job.out).evals
     rows = []
     base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting, **setting}
     if path.is_file():

@@ -18,7 +18,8 @@ from ..hashing import file_sha256
 from ..paths import cache_dir
 from ..perception.classifier import classifier_cache_path, data_hash, train_records
 from ..perception.train import TrainSettings
-from ..policy.checkpoint import POLICY_FILE, read_policy_file
+from ..policy.checkpoint import read_policy_file
+from ..policy.rundir import RunDir
 from ..presets import world_contexts, world_root
 from ..zoo import (
     FORMAT,
@@ -69,7 +70,7 @@ def build_zoo(out: str | os.PathLike[str] | None = None, *, preset: str = "quick
     }
     for method in plan.methods:
         name = f"{method}.safetensors"
-        ship(work / "runs" / method / "default" / "rec0" / "seed0" / POLICY_FILE, name)
+        ship(RunDir(work / "runs" / method / "default" / "rec0" / "seed0").policy, name)
         settings = read_policy_file(out / name)[1]
         manifest["policies"][method] = {"file": name, "seed": settings["seed"], "spec_hash": settings["spec_hash"]}
     staged = Zoo(out, {**manifest, "files": files})

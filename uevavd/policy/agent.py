@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from . import targets as T
 from .network import QNetwork
 from .replay import EpisodeBatch
+from .rundir import RunDir
 
 
 class TableLookup:
@@ -365,7 +366,7 @@ def _plain_gru(est: Any) -> bool:
             and isinstance(est.out, torch.nn.Linear) and est.out.bias is not None)
 
 
-def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "checkpoint.pt",
+def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None = None,
                 with_table: bool = True) -> GreedyPolicy:
     """The greedy policy of a training run directory (its latest checkpoint). With
     ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
@@ -379,8 +380,9 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str = "che
     from .network import build_network
 
     net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
-    state = load_checkpoint(run_dir / weights, expect=settings, keys=ARCH_KEYS)  # the network, not a resume
-    load_net_state(net, state["net"], run_dir / weights)
+    path = run_dir / weights if weights else RunDir(run_dir).checkpoint
+    state = load_checkpoint(path, expect=settings, keys=ARCH_KEYS)  # the network, not a resume
+    load_net_state(net, state["net"], path)
     return GreedyPolicy(net, device=device, features=table_features(settings) if with_table else None)
 
 

@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from ..atomic import atomic_write
+from .rundir import RunDir
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
 ARCH_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "n_types", "n_ranges", "t_max", "state", "head")
@@ -77,7 +78,7 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
 
 
 #: The shareable policy a finished run writes beside its checkpoint.
-POLICY_FILE = "policy.safetensors"
+POLICY_FILE = RunDir(".").policy.name
 POLICY_FORMAT = "uevavd-policy/1"
 #: The run settings a policy file carries (what loading it must check and rebuild).
 POLICY_KEYS = ("method", "spec_hash", "table_key", "table_identity", "feature_dim", "env", "seed")

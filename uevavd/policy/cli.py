@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .rundir import RunDir
+
 #: What bad input raises (ConfigError, TableError, RunDirError, CheckpointError are ValueErrors).
 BAD_INPUT = (ValueError, FileNotFoundError, NotADirectoryError)
 
@@ -68,7 +70,7 @@ def add_train(p: argparse.ArgumentParser):
             spec = load_method(args.method, overrides)
         except ConfigError as exc:
             return _error("train", exc)
-        was_done = (args.out / "done.json").is_file()  # the same run again: nothing to do, not an error
+        was_done = RunDir(args.out).finished  # the same run again: nothing to do, not an error
         problem = _table_problem(args.table)
         if problem:
             return _error("train", problem)
@@ -80,7 +82,7 @@ def add_train(p: argparse.ArgumentParser):
         if was_done:
             print(f"run already finished: {out} (evaluate it with `uevavd evaluate {out}`; another --out trains anew)")
             return 0
-        status = "finished" if (out / "done.json").is_file() else "paused (rerun the same command to resume)"
+        status = "finished" if RunDir(out).finished else "paused (rerun the same command to resume)"
         print(f"run {status}: {out}")
         return 0
 
@@ -149,7 +151,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from .agent import load_policy
     from .trainer import read_settings
 
-    if not (args.run_dir / "settings.json").is_file():
+    if not RunDir(args.run_dir).settings.is_file():
         return _error("evaluate", f"{args.run_dir} is not a training run (no settings.json)")
     try:
         settings = read_settings(args.run_dir)

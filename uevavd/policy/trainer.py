@@ -27,7 +27,6 @@ from ..config import MethodSpec, load_method
 from ..env.config import EnvConfig
 from .agent import GreedyPolicy, Learner, TableLookup, epsilon_greedy
 from .checkpoint import (
-    POLICY_FILE,
     CheckpointError,
     checkpoint_meta,
     load_checkpoint,
@@ -37,6 +36,7 @@ from .checkpoint import (
 from .config import TrainConfig
 from .network import build_network
 from .replay import EpisodeReplay
+from .rundir import RunDir
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
@@ -59,7 +59,7 @@ def resolve_device(device: str) -> torch.device:
 
 def read_settings(run_dir: str | Path) -> dict[str, Any]:
     """A run's ``settings.json``; a missing, unreadable or damaged file is an error naming it."""
-    path = Path(run_dir) / "settings.json"
+    path = RunDir(run_dir).settings
     if not path.is_file():
         raise FileNotFoundError(f"{run_dir} is not a training run: no settings.json (train one with `uevavd train`)")
     try:
@@ -74,7 +74,7 @@ def read_settings(run_dir: str | Path) -> dict[str, Any]:
 
 def resolve_spec(run_dir: str | Path) -> MethodSpec:
     """The method spec saved in a run directory."""
-    path = Path(run_dir) / "method.toml"
+    path = RunDir(run_dir).method
     if not path.is_file():
         raise RunDirError(f"{run_dir} is not a training run: no method.toml")
     return load_method(path)
@@ -126,9 +126,9 @@ def check_table_perception(spec: MethodSpec, table: Any) -> None:
 
 
 def _check_run_dir(out: Path, settings: dict[str, Any]) -> None:
-    path = out / "settings.json"
+    path = RunDir(out).settings
     if not path.is_file():
-        if out.exists() and any(p.name not in ("tb",) for p in out.iterdir()):
+        if out.exists() and any(p != RunDir(out).tensorboard for p in out.iterdir()):
             raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
         return
     old = json.loads(path.read_text(encoding="utf-8"))
@@ -223,7 +223,7 @@ def train(
         torch.set_num_threads(cfg.threads)
     settings["threads"] = torch.get_num_threads()  # results depend on it: recorded, checked on resume
     _check_run_dir(out, settings)
-    if (out / "done.json").is_file():
+    if RunDir(out).finished:
         return out
     for stale in out.glob(".*.tmp") if out.is_dir() else ():
         stale.unlink(missing_ok=True)  # a killed save's temp file (a checkpoint's is full size)
@@ -240,8 +240,8 @@ def train(
     lookup = TableLookup(env.tables)
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
-    spec.save(out / "method.toml")
-    _write_json(out / "settings.json", settings)
+    spec.save(RunDir(out).method)
+    _write_json(RunDir(out).settings, settings)
     act_gen = torch.Generator(device=dev)
     act_gen.manual_seed(cfg.seed + 3)
     n, tmax = cfg.n_envs, env_cfg.t_max
@@ -254,7 +254,7 @@ def train(
     hidden = net.initial_hidden(n, dev)
     loop = {"episodes": 0, "env_steps": 0, "epoch": 0, "credit": 0.0, "wall": 0.0}
     evals: list[dict[str, Any]] = []
-    ckpt_path = out / "checkpoint.pt"
+    ckpt_path = RunDir(out).checkpoint
     if ckpt_path.is_file():
         ck = load_checkpoint(ckpt_path, expect=settings)
         net.load_state_dict(ck["net"])
@@ -285,7 +285,7 @@ def train(
     from torch.utils.tensorboard import SummaryWriter
     from tqdm.auto import tqdm
 
-    writer = SummaryWriter(str(out / "tb"))
+    writer = SummaryWriter(str(RunDir(out).tensorboard))
     if not loop["episodes"]:  # the run's settings, once, as TensorBoard's text and hparams
         _log_settings(writer, settings)
     bar = tqdm(total=cfg.episodes, initial=min(loop["episodes"], cfg.episodes), unit="ep",
@@ -360,7 +360,7 @@ def train(
                     for key, value in summary.items():
                         if isinstance(value, int | float):
                             writer.add_scalar(f"eval_{split}/{key}", value, loop["episodes"])
-                _write_json(out / "evals.jsonl", "".join(json.dumps(r, default=str) + "\n" for r in evals))
+                _write_json(RunDir(out).evals, "".join(json.dumps(r, default=str) + "\n" for r in evals))
             # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
             stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
             if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
@@ -375,9 +375,9 @@ def train(
     writer.close()
     if loop["episodes"] >= cfg.episodes:
         # the shareable policy (the network alone), then the mark that the run is finished
-        save_policy_file(out / POLICY_FILE, net.state_dict(), (out / "method.toml").read_text(encoding="utf-8"),
+        save_policy_file(RunDir(out).policy, net.state_dict(), RunDir(out).method.read_text(encoding="utf-8"),
                          settings)
-        _write_json(out / "done.json", {"episodes": loop["episodes"], "env_steps": loop["env_steps"],
+        _write_json(RunDir(out).done, {"episodes": loop["episodes"], "env_steps": loop["env_steps"],
                                         "updates": learner.updates, "wall_s": loop["wall"],
                                         "final_eval": evals[-len(cfg.eval_splits):] if cfg.eval_splits else []})
     return out
