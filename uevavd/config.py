@@ -349,6 +349,45 @@ def _thaw(value: Any) -> Any:
 
 # -- the spec -------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
+class Component:
+    """A component section: the registry ``kind``, the registered ``name`` and the builder's
+    keyword arguments from the method file."""
+
+    kind: str
+    name: str
+    kwargs: Mapping[str, Any]
+
+    def build(self, **runtime: Any) -> Any:
+        """The component, built with its config arguments plus ``runtime`` ones."""
+        from .plugins.manager import manager  # lazy: the registry loads plugins on first use
+
+        return manager.registry.build(self.kind, self.name, **{**_thaw(self.kwargs), **runtime})
+
+
+@dataclasses.dataclass(frozen=True)
+class PerceptionSection:
+    """``[perception]``: the components that make a table, and the decomposition settings.
+    ``raw`` is the section as written (what tables record and what their keys hash)."""
+
+    segmenter: Component | None
+    encoder: Component | None
+    classifier: Component | None
+    decompose: bool
+    gray_seed: int
+    raw: Mapping[str, Any]
+
+    def as_dict(self) -> dict[str, Any]:
+        """The section as written, a plain dict (what tables record and their keys hash)."""
+        return _thaw(self.raw)
+
+
+def _section_class(section: str) -> Any:
+    from .plugins.registry import import_target  # lazy, as _dataclass_fields: keeps this module light
+
+    return import_target(DATACLASS_SECTIONS[section])
+
+
+@dataclasses.dataclass(frozen=True)
 class MethodSpec:
     """A resolved, validated, immutable method config."""
 
@@ -383,6 +422,41 @@ class MethodSpec:
         if value is None:
             raise KeyError(f"method {self.name!r} has no key {dotted!r}")
         return value
+
+    # -- typed sections: what the consumers read (one decoding of the dict, here) -------------
+    @property
+    def env(self) -> Any:
+        """``[env]`` as an :class:`~uevavd.env.config.EnvConfig` (the paper's values where unset)."""
+        return _section_class("env")().replace(**_thaw(self.data.get("env", {})))
+
+    def train_config(self, **runtime: Any) -> Any:
+        """``[train]`` as a :class:`~uevavd.policy.config.TrainConfig`, with the ``runtime``
+        values a run adds (``seed``, ``episodes``) over the file's."""
+        return _section_class("train").from_dict({**_thaw(self.data.get("train", {})), **runtime})
+
+    @property
+    def perception(self) -> PerceptionSection:
+        raw = _thaw(self.data.get("perception", {}))
+
+        def comp(section: str) -> Component | None:
+            return self.section(section) if _get(self.data, section) is not None else None
+
+        return PerceptionSection(segmenter=comp("perception.segmenter"), encoder=comp("perception.encoder"),
+                                 classifier=comp("perception.classifier"), decompose=bool(raw.get("decompose", False)),
+                                 gray_seed=int(raw.get("gray_seed", 0)), raw=_freeze(raw))
+
+    @property
+    def state(self) -> Component:
+        return self.section("state")
+
+    @property
+    def head(self) -> Component:
+        return self.section("head")
+
+    def section(self, section: str) -> Component:
+        """A component section (``"state"``, ``"perception.encoder"``, ...) as a :class:`Component`."""
+        name, kwargs = self.component(section)
+        return Component(COMPONENT_SECTIONS[section], name, _freeze(kwargs))
 
     def component(self, section: str) -> tuple[str, dict[str, Any]]:
         """``(registry name, builder kwargs)`` of a component section, e.g. ``"state"``."""

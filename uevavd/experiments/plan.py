@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError, known_methods, load_method
-from ..env.config import EnvConfig, make_config
+from ..env.config import EnvConfig
 from ..perception.train import TrainSettings
 from ..presets import load_preset
 
@@ -235,4 +235,4 @@ def env_config(plan: Plan, setting: dict[str, float]):
     the first method; env keys are shared) with the setting's thre and C. The baselines and
     the trajectories use it, so they are judged under the runs' own reward and horizon."""
     spec = load_method(plan.methods[0], overrides=method_overrides(plan, plan.methods[0], setting))
-    return make_config(dict(spec.get("env", {}) or {}))
+    return spec.env

@@ -96,7 +96,7 @@ def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]
     by_perception: dict[str, Path] = {}
     for m in plan.methods:
         spec = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING))
-        key = json_digest(spec.to_dict().get("perception", {}), 12)
+        key = json_digest(spec.perception.as_dict(), 12)
         if key not in by_perception and plan.backend == "ray":
             by_perception[key] = prepare_table_ray(data, spec, classifier_path=classifier, progress=True)
         elif key not in by_perception:

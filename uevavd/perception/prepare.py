@@ -97,35 +97,36 @@ def build_components(spec: MethodSpec, data_root: Path, classifier_path: str | N
     """``(segmenter or None, encoder, classifier)`` for the spec's perception section."""
     from ..plugins.manager import manager
 
-    def runtime(section: str, extra: dict[str, Any]) -> dict[str, Any]:
-        name, kwargs = spec.component(section)
-        builder = manager.registry.builder(section.split(".")[1], name)
-        return {k: v for k, v in extra.items() if k not in kwargs and _accepts(builder, k)}
+    perception = spec.perception
 
-    for section in ("perception.encoder", "perception.classifier"):
-        if not spec.get(section):
+    def runtime(comp: Any, extra: dict[str, Any]) -> dict[str, Any]:
+        builder = manager.registry.builder(comp.kind, comp.name)
+        return {k: v for k, v in extra.items() if k not in comp.kwargs and _accepts(builder, k)}
+
+    for section, comp in (("perception.encoder", perception.encoder), ("perception.classifier", perception.classifier)):
+        if comp is None:
             raise ValueError(f"method {spec.name!r} ({spec.source}) names no {section}; a table needs both an "
                              "encoder and a classifier, e.g. encoder = { name = \"resnet50\" }")
-    decomposing = bool(spec.get("perception.decompose", False))
-    if decomposing and spec.get("perception.segmenter") and spec.component("perception.segmenter")[0] == "none":
+    decomposing = perception.decompose
+    if decomposing and perception.segmenter is not None and perception.segmenter.name == "none":
         raise ValueError(
             f"method {spec.name!r} ({spec.source}): perception.decompose = true with segmenter 'none' would turn "
             "every view into one flat gray (no target mask); use segmenter 'gt' or 'sam', or set "
             "perception.decompose = false")
-    segmenter = spec.build("perception.segmenter") if decomposing and spec.get("perception.segmenter") else None
+    segmenter = perception.segmenter.build() if decomposing and perception.segmenter is not None else None
     if decomposing and segmenter is None:
         raise ValueError(f"method {spec.name!r}: perception.decompose = true needs a perception.segmenter")
     enc_extra: dict[str, Any] = {"data": str(data_root)}
     if classifier_path is not None:
         enc_extra["classifier"] = str(classifier_path)  # weights="classifier" takes this recognizer's backbone
-    encoder = spec.build("perception.encoder", **runtime("perception.encoder", enc_extra))
+    encoder = perception.encoder.build(**runtime(perception.encoder, enc_extra))
     extra = {"data": str(data_root)}
     if classifier_path is not None:
         extra["path"] = str(classifier_path)
-    clf_runtime = runtime("perception.classifier", extra)
+    clf_runtime = runtime(perception.classifier, extra)
     if classifier_path is not None:
         clf_runtime["path"] = str(classifier_path)  # --classifier wins over the method file
-    classifier = spec.build("perception.classifier", **clf_runtime)
+    classifier = perception.classifier.build(**clf_runtime)
     return segmenter, encoder, classifier
 
 
@@ -310,7 +311,7 @@ def plan_table(
     if decomposing and getattr(segmenter, "needs_ground_truth", False):
         for scene, recs in scenes:  # fail before any image is decoded
             ground_truth_categories(manifest, scene, recs)
-    gray_seed = int(spec.get("perception.gray_seed", 0))
+    gray_seed = spec.perception.gray_seed
     parts = {
         "schema_version": SCHEMA_VERSION,
         "dataset": dataset_fingerprint(manifest, scenes),
@@ -403,7 +404,7 @@ def prepare_table(
         config = {
             "method": spec.name,
             "method_hash": spec.hash,
-            "perception": spec.to_dict().get("perception", {}),
+            "perception": spec.perception.as_dict(),
             "key_parts": parts,
             "data_root": str(data_root),
         }

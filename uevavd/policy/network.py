@@ -45,10 +45,9 @@ class QNetwork(nn.Module):
 
 def build_network(spec: MethodSpec, feature_dim: int, *, n_types: int = 7, n_ranges: int = 4) -> QNetwork:
     """Build the method's estimator (with the table's feature size) and head."""
-    estimator = spec.build("state", feature_dim=feature_dim)
+    estimator = spec.state.build(feature_dim=feature_dim)
     head_kwargs: dict[str, Any] = {"n_types": n_types, "n_ranges": n_ranges}
-    _, cfg = spec.component("head")
-    if "state_dim" not in cfg:
+    if "state_dim" not in spec.head.kwargs:
         head_kwargs["state_dim"] = estimator.state_dim
-    head = spec.build("head", **head_kwargs)
+    head = spec.head.build(**head_kwargs)
     return QNetwork(estimator, head)

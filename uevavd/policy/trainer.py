@@ -108,7 +108,7 @@ def check_table_perception(spec: MethodSpec, table: Any) -> None:
     recorded = (table.meta.get("config") or {}).get("perception")
     if not isinstance(recorded, dict):
         return
-    want = spec.to_dict().get("perception") or {}
+    want = spec.perception.as_dict()
 
     def get(d: dict, dotted: str):
         head, _, rest = dotted.partition(".")
@@ -202,15 +202,12 @@ def train(
     spec = apply_overrides(spec, overrides)
     table = load_table(table)
     check_table_perception(spec, table)
-    train_section = dict(spec.get("train", {}) or {})
-    cfg = TrainConfig.from_dict({**train_section, "seed": seed,
-                                 **({"episodes": episodes} if episodes is not None else {})})
-    env_cfg = EnvConfig().replace(**dict(spec.get("env", {}) or {}))
+    cfg = spec.train_config(seed=seed, **({"episodes": episodes} if episodes is not None else {}))
+    env_cfg = spec.env
     cfg = cfg.resolve_gamma(env_cfg.gamma)  # one discount: env.gamma (train.gamma is deprecated)
     dev = resolve_device(device if device != "auto" else cfg.device)
     out = Path(out)
-    state_name, _ = spec.component("state")
-    head_name, _ = spec.component("head")
+    state_name, head_name = spec.state.name, spec.head.name
     settings = {
         "method": spec.name, "spec_hash": spec.hash, "table_key": table.key,
         "table_path": str(table.path) if table.path else None, "feature_dim": table.feature_dim,
