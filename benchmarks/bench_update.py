@@ -47,7 +47,7 @@ def main() -> None:
     tune_malloc()  # as `uevavd train` does (and every side measured here); UEVAVD_MALLOC_TUNING=0 turns it off
 
     import uevavd.policy.agent as agent
-    import uevavd.state.packed_gru as packed
+    import uevavd.state.gru as packed  # the estimator's module reads supports_packed from here
     from uevavd.config import load_method
     from uevavd.env.batched import EnvTensors
     from uevavd.env.config import EnvConfig

@@ -20,6 +20,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from ..state.base import InputGateCache
 from . import targets as T
 from .network import QNetwork
 from .replay import EpisodeBatch
@@ -226,7 +227,7 @@ class GreedyPolicy:
         self._proj: torch.Tensor | None = None
         self._gates: torch.Tensor | None = None  # (S * 605, 3H) W_ih g + b_ih per (scene, view)
         self._gates_box: torch.Tensor | None = None  # (S * 605, 4) the box each row was computed with
-        self._gru = self._features is not None and _plain_gru(est)
+        self._gru = self._features is not None and isinstance(est, InputGateCache) and est.caches_input_gates()
         self._buffers: dict[str, torch.Tensor] = {}
         self.needs_features = self._features is None
 
@@ -253,7 +254,7 @@ class GreedyPolicy:
         f = self._features
         if self._gates is None:
             rows = f.shape[0] * f.shape[1]
-            self._gates = torch.empty(rows, est.gru.weight_ih_l0.shape[0], device=self.device)
+            self._gates = torch.empty(rows, est.gate_width, device=self.device)
             self._gates_box = torch.full((rows, 4), float("nan"), device=self.device)
         new = (self._gates_box.index_select(0, flat) != boxes).any(1)  # NaN: never computed
         if bool(new.any()):
@@ -262,7 +263,7 @@ class GreedyPolicy:
             for i in range(0, len(idx), 4096):  # bounds the float32 copy of the features
                 j = idx[i:i + 4096]
                 g = est.encoder(f[j.cpu()].to(self.device).float(), box[i:i + 4096])
-                self._gates[j] = F.linear(g, est.gru.weight_ih_l0, est.gru.bias_ih_l0)
+                self._gates[j] = est.input_gates(g)
             self._gates_box[idx] = box
         return torch.index_select(self._gates, 0, flat, out=self._buffer("gi", len(flat), self._gates.shape[1]))
 
@@ -276,28 +277,9 @@ class GreedyPolicy:
 
     def _gru_step(self, flat: torch.Tensor, boxes: torch.Tensor, t: torch.Tensor,
                   hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """GRUState.step_encoded from cached input gates: s_t (N, state_dim), h_t (N, H)."""
-        est = self.net.estimator
-        gru = est.gru
-        n, width = hidden.shape
-        gi = self._input_gates(flat, boxes)  # a work buffer: updated in place below
-        i_r, i_z, i_n = gi.chunk(3, -1)
-        if bool((t == 0).all()):  # h = 0: W_hh h + b_hh is b_hh exactly, skip the product
-            h_r, h_z, h_n = gru.bias_hh_l0.chunk(3)
-        else:  # addmm is what F.linear runs; out= only reuses the memory
-            gh = torch.addmm(gru.bias_hh_l0, hidden, gru.weight_hh_l0.t(), out=self._buffer("gh", n, 3 * width))
-            h_r, h_z, h_n = gh.chunk(3, -1)
-        # ATen's CPU GRU cell, operation for operation and on the same (N, 3H) row layout:
-        # sigmoid and tanh round differently in their vectorised and scalar loops, so other
-        # layouts (e.g. contiguous (N, H) copies) can change the last bit of h_t
-        r = i_r.add_(h_r).sigmoid_()
-        z = i_z.add_(h_z).sigmoid_()
-        cand = torch.add(i_n, torch.mul(h_n, r, out=self._buffer("h_n r", n, width)),
-                         out=self._buffer("cand", n, width)).tanh_()
-        h = (hidden - cand).mul_(z).add_(cand)  # a fresh tensor: it becomes the stored memory
-        out = est.out
-        s = torch.addmm(out.bias, h, out.weight.t(), out=self._buffer("s", n, out.weight.shape[0]))
-        return s.relu_(), h
+        """The estimator's step from cached input gates: s_t (N, state_dim), h_t (N, H)."""
+        gates = self._input_gates(flat, boxes)  # a work buffer, which the step may overwrite
+        return self.net.estimator.step_from_gates(gates, hidden, from_zero=bool((t == 0).all()), buffer=self._buffer)
 
     def reset(self, n: int) -> None:
         self.hidden = self.net.initial_hidden(n, self.device)
@@ -352,18 +334,6 @@ class GreedyPolicy:
         if self.epsilon > 0:  # every row, so the random stream does not depend on "done"
             a_type, a_range = epsilon_greedy(a_type, a_range, full_mask, self.epsilon, self.generator)
         return a_type, a_range
-
-
-def _plain_gru(est: Any) -> bool:
-    """True for the built-in :class:`~uevavd.state.gru.GRUState` (or a subclass that keeps its
-    step): one unidirectional layer with biases, whose cell ``GreedyPolicy`` can evaluate
-    from cached input gates."""
-    from ..state.gru import GRUState
-    from ..state.packed_gru import supports_packed
-
-    return (isinstance(est, GRUState) and type(est).step_encoded is GRUState.step_encoded
-            and supports_packed(est.gru)
-            and isinstance(est.out, torch.nn.Linear) and est.out.bias is not None)
 
 
 def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None = None,

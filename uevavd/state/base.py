@@ -12,7 +12,7 @@ positions > t).
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import nn
@@ -78,4 +78,29 @@ class StateEstimator(Protocol):
 
     # Optional (the built-ins have it): ``step_encoded(g, hidden)`` - like ``step`` from an
     # already encoded g_t (N, input_dim), and an ``encoder`` (:class:`ObservationEncoder`).
-    # Evaluation then projects each (scene, view) once instead of once per visit.
+    # Evaluation then projects each (scene, view) once instead of once per visit. A recurrent
+    # estimator may further offer :class:`InputGateCache`.
+
+
+@runtime_checkable
+class InputGateCache(Protocol):
+    """Optional capability of a recurrent estimator (the built-in GRU has it): its input
+    gates depend on g_t alone, so an evaluator can compute them once per (scene, view, box),
+    gather them per step and step the cell from them, with the actions of ``step``."""
+
+    gate_width: int  #: columns of the input gates (3 H for a GRU)
+
+    def caches_input_gates(self) -> bool:
+        """True when :meth:`step_from_gates` gives ``step_encoded``'s results bit for bit."""
+        ...
+
+    def input_gates(self, g: torch.Tensor) -> torch.Tensor:
+        """(N, input_dim) g_t -> (N, gate_width) input gates."""
+        ...
+
+    def step_from_gates(self, gates: torch.Tensor, hidden: torch.Tensor, *, from_zero: bool,
+                        buffer: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        """One decision from ``gates`` (N, gate_width; may be overwritten): s_t (N, state_dim)
+        and h_t (N, H). ``from_zero``: every row starts its episode (h = 0); ``buffer(name,
+        rows, width)`` returns a reusable float32 work tensor."""
+        ...

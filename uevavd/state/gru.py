@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .base import ObservationEncoder
+from .packed_gru import packed_gru, supports_packed
 
 
 class GRUState(nn.Module):
@@ -35,8 +39,6 @@ class GRUState(nn.Module):
         ``seen.nonzero()`` order -> (N, state_dim), same order. Equals ``forward`` on the
         padded batch at the seen positions, without computing the padding (and, with the
         built-in GRU, without W_hh h_0 = 0: see :mod:`uevavd.state.packed_gru`)."""
-        from .packed_gru import packed_gru, supports_packed
-
         g = self.encoder(features, boxes)
         # On CPU the hand-written unroll is faster than ATen's packed GRU (see packed_gru);
         # on a GPU cuDNN's fused GRU stays in charge (not measured against it here)
@@ -64,6 +66,41 @@ class GRUState(nn.Module):
         h, _ = self.gru(g[:, None], hidden[None].contiguous())
         h = h[:, 0]
         return torch.relu(self.out(h)), h
+
+    # -- the optional InputGateCache capability (uevavd.state.base): evaluation's fast path -----
+    @property
+    def gate_width(self) -> int:
+        return self.gru.weight_ih_l0.shape[0]
+
+    def caches_input_gates(self) -> bool:
+        """The built-in cell (one unidirectional layer with biases, this class's own
+        ``step_encoded``, a Linear ``out`` with bias): then :meth:`step_from_gates` is
+        ``step_encoded`` bit for bit on CPU."""
+        return (type(self).step_encoded is GRUState.step_encoded and supports_packed(self.gru)
+                and isinstance(self.out, nn.Linear) and self.out.bias is not None)
+
+    def input_gates(self, g: torch.Tensor) -> torch.Tensor:
+        return F.linear(g, self.gru.weight_ih_l0, self.gru.bias_ih_l0)
+
+    def step_from_gates(self, gates: torch.Tensor, hidden: torch.Tensor, *, from_zero: bool,
+                        buffer: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        gru = self.gru
+        n, width = hidden.shape
+        i_r, i_z, i_n = gates.chunk(3, -1)  # updated in place below
+        if from_zero:  # h = 0: W_hh h + b_hh is b_hh exactly, skip the product
+            h_r, h_z, h_n = gru.bias_hh_l0.chunk(3)
+        else:  # addmm is what F.linear runs; out= only reuses the memory
+            gh = torch.addmm(gru.bias_hh_l0, hidden, gru.weight_hh_l0.t(), out=buffer("gh", n, 3 * width))
+            h_r, h_z, h_n = gh.chunk(3, -1)
+        # ATen's CPU GRU cell, operation for operation and on the same (N, 3H) row layout:
+        # sigmoid and tanh round differently in their vectorised and scalar loops, so other
+        # layouts (e.g. contiguous (N, H) copies) can change the last bit of h_t
+        r = i_r.add_(h_r).sigmoid_()
+        z = i_z.add_(h_z).sigmoid_()
+        cand = torch.add(i_n, torch.mul(h_n, r, out=buffer("h_n r", n, width)), out=buffer("cand", n, width)).tanh_()
+        h = (hidden - cand).mul_(z).add_(cand)  # a fresh tensor: it becomes the stored memory
+        s = torch.addmm(self.out.bias, h, self.out.weight.t(), out=buffer("s", n, self.out.weight.shape[0]))
+        return s.relu_(), h
 
 
 def build_gru(
