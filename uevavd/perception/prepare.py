@@ -268,7 +268,7 @@ def _scene_arrays(recs, features, probs, image_hw) -> dict[str, np.ndarray]:
 
 
 @dataclass
-class Plan:
+class TablePlan:
     """Everything a table build needs, and its key (see :func:`plan_table`)."""
 
     spec: MethodSpec
@@ -289,7 +289,7 @@ def plan_table(
     *,
     classifier_path: str | os.PathLike[str] | None = None,
     overrides: Mapping[str, Any] | None = None,
-) -> Plan:
+) -> TablePlan:
     """Read the dataset, build the components and compute the table key (no images decoded)."""
     from ..data.reader import read_dataset
 
@@ -321,7 +321,7 @@ def plan_table(
         "encoder": encoder.identity(),
         "classifier": classifier.identity(),
     }
-    return Plan(spec, data_root, manifest, scenes, segmenter, encoder, classifier, gray_seed, parts,
+    return TablePlan(spec, data_root, manifest, scenes, segmenter, encoder, classifier, gray_seed, parts,
                 table_key(parts))
 
 

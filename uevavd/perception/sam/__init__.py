@@ -55,7 +55,7 @@ def build_sam_segmenter(
         if not path.is_file():
             raise CheckpointError(
                 f"no SAM checkpoint given and no small SAM at {path}; run `uevavd train-sam-small DATA` "
-                "(DATA: a synthetic world, e.g. from `uevavd world`) or set [perception.segmenter] "
+                "(DATA: a synthetic world, e.g. from `uevavd synth`) or set [perception.segmenter] "
                 "checkpoint = \"/path/to/sam_vit_b_01ec64.pth\"")
     else:
         path = os.path.expanduser(checkpoint)

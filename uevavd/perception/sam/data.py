@@ -116,7 +116,7 @@ def load_views(manifest, *, contexts: Sequence[int], per_context: int, seed: int
         chosen += [recs[i] for i in sorted(take)]
     if not chosen:
         raise ValueError(f"{manifest.root}: no views with ground-truth segmentation (seg/*.png) in contexts "
-                         f"{list(contexts)}; expected a synthetic world (uevavd world) or data with instance maps")
+                         f"{list(contexts)}; expected a synthetic world (uevavd synth) or data with instance maps")
     cats = {s: manifest.categories(s) or {} for s in by_scene}
     images = np.stack([_read_rgb(r.image) for r in chosen])
     seg = np.stack([_read_seg(r.seg) for r in chosen])
