@@ -32,7 +32,8 @@ def add_ablate(parser: argparse.ArgumentParser):
                         help="recognizers (seeds of the classifier, each with its own tables) crossed with the "
                              "seeds (default: the preset's)")
     parser.add_argument("--sweep", action="append", default=None, metavar="KEY=V1,V2,...",
-                        help="sweep a reward setting, e.g. --sweep thre=0.2,0.4,0.6,0.8 --sweep C=0,0.02,0.04,0.06")
+                        help="sweep one key from the default: thre, C (the paper's) or any dotted key of a method's "
+                             "env/train/state/head section, e.g. --sweep thre=0.2,0.4,0.6,0.8 --sweep env.xi2=0.05,0.2")
     parser.add_argument("--sweep-methods", nargs="+", default=None, metavar="METHOD",
                         help="methods the sweeps run on (default: the last of --methods)")
     parser.add_argument("--episodes", type=int, default=None, help="training episodes per run (default: the preset's)")

@@ -10,13 +10,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import ConfigError, known_methods, load_method
+from ..config import ConfigError, known_methods, load_method, parse_override
 from ..env.config import EnvConfig
 from ..perception.train import TrainSettings
 from ..presets import load_preset
 
 #: The paper's default reward settings; sweeps vary one of them.
 DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
+#: The paper's two sweeps, by their short names; any other dotted key of a method (env.*,
+#: train.*, state.*, head.*; not perception.*, which would need other tables) sweeps too.
 SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
 
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
@@ -78,16 +80,23 @@ class Plan:
     #: (same train_605 images, same settings; :meth:`uevavd.zoo.Zoo.recognizer_for`)
     use_zoo: bool = True
 
-    def settings(self, method: str) -> list[tuple[str, dict[str, float]]]:
-        """(name, {thre, C}) of each setting this method runs: "default" plus its sweeps."""
+    def settings(self, method: str) -> list[tuple[str, dict[str, Any]]]:
+        """(name, {thre, C[, swept key]}) of each setting this method runs: "default" plus its
+        sweeps (one key varied at a time from the default)."""
         out = [("default", dict(DEFAULT_SETTING))]
         if method in self.sweep_methods:
+            spec = load_method(method, overrides=dict(self.preset.get("overrides", {}))) if self.extra_sweeps else None
             for key, values in self.sweeps.items():
                 for v in values:
-                    s = dict(DEFAULT_SETTING, **{key: float(v)})
-                    if s != DEFAULT_SETTING:
-                        out.append((f"{key}={v:g}", s))
+                    s = dict(DEFAULT_SETTING, **{key: v})
+                    if s != DEFAULT_SETTING and (key in SWEEPABLE or v != resolved_value(spec, key)):
+                        out.append((f"{key}={v:g}" if isinstance(v, int | float) else f"{key}={v}", s))
         return out
+
+    @property
+    def extra_sweeps(self) -> list[str]:
+        """Swept dotted keys besides the paper's thre and C: each is a column of the results."""
+        return [k for k in self.sweeps if k not in SWEEPABLE]
 
     def all_settings(self) -> list[tuple[str, dict[str, float]]]:
         seen: dict[str, dict[str, float]] = {}
@@ -103,20 +112,36 @@ class Plan:
                 "workers": self.workers}
 
 
-def parse_sweeps(items: Sequence[str] | None) -> dict[str, list[float]]:
-    """``["thre=0.2,0.4", "C=0,0.02"]`` -> ``{"thre": [0.2, 0.4], "C": [0.0, 0.02]}``."""
-    sweeps: dict[str, list[float]] = {}
+def resolved_value(spec: Any, key: str) -> Any:
+    """The value dotted ``key`` has in a resolved spec: the file's, else EnvConfig's or
+    TrainConfig's default for env.* and train.* keys (None for a builder argument left unset)."""
+    section, _, field_name = key.partition(".")
+    if section == "env":
+        return getattr(spec.env, field_name, None)
+    if section == "train":
+        return getattr(spec.train_config(), field_name, None)
+    return spec.get(key)
+
+
+def parse_sweeps(items: Sequence[str] | None) -> dict[str, list[Any]]:
+    """``["thre=0.2,0.4", "env.xi2=0.05,0.2"]`` -> ``{"thre": [0.2, 0.4], "env.xi2": [0.05, 0.2]}``.
+    thre and C are numbers; a dotted key's values are read like ``--set`` values (TOML:
+    ``train.batch_size=32,128`` gives integers). Keys are checked by :func:`make_plan`."""
+    sweeps: dict[str, list[Any]] = {}
     for item in items or []:
         key, sep, values = item.partition("=")
         key = key.strip()
-        if not sep or key not in SWEEPABLE:
-            raise AblationError(
-                f"--sweep {item!r}: expected KEY=V1,V2,... with KEY one of {sorted(SWEEPABLE)}"
-            )
-        try:
-            sweeps[key] = [float(v) for v in values.split(",") if v.strip()]
-        except ValueError:
-            raise AblationError(f"--sweep {item!r}: values must be numbers separated by commas") from None
+        if not sep or not key:
+            raise AblationError(f"--sweep {item!r}: expected KEY=V1,V2,... with KEY thre, C or a method's dotted key "
+                                "(e.g. env.xi2, train.lr)")
+        raw = [v.strip() for v in values.split(",") if v.strip()]
+        if key in SWEEPABLE:
+            try:
+                sweeps[key] = [float(v) for v in raw]
+            except ValueError:
+                raise AblationError(f"--sweep {item!r}: values must be numbers separated by commas") from None
+        else:
+            sweeps[key] = [parse_override(f"{key}={v}")[1] for v in raw]
         if not sweeps[key]:
             raise AblationError(f"--sweep {item!r}: no values")
     return sweeps
@@ -168,9 +193,18 @@ def make_plan(
     if n_rec < 1:
         raise AblationError(f"--recognizers {n_rec}: expected at least 1")
     sweeps = dict(sweeps if sweeps is not None else {k: list(v) for k, v in abl.get("sweeps", {}).items()})
-    for key in sweeps:
-        if key not in SWEEPABLE:
-            raise AblationError(f"sweep over {key!r}: accepted keys are {sorted(SWEEPABLE)}")
+    for key, values in sweeps.items():
+        if key in SWEEPABLE:
+            continue
+        if key.split(".", 1)[0] not in ("env", "train", "state", "head") or "." not in key:
+            raise AblationError(f"sweep over {key!r}: expected thre, C or a dotted key of a method's env, train, state "
+                                "or head section (perception keys would need other tables: run another ablation)")
+        for m in methods:
+            for v in values:
+                try:
+                    load_method(m, overrides={**dict(cfg.get("overrides", {})), key: v})
+                except ConfigError as exc:
+                    raise AblationError(f"--sweep {key}={v!r} for method {m!r}: {exc}") from None
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
         sweep_methods = [m for m in abl.get("sweep_methods", [methods[-1]]) if m in methods]
     sweep_methods = list(sweep_methods)
@@ -224,7 +258,7 @@ def default_workers() -> int:
 
 def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
     over = dict(plan.preset.get("overrides", {}))
-    over.update({SWEEPABLE[k]: v for k, v in setting.items()})
+    over.update({SWEEPABLE.get(k, k): v for k, v in setting.items()})
     if plan.episodes is not None:
         over["train.episodes"] = int(plan.episodes)
     return over

@@ -15,7 +15,16 @@ from .audit import audit_table, classifier_summary
 from .backends import run_jobs
 from .io import atomic_write_text, write_csv
 from .jobs import Job, plan_jobs, run_job
-from .plan import DEFAULT_SETTING, AblationError, ConfigError, Plan, make_plan, method_overrides, parse_sweeps
+from .plan import (
+    DEFAULT_SETTING,
+    AblationError,
+    ConfigError,
+    Plan,
+    make_plan,
+    method_overrides,
+    parse_sweeps,
+    resolved_value,
+)
 from .references import sb3_rows
 from .report import write_report
 from .results import (
@@ -82,6 +91,22 @@ def write_meta(plan: Plan, data: Path | None, status: str) -> None:
     atomic_write_text(plan.out / "ablation.json", json.dumps(meta, indent=1, default=str))
 
 
+def _with_swept_columns(plan: Plan, rows: list[dict]) -> tuple[list[dict], list[str]]:
+    """The rows and columns of ``results.csv``: :data:`RESULT_COLUMNS` plus, after C, one
+    column per swept dotted key, holding each row's resolved value (the method's own where
+    its setting does not vary the key)."""
+    extra = plan.extra_sweeps
+    if not extra:
+        return rows, RESULT_COLUMNS
+    resolved = {m: load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)) for m in plan.methods}
+    first = resolved[plan.methods[0]]
+    defaults = {m: {k: resolved_value(resolved.get(m) or first, k) for k in extra}
+                for m in {*resolved, *(r["method"] for r in rows)}}
+    rows = [{**defaults[r["method"]], **r} for r in rows]
+    at = RESULT_COLUMNS.index("C") + 1
+    return rows, [*RESULT_COLUMNS[:at], *extra, *RESULT_COLUMNS[at:]]
+
+
 def run_ablation(plan: Plan, *, log=print) -> Path:
     """Run (or resume) the whole ablation; returns the results file."""
     check_out_dir(plan)
@@ -114,7 +139,6 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
         base_rows, base_ctx = baseline_rows(plan, first_tables, splits, log)
         rows += base_rows
         if plan.sb3:
-
             ref_rows, ref_ctx = sb3_rows(plan, jobs, first_tables, splits, log)
             rows += ref_rows
             base_ctx += ref_ctx
@@ -124,7 +148,7 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
         audit = {str(r): {"classifier": classifier_summary(classifiers[r]),
                           "splits": audit_table(tables[r][plan.methods[0]], terrains)} for r in plan.recognizers}
         atomic_write_text(plan.out / "recognizer_audit.json", json.dumps(audit, indent=1))
-        results = write_csv(plan.out / "results.csv", rows, RESULT_COLUMNS)
+        results = write_csv(plan.out / "results.csv", *_with_swept_columns(plan, rows))
         write_csv(plan.out / "contexts.csv", ctx_rows, CONTEXT_COLUMNS)
         traj = trajectory_rows(plan, jobs, tables[plan.recognizers[0]])
         atomic_write_text(plan.out / "trajectories.json", json.dumps(traj, indent=1))
