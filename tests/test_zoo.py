@@ -26,10 +26,12 @@ def test_shipped_zoo_matches_the_world_generator_the_preset_and_the_methods():
 
 
 def test_pretrained_policy_reproduces_its_published_numbers_on_a_fresh_context(tmp_path, monkeypatch):
+    import uevavd
+
     monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
     zoo = Zoo.load("quick")
-    frame, published, per_context = evaluate_pretrained("map", "hard", contexts=[26], workers=1, progress=False,
-                                                        baselines=False)
+    frame, published, per_context = uevavd.evaluate_pretrained("map", "hard", contexts=[26], workers=1,
+                                                               progress=False, baselines=False)
     # the world was rendered here, byte for byte the one the zoo was trained and evaluated on
     scene = next((tmp_path / "cache" / "worlds").glob("quick-*-26")) / "026" / "scene.json"
     assert scene_digest(scene) == zoo.manifest["world"]["scenes"]["026"]

@@ -2,7 +2,9 @@
 
 The package is layered (each layer imports only the ones before it)::
 
-    data -> perception -> env -> state -> policy -> experiments
+    data -> perception -> table -> env -> state -> policy -> experiments
+
+(see docs/architecture.md)
 
 Importing ``uevavd`` is cheap: nothing heavy (torch, plugins) loads until used.
 """
@@ -14,12 +16,20 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 #: The researcher's API (:mod:`uevavd.api`), importable from the top level.
-API = ("train_classifier", "build_table", "train", "load_run", "Run", "load_policy_file")
+API = ("train_classifier", "build_table", "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained")
 __all__ = ["__version__", "load_method", "load_preset", "MethodSpec", "registry", "train_classifier", "build_table",
-           "train", "load_run", "Run", "load_policy_file"]
+           "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained"]
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .api import Run, build_table, load_policy_file, load_run, train, train_classifier
+    from .api import (
+        Run,
+        build_table,
+        evaluate_pretrained,
+        load_policy_file,
+        load_run,
+        train,
+        train_classifier,
+    )
     from .config import MethodSpec, load_method
     from .plugins.manager import registry
     from .presets import load_preset

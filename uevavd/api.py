@@ -138,6 +138,15 @@ class Run:
                                 self.settings)
 
 
+def evaluate_pretrained(method: str, split: str = "hard", **kwargs: Any):
+    """The model zoo's ``method`` policy evaluated on ``split`` of the quick world, beside the
+    baselines, as ``uevavd evaluate --pretrained`` does: ``(DataFrame, published numbers,
+    per-context DataFrame)``. See :func:`uevavd.zoo.evaluate_pretrained` for the options."""
+    from .zoo import evaluate_pretrained as _evaluate_pretrained
+
+    return _evaluate_pretrained(method, split, **kwargs)
+
+
 def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, method: str | None = None,
                      device: str = "cpu"):
     """A policy saved by :meth:`Run.save_policy` (or shipped in the model zoo):

@@ -65,7 +65,7 @@ def perception_summary(plan: Plan) -> dict[str, str]:
     perception every method used."""
     out = {}
     for m in plan.methods:
-        p = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)).to_dict().get("perception", {})
+        p = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)).perception.as_dict()
         enc, seg, clf = p.get("encoder", {}), p.get("segmenter", {}), p.get("classifier", {})
         out[m] = (f"encoder {enc.get('name')} ({enc.get('weights', 'default weights')}), segmenter "
                   f"{seg.get('name')}{', decomposed' if p.get('decompose') else ''}, recognizer {clf.get('name')}")
