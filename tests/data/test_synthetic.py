@@ -281,7 +281,7 @@ def test_hard_split_holds_both_terrains_and_the_others_are_urban():
 
 
 def test_shifted_urban_ranges_lie_outside_the_training_ranges():
-    from uevavd.data.synthetic.world import URBAN_RANGES
+    from uevavd.data.synthetic.scenes import URBAN_RANGES
 
     train, shifted = URBAN_RANGES["training"], URBAN_RANGES["shifted"]
     assert shifted["road_w"][1] <= train["road_w"][0]  # narrower streets

@@ -26,7 +26,7 @@ import numpy as np
 from ..grid import N_VIEWS, view_coords
 from .geometry import M_CABIN, M_CANOPY, M_FACADE
 from .ground import lookup
-from .world import TARGET_ID, Scene
+from .scenes import TARGET_ID, Scene
 
 _INF = np.inf
 
