@@ -72,7 +72,7 @@ def train(method: Any, table: Any, *, out: str | os.PathLike[str], episodes: int
 
 def load_run(path: str | os.PathLike[str]) -> Run:
     """A finished (or paused) run directory."""
-    from .policy.trainer import read_settings
+    from .policy.rundir import read_settings
 
     read_settings(path)  # a clear error when it is not a run
     return Run(Path(path))
@@ -86,7 +86,7 @@ class Run:
 
     @cached_property
     def settings(self) -> dict[str, Any]:
-        from .policy.trainer import read_settings
+        from .policy.rundir import read_settings
 
         return read_settings(self.path)
 

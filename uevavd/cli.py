@@ -13,7 +13,7 @@ import sys
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("uevavd.experiments.cli:add_demo", "the quick preset end to end on the synthetic world"),
     "ablate": ("uevavd.experiments.cli:add_ablate", "compare methods over seeds and reward sweeps; writes results and a report"),
-    "report": ("uevavd.experiments.report:add_report", "(re)write DIR/report/report.md, figures and claims from an ablation's files"),
+    "report": ("uevavd.experiments.cli:add_report", "(re)write DIR/report/report.md, figures and claims from an ablation's files"),
     "synth": ("uevavd.data.synthetic.cli:add_synth", "generate the synthetic UEVAVD world (resumable)"),
     "validate": ("uevavd.data.validate:add_validate", "check a dataset root: names, annotations, views, images; exit 1 on problems"),
     "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the ResNet18 recognizer on train_605"),

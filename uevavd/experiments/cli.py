@@ -113,3 +113,23 @@ def run_demo(args: argparse.Namespace) -> int:
     print(f"\ndemo finished in {time.perf_counter() - t0:.0f} s ({stages}) on {os.cpu_count()} cores")
     print(f"results: {results}\nreport:  {results.parent / 'report' / 'report.md'}")
     return 0
+
+
+def add_report(parser: argparse.ArgumentParser):
+    """``uevavd report DIR``: (re)write DIR/report/report.md from the ablation's files."""
+    parser.add_argument("dir", type=Path, metavar="DIR", help="ablation directory holding results.csv")
+    parser.add_argument("--window", type=int, default=None,
+                        help="sliding-window length (evaluation points) for the curves; default min(5, points/3)")
+
+    def handler(args: argparse.Namespace) -> int:
+        from .claims import check_claims
+        from .report import write_report
+        from .report_data import load_results
+
+        path = write_report(args.dir, window=args.window)
+        print(path)
+        for c in check_claims(load_results(args.dir / "results.csv")):
+            print(f"({c.id}) {c.verdict}: {c.text}")
+        return 0
+
+    return handler

@@ -17,7 +17,6 @@ Outputs in ``DIR/report/``: ``report.md`` (GitHub-readable, relative image links
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from pathlib import Path
@@ -52,7 +51,7 @@ from .report_data import (
 from .stats import Estimate
 from .strips import load_trajectories, strip_images
 
-__all__ = ["Claim", "check_claims", "write_report", "summary_table", "add_report"]
+__all__ = ["Claim", "check_claims", "write_report", "summary_table"]
 
 REPORT_DIR = "report"
 #: Metrics of the results table: (column, header, digits).
@@ -390,18 +389,3 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     _atomic_write(path, "\n".join(lines))
     return path
 
-
-def add_report(parser: argparse.ArgumentParser):
-    """``uevavd report DIR``: (re)write DIR/report/report.md from the ablation's files."""
-    parser.add_argument("dir", type=Path, metavar="DIR", help="ablation directory holding results.csv")
-    parser.add_argument("--window", type=int, default=None,
-                        help="sliding-window length (evaluation points) for the curves; default min(5, points/3)")
-
-    def handler(args: argparse.Namespace) -> int:
-        path = write_report(args.dir, window=args.window)
-        print(path)
-        for c in check_claims(load_results(args.dir / "results.csv")):
-            print(f"({c.id}) {c.verdict}: {c.text}")
-        return 0
-
-    return handler

@@ -15,8 +15,7 @@ from ..env.baselines import baseline_entries
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
 from ..policy.agent import load_policy
-from ..policy.rundir import RunDir
-from ..policy.trainer import read_settings
+from ..policy.rundir import RunDir, read_settings
 from ..table import ObservationTable
 from .io import atomic_write_text
 from .plan import AblationError, Plan, env_config

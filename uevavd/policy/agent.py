@@ -24,7 +24,7 @@ from ..state.base import InputGateCache
 from . import targets as T
 from .network import QNetwork
 from .replay import EpisodeBatch
-from .rundir import RunDir
+from .rundir import RunDir, read_settings, resolve_spec
 
 
 class TableLookup:
@@ -342,7 +342,6 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
     ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
     its actions are the same either way."""
     from .checkpoint import ARCH_KEYS, load_checkpoint, load_net_state
-    from .trainer import read_settings, resolve_spec
 
     run_dir = Path(run_dir)
     settings = read_settings(run_dir)

@@ -63,7 +63,8 @@ def add_train(p: argparse.ArgumentParser):
 
     def run(args: argparse.Namespace) -> int:
         from ..config import ConfigError, load_method, parse_override
-        from .trainer import RunDirError, train
+        from .rundir import RunDirError
+        from .trainer import train
 
         try:
             overrides = dict(parse_override(s) for s in args.set)
@@ -149,7 +150,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from ..env.config import EnvConfig
     from ..env.evaluate import evaluate_policy
     from .agent import load_policy
-    from .trainer import read_settings
+    from .rundir import read_settings
 
     if not RunDir(args.run_dir).settings.is_file():
         return _error("evaluate", f"{args.run_dir} is not a training run (no settings.json)")

@@ -15,9 +15,13 @@
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
+
+from ..config import MethodSpec, load_method
 
 
 @dataclass(frozen=True)
@@ -64,3 +68,55 @@ class RunDir:
     @property
     def finished(self) -> bool:
         return self.done.is_file()
+
+
+#: Settings whose change makes a run directory another run (device and progress may change).
+RUN_KEYS = ("method", "spec_hash", "table_key", "seed", "train", "env", "feature_dim")
+
+
+class RunDirError(ValueError):
+    """A run directory holds another configuration, or is not a run directory."""
+
+
+def read_settings(run_dir: str | Path) -> dict[str, Any]:
+    """A run's ``settings.json``; a missing, unreadable or damaged file is an error naming it."""
+    path = RunDir(run_dir).settings
+    if not path.is_file():
+        raise FileNotFoundError(f"{run_dir} is not a training run: no settings.json (train one with `uevavd train`)")
+    try:
+        settings = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RunDirError(f"{path}: unreadable ({exc}); the run directory is damaged: train it again "
+                          "into a new --out") from None
+    if not isinstance(settings, dict) or "env" not in settings:
+        raise RunDirError(f"{path}: not a uevavd run's settings (no env section); train it again into a new --out")
+    return settings
+
+
+def resolve_spec(run_dir: str | Path) -> MethodSpec:
+    """The method spec saved in a run directory."""
+    path = RunDir(run_dir).method
+    if not path.is_file():
+        raise RunDirError(f"{run_dir} is not a training run: no method.toml")
+    return load_method(path)
+
+
+def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
+    path = RunDir(out).settings
+    if not path.is_file():
+        if out.exists() and any(p != RunDir(out).tensorboard for p in out.iterdir()):
+            raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
+        return
+    old = json.loads(path.read_text(encoding="utf-8"))
+    diffs = []
+    for k in RUN_KEYS:
+        if old.get(k) != settings.get(k):
+            if isinstance(old.get(k), dict) and isinstance(settings.get(k), dict):
+                for kk in sorted(set(old[k]) | set(settings[k])):
+                    if old[k].get(kk) != settings[k].get(kk):
+                        diffs.append(f"{k}.{kk}: run has {old[k].get(kk)!r}, now {settings[k].get(kk)!r}")
+            else:
+                diffs.append(f"{k}: run has {old.get(k)!r}, now {settings.get(k)!r}")
+    if diffs:
+        raise RunDirError(f"{out} holds a run of another configuration ({'; '.join(diffs)}); "
+                          "use another --out, or the same settings to resume it")

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_write
-from ..config import MethodSpec, load_method
+from ..config import MethodSpec
 from ..env.config import EnvConfig
 from .agent import GreedyPolicy, Learner, TableLookup, epsilon_greedy
 from .checkpoint import (
@@ -36,17 +36,11 @@ from .checkpoint import (
 from .config import TrainConfig
 from .network import build_network
 from .replay import EpisodeReplay
-from .rundir import RunDir
+from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, resolve_spec
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
 
-#: Settings whose change makes a run directory another run (device and progress may change).
-RUN_KEYS = ("method", "spec_hash", "table_key", "seed", "train", "env", "feature_dim")
-
-
-class RunDirError(ValueError):
-    """A run directory holds another configuration, or is not a run directory."""
 
 
 def resolve_device(device: str) -> torch.device:
@@ -55,29 +49,6 @@ def resolve_device(device: str) -> torch.device:
     from ..perception.nets import resolve_device as _resolve
 
     return _resolve(device)
-
-
-def read_settings(run_dir: str | Path) -> dict[str, Any]:
-    """A run's ``settings.json``; a missing, unreadable or damaged file is an error naming it."""
-    path = RunDir(run_dir).settings
-    if not path.is_file():
-        raise FileNotFoundError(f"{run_dir} is not a training run: no settings.json (train one with `uevavd train`)")
-    try:
-        settings = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise RunDirError(f"{path}: unreadable ({exc}); the run directory is damaged: train it again "
-                          "into a new --out") from None
-    if not isinstance(settings, dict) or "env" not in settings:
-        raise RunDirError(f"{path}: not a uevavd run's settings (no env section); train it again into a new --out")
-    return settings
-
-
-def resolve_spec(run_dir: str | Path) -> MethodSpec:
-    """The method spec saved in a run directory."""
-    path = RunDir(run_dir).method
-    if not path.is_file():
-        raise RunDirError(f"{run_dir} is not a training run: no method.toml")
-    return load_method(path)
 
 
 def apply_overrides(spec: MethodSpec, overrides: dict[str, Any] | None) -> MethodSpec:
@@ -123,27 +94,6 @@ def check_table_perception(spec: MethodSpec, table: Any) -> None:
         raise RunDirError(f"table {table.path or table.key} was built for another perception config than method "
                           f"{spec.name!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA --method "
                           f"{spec.name}` (with the same --set overrides) and pass that one")
-
-
-def _check_run_dir(out: Path, settings: dict[str, Any]) -> None:
-    path = RunDir(out).settings
-    if not path.is_file():
-        if out.exists() and any(p != RunDir(out).tensorboard for p in out.iterdir()):
-            raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
-        return
-    old = json.loads(path.read_text(encoding="utf-8"))
-    diffs = []
-    for k in RUN_KEYS:
-        if old.get(k) != settings.get(k):
-            if isinstance(old.get(k), dict) and isinstance(settings.get(k), dict):
-                for kk in sorted(set(old[k]) | set(settings[k])):
-                    if old[k].get(kk) != settings[k].get(kk):
-                        diffs.append(f"{k}.{kk}: run has {old[k].get(kk)!r}, now {settings[k].get(kk)!r}")
-            else:
-                diffs.append(f"{k}: run has {old.get(k)!r}, now {settings.get(k)!r}")
-    if diffs:
-        raise RunDirError(f"{out} holds a run of another configuration ({'; '.join(diffs)}); "
-                          "use another --out, or the same settings to resume it")
 
 
 class _Evaluator:
@@ -219,7 +169,7 @@ def train(
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     settings["threads"] = torch.get_num_threads()  # results depend on it: recorded, checked on resume
-    _check_run_dir(out, settings)
+    check_run_dir(out, settings)
     if RunDir(out).finished:
         return out
     for stale in out.glob(".*.tmp") if out.is_dir() else ():
@@ -402,4 +352,4 @@ def _log_settings(writer: Any, settings: dict[str, Any]) -> None:
         writer._get_file_writer().add_summary(summary)  # in this run's event file (add_hparams opens another)
 
 
-__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "resolve_spec", "apply_overrides"]
+__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "RUN_KEYS", "read_settings", "resolve_spec", "apply_overrides"]
