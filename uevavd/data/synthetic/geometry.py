@@ -18,7 +18,7 @@ import numpy as np
 MAX_PLANES = 8
 MAX_VERTS = 12
 
-# Materials: how the renderer textures a surface (see render._shade).
+# Materials: how the renderer textures a surface (see shading._shade).
 M_FLAT = 0  # the primitive's colour, no pattern
 M_PAINT = 1  # car paint
 M_CABIN = 2  # car cabin: painted roof, glass sides
