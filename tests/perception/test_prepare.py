@@ -294,7 +294,8 @@ def test_gt_segmenter_without_categories_is_refused(tiny_classifier, tmp_path, m
 def test_ray_backend_builds_the_same_table(world_605, tiny_classifier, tmp_path):
     """Scenes sharded over Ray tasks (a local 2-CPU instance) give the local build's table."""
     ray = pytest.importorskip("ray")
-    from uevavd.perception.prepare import prepare_table, prepare_table_ray
+    from uevavd.perception.prepare import prepare_table
+    from uevavd.perception.prepare_ray import prepare_table_ray
     from uevavd.table import ObservationTable
     from uevavd.testing.worlds import write_tiny_world
 

@@ -14,7 +14,8 @@ from ..data.synthetic import write_world
 from ..data.synthetic.quality import format_rows, read_visible, split_rows
 from ..hashing import json_digest
 from ..perception.classifier import classifier_cache_path, data_hash, train_records
-from ..perception.prepare import prepare_table, prepare_table_ray
+from ..perception.prepare import prepare_table
+from ..perception.prepare_ray import prepare_table_ray
 from ..perception.train import TrainSettings, train_classifier
 from ..presets import world_contexts, world_root
 from ..zoo import Zoo

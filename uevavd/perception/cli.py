@@ -81,7 +81,7 @@ def add_prepare(p: argparse.ArgumentParser):
         _logging()
         overrides = dict(parse_override(s) for s in args.overrides)
         if args.backend == "ray":
-            from .prepare import prepare_table_ray
+            from .prepare_ray import prepare_table_ray
 
             path = prepare_table_ray(args.data, args.method, classifier_path=args.classifier,
                                      overrides=overrides or None, out_dir=args.out, shards=args.shards)

@@ -29,7 +29,6 @@ from typing import Any
 import numpy as np
 from filelock import FileLock
 
-from ..atomic import atomic_write
 from ..config import MethodSpec, load_method
 from ..data.grid import N_VIEWS
 from ..data.splits import TARGETS
@@ -37,9 +36,17 @@ from ..paths import tables_dir
 from ..table import SCHEMA_VERSION, ObservationTable, TableError
 from .decompose import decompose, view_seed
 from .images import Decoder
+from .shards import (
+    SHARD_ARRAYS,
+    _cached_array,
+    _cached_probs,
+    _features_dir,
+    _read_shard,
+    _save_array,
+    _write_shard,
+)
 
 log = logging.getLogger(__name__)
-SHARD_ARRAYS = ("features", "probs", "boxes", "visible")
 
 
 def resolve_spec(spec_or_method: MethodSpec | str | os.PathLike[str],
@@ -135,27 +142,6 @@ def table_key(parts: Mapping[str, Any]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
-def _write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    atomic_write(path, lambda fh: np.savez(fh, **arrays), fsync=True)
-
-
-def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.ndarray] | None:
-    """A complete shard's arrays, or None when it is absent or unusable (then redone)."""
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in SHARD_ARRAYS}
-    except Exception:  # noqa: BLE001 - anything unreadable is redone
-        log.warning("prepare: shard %s unreadable; recomputing it", path)
-        return None
-    expected = {"features": (N_VIEWS, feature_dim), "probs": (N_VIEWS, n_classes),
-                "boxes": (N_VIEWS, 4), "visible": (N_VIEWS,)}
-    if any(arrays[k].shape != s for k, s in expected.items()):
-        return None
-    return arrays
-
-
 def ground_truth_categories(manifest, scene: str, recs: list) -> dict[int, str]:
     """The scene's instance id -> category table for a ground-truth segmenter; an error
     naming the file when the scene's segmentation cannot serve it
@@ -191,34 +177,6 @@ def _probs_path(probs_dir: Path | None, manifest, scene: str, recs: list) -> Pat
     if probs_dir is None:
         return None
     return probs_dir / f"{scene}-{dataset_fingerprint(manifest, [(scene, recs)])}.npy"
-
-
-def _features_dir(out_dir: Path, parts: Mapping[str, Any]) -> Path:
-    """Where encoder features of scenes are cached: keyed by everything that makes them
-    (segmenter, decomposition, gray seed, encoder; not the classifier), so the tables of
-    several recognizers over the same views encode each view once."""
-    keep = {k: parts[k] for k in ("schema_version", "segmenter", "decompose", "gray_seed", "encoder")}
-    return out_dir / "features" / hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def _cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarray | None:
-    if path is None or not path.is_file():
-        return None
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except Exception:  # noqa: BLE001 - unreadable: recomputed
-        return None
-    ok = arr.shape == shape and arr.dtype == dtype and bool(np.isfinite(arr).all())
-    return arr if ok else None
-
-
-def _cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
-    return _cached_array(path, (N_VIEWS, n_classes), np.float32)
-
-
-def _save_array(path: Path, array: np.ndarray) -> None:
-    """``np.save`` written atomically (temp file, then rename)."""
-    atomic_write(path, lambda fh: np.save(fh, array))
 
 
 def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw,
@@ -419,83 +377,3 @@ def prepare_table(
         table.save(final)
         shutil.rmtree(partial, ignore_errors=True)
         return final
-
-
-def _prepare_shards(data_root: str, spec_path: str, classifier_path: str | None, out_dir: str,
-                    scenes: list[str], threads: int) -> list[str]:
-    """A Ray task: the shards of ``scenes``, written into the shared ``<key>.partial`` folder."""
-    import torch
-
-    torch.set_num_threads(max(1, threads))
-    prepare_table(data_root, spec_path, classifier_path=classifier_path, out_dir=out_dir, workers=1,
-                  progress=False, only_scenes=scenes, assemble=False)
-    return scenes
-
-
-def prepare_table_ray(
-    data_root: str | os.PathLike[str],
-    spec_or_method: MethodSpec | str | os.PathLike[str],
-    *,
-    classifier_path: str | os.PathLike[str] | None = None,
-    overrides: Mapping[str, Any] | None = None,
-    out_dir: str | os.PathLike[str] | None = None,
-    shards: int | None = None,
-    cpus_per_task: float = 1.0,
-    gpus_per_task: float = 0.0,
-    address: str | None = None,
-    progress: bool = True,
-) -> Path:
-    """:func:`prepare_table` with the image -> shard work spread over Ray tasks.
-
-    The scenes still missing are split into ``shards`` groups (default: the cluster's CPUs
-    divided by ``cpus_per_task``); each task builds the perception components itself and
-    writes its scenes' shards into ``<out_dir>/<key>.partial``, which every worker must
-    reach (a shared file system on a cluster). The driver then assembles the table exactly
-    as the local build does, so both give the same table under the same key. A failed task
-    is retried; scenes already written are not recomputed.
-    """
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError("--backend ray needs Ray: pip install 'uevavd[ray]'") from None
-    from tqdm.auto import tqdm
-
-    p = plan_table(data_root, spec_or_method, classifier_path=classifier_path, overrides=overrides)
-    out_dir = Path(out_dir).expanduser().resolve() if out_dir is not None else tables_dir()
-    final = out_dir / p.key
-    if final.is_dir():
-        try:
-            ObservationTable.load(final, expect_key=p.key)
-            return final
-        except TableError:
-            pass
-    partial = out_dir / f"{p.key}.partial"
-    partial.mkdir(parents=True, exist_ok=True)
-    spec_path = partial / "method.toml"  # the resolved spec, so every task builds the same components
-    p.spec.save(spec_path)
-    k = len(TARGETS)
-    todo = [s for s, _ in p.scenes if _read_shard(partial / f"{s}.npz", p.encoder.feature_dim, k) is None]
-    del p  # the driver's models are not needed while the tasks run
-    if todo:
-        started = not ray.is_initialized()
-        if started:
-            ray.init(address=address, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
-        try:
-            cpus = float(ray.cluster_resources().get("CPU", 1.0))
-            n = max(1, min(len(todo), shards or int(cpus // max(cpus_per_task, 1e-9)) or 1))
-            groups = [todo[i::n] for i in range(n)]
-            task = ray.remote(num_cpus=cpus_per_task, num_gpus=gpus_per_task, max_retries=3,
-                              retry_exceptions=True)(_prepare_shards)
-            refs = [task.remote(str(Path(data_root).expanduser().resolve()), str(spec_path),
-                                None if classifier_path is None else str(classifier_path), str(out_dir), g,
-                                max(1, int(cpus_per_task))) for g in groups]
-            with tqdm(total=len(todo) * N_VIEWS, desc="prepare (ray)", unit="view", disable=not progress) as bar:
-                pending = list(refs)
-                while pending:
-                    ready, pending = ray.wait(pending, num_returns=1)
-                    bar.update(len(ray.get(ready[0])) * N_VIEWS)
-        finally:
-            if started:
-                ray.shutdown()
-    return prepare_table(data_root, spec_path, classifier_path=classifier_path, out_dir=out_dir,
-                         workers=1, progress=False)

@@ -1,0 +1,69 @@
+"""What ``prepare`` keeps on disk while it works: one shard per scene (written atomically,
+so a killed build resumes), and the caches of classifier probabilities and encoder features
+per scene, shared between tables that differ only in the other component."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..atomic import atomic_write
+from ..data.grid import N_VIEWS
+
+log = logging.getLogger("uevavd.perception.prepare")
+SHARD_ARRAYS = ("features", "probs", "boxes", "visible")
+
+
+def _write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    atomic_write(path, lambda fh: np.savez(fh, **arrays), fsync=True)
+
+
+def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.ndarray] | None:
+    """A complete shard's arrays, or None when it is absent or unusable (then redone)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in SHARD_ARRAYS}
+    except Exception:  # noqa: BLE001 - anything unreadable is redone
+        log.warning("prepare: shard %s unreadable; recomputing it", path)
+        return None
+    expected = {"features": (N_VIEWS, feature_dim), "probs": (N_VIEWS, n_classes),
+                "boxes": (N_VIEWS, 4), "visible": (N_VIEWS,)}
+    if any(arrays[k].shape != s for k, s in expected.items()):
+        return None
+    return arrays
+
+
+def _features_dir(out_dir: Path, parts: Mapping[str, Any]) -> Path:
+    """Where encoder features of scenes are cached: keyed by everything that makes them
+    (segmenter, decomposition, gray seed, encoder; not the classifier), so the tables of
+    several recognizers over the same views encode each view once."""
+    keep = {k: parts[k] for k in ("schema_version", "segmenter", "decompose", "gray_seed", "encoder")}
+    return out_dir / "features" / hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarray | None:
+    if path is None or not path.is_file():
+        return None
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except Exception:  # noqa: BLE001 - unreadable: recomputed
+        return None
+    ok = arr.shape == shape and arr.dtype == dtype and bool(np.isfinite(arr).all())
+    return arr if ok else None
+
+
+def _cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
+    return _cached_array(path, (N_VIEWS, n_classes), np.float32)
+
+
+def _save_array(path: Path, array: np.ndarray) -> None:
+    """``np.save`` written atomically (temp file, then rename)."""
+    atomic_write(path, lambda fh: np.save(fh, array))
