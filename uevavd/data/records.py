@@ -223,3 +223,21 @@ class Manifest:
     def images(self) -> list[Path]:
         """Image paths in record order."""
         return [r.image for r in self._records]
+
+
+#: Problems that name a file the reader could not use, without making the views it read
+#: wrong: reported by ``uevavd validate``, logged (not raised) by :func:`read_dataset`.
+UNUSED_FILE_KINDS: frozenset[str] = frozenset({"orphan_annotation", "unparseable_annotation_name", "unknown_file"})
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One problem found in a dataset: a ``kind`` (e.g. "missing_annotation"), the file
+    or folder it concerns, and a message saying what was expected."""
+
+    kind: str
+    path: Path
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.message}"
