@@ -187,7 +187,7 @@ def _sb3_loop(model, table, env_cfg, budget: float, eval_every: float, recurrent
     from stable_baselines3.common.callbacks import BaseCallback
 
     curve: list[dict] = []
-    from uevavd.env.sb3 import SB3Policy
+    from uevavd.env.sb3 import SB3Policy, silent_logger
 
     greedy = SB3Policy(model, env_cfg.max_range, recurrent=recurrent)
 
@@ -207,6 +207,7 @@ def _sb3_loop(model, table, env_cfg, budget: float, eval_every: float, recurrent
                 self.t0 += time.perf_counter() - pause
             return wall < budget
 
+    model.set_logger(silent_logger())
     model.learn(total_timesteps=10**9 if recurrent else 50_000, callback=Clock())
     if not curve or curve[-1]["steps"] != model.num_timesteps:  # 50,000 steps before the budget
         curve.append({"wall": curve[-1]["wall"] if curve else 0.0, "steps": model.num_timesteps,

@@ -100,12 +100,20 @@ def test_sb3_trains_on_the_vector_form(table, algo):
     else:
         model = sb3.PPO("MultiInputPolicy", venv, n_steps=64, batch_size=256, n_epochs=2, seed=0, device="cpu",
                         policy_kwargs={"net_arch": [32]})
+    import tempfile
+    from pathlib import Path
+
+    from uevavd.env.sb3 import silent_logger
+
+    litter = set(Path(tempfile.gettempdir()).glob("SB3-*"))
+    model.set_logger(silent_logger())
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         model.learn(total_timesteps=3000)
     finally:
         torch.set_num_threads(threads)
+    assert set(Path(tempfile.gettempdir()).glob("SB3-*")) <= litter  # no empty SB3-<date> folder left behind
     assert model.num_timesteps >= 3000
     assert len(model.ep_info_buffer) == model.ep_info_buffer.maxlen  # VecMonitor saw >= 100 episodes end
     obs = venv.reset()
@@ -117,7 +125,7 @@ def test_maskable_ppo_runs_on_both_forms(table):
     pytest.importorskip("sb3_contrib")
     from sb3_contrib import MaskablePPO
 
-    from uevavd.env.sb3 import SB3VecEnv
+    from uevavd.env.sb3 import SB3VecEnv, silent_logger
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -125,6 +133,7 @@ def test_maskable_ppo_runs_on_both_forms(table):
         for env in (SB3VecEnv(_vec(table, n=8, actions="flat")), DiscreteActions(AODEnv(table, "train"))):
             model = MaskablePPO("MultiInputPolicy", env, n_steps=64, batch_size=64, n_epochs=1, seed=0,
                                 device="cpu", policy_kwargs={"net_arch": [16]})
+            model.set_logger(silent_logger())
             model.learn(total_timesteps=256)
             assert model.num_timesteps >= 256
     finally:

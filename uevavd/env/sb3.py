@@ -116,3 +116,12 @@ class SB3Policy:
             flat, _ = self.model.predict(sb3_obs, deterministic=True)
         flat = torch.as_tensor(np.asarray(flat), dtype=torch.int64).reshape(-1)
         return flat // self.a, flat % self.a
+
+
+def silent_logger() -> Any:
+    """An SB3 logger that writes nowhere. SB3 gives a model without one (``verbose=0``, no
+    ``tensorboard_log``) a logger that creates an empty ``SB3-<date>`` folder in the temp
+    directory on every ``learn()``; ``model.set_logger(silent_logger())`` avoids that litter."""
+    from stable_baselines3.common.logger import Logger
+
+    return Logger(folder=None, output_formats=[])

@@ -73,7 +73,7 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
     import stable_baselines3 as sb3
     import torch
 
-    from ..env.sb3 import SB3Policy
+    from ..env.sb3 import SB3Policy, silent_logger
 
     spec = load_method(job.spec_path)
     table = ObservationTable.load(table_path)
@@ -85,6 +85,7 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
         model = getattr(sb3, SB3_AGENTS[agent])("MultiInputPolicy", env, learning_rate=float(spec["train.lr"]),
                                                 gamma=config.gamma, policy_kwargs={"net_arch": widths}, seed=seed,
                                                 device="cpu", verbose=0)
+        model.set_logger(silent_logger())
         t0 = time.perf_counter()
         model.learn(total_timesteps=steps)
         wall = time.perf_counter() - t0
