@@ -100,6 +100,9 @@ def _sb3_steps_per_s(table, seconds: float) -> float:
     env = DiscreteActions(AODEnv(table, "train"))
     model = DQN("MultiInputPolicy", env, learning_rate=1e-4, gamma=0.9, buffer_size=50_000,
                 learning_starts=1000, seed=0, device="cpu", verbose=0)
+    from uevavd.env.sb3 import silent_logger
+
+    model.set_logger(silent_logger())
     cb = Stop()
     model.learn(total_timesteps=10**9, callback=cb)
     return model.num_timesteps / (time.perf_counter() - cb.t0)

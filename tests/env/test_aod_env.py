@@ -170,6 +170,9 @@ def test_sb3_dqn_trains_on_discrete_form(table):
         "MultiInputPolicy", env, learning_starts=100, buffer_size=1000, batch_size=32,
         train_freq=4, target_update_interval=100, policy_kwargs={"net_arch": [32]}, seed=0, device="cpu",
     )
+    from uevavd.env.sb3 import silent_logger
+
+    model.set_logger(silent_logger())  # no empty SB3-<date> folder in the temp directory
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # tiny network: threads only contend on a shared machine
     try:
