@@ -17,18 +17,18 @@ from ..data.grid import N_TYPES, N_VIEWS
 
 
 def _where(cond: Any, a: Any, b: Any) -> Any:
-    """``a if cond else b`` for a bool, ``np.where`` for an array, ``torch.where`` (scalars as
-    float64 tensors on ``cond``'s device) for a tensor."""
+    """``a if cond else b`` for a bool, ``np.where`` for an array, ``torch.where`` for a
+    tensor (float64: where neither branch is a tensor, ``a`` becomes a float64 tensor, since
+    two Python scalars would give a float32 result; a scalar beside a tensor keeps its dtype)."""
     if isinstance(cond, bool | np.bool_):
         return a if cond else b
     if isinstance(cond, np.ndarray):
         return np.where(cond, a, b)
     import torch  # only callers that hold tensors get here, and they have torch loaded
 
-    def f64(x: Any) -> Any:
-        return x if isinstance(x, torch.Tensor) else torch.tensor(x, dtype=torch.float64, device=cond.device)
-
-    return torch.where(cond, f64(a), f64(b))
+    if not isinstance(a, torch.Tensor) and not isinstance(b, torch.Tensor):
+        a = torch.tensor(a, dtype=torch.float64, device=cond.device)
+    return torch.where(cond, a, b)
 
 
 class EnvConfigError(ValueError):

@@ -93,7 +93,8 @@ def order_methods(methods) -> list[str]:
 
 def learned(methods) -> list[str]:
     """The methods that are trained (not baselines), in report order."""
-    return [m for m in order_methods(methods) if m not in baselines()]
+    refs = baselines()
+    return [m for m in order_methods(methods) if m not in refs]
 
 
 def _as_bool(col: pd.Series, path: Path) -> pd.Series:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -57,7 +56,7 @@ def build_zoo(out: str | os.PathLike[str] | None = None, *, preset: str = "quick
     files: dict[str, dict[str, Any]] = {}
 
     def ship(src: Path, name: str) -> None:
-        atomic_write(out / name, lambda fh: shutil.copyfileobj(open(src, "rb"), fh))
+        atomic_write(out / name, src.read_bytes())
         files[name] = {"sha256": file_sha256(out / name), "bytes": (out / name).stat().st_size}
 
     ship(recognizer, RECOGNIZER)

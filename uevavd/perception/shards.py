@@ -4,8 +4,6 @@ per scene, shared between tables that differ only in the other component."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
@@ -15,6 +13,7 @@ import numpy as np
 
 from ..atomic import atomic_write
 from ..data.grid import N_VIEWS
+from ..hashing import json_digest
 
 log = logging.getLogger("uevavd.perception.prepare")
 SHARD_ARRAYS = ("features", "probs", "boxes", "visible")
@@ -46,7 +45,7 @@ def _features_dir(out_dir: Path, parts: Mapping[str, Any]) -> Path:
     (segmenter, decomposition, gray seed, encoder; not the classifier), so the tables of
     several recognizers over the same views encode each view once."""
     keep = {k: parts[k] for k in ("schema_version", "segmenter", "decompose", "gray_seed", "encoder")}
-    return out_dir / "features" / hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
+    return out_dir / "features" / json_digest(keep, 16)
 
 
 def _cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarray | None:
