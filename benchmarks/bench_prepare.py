@@ -11,7 +11,9 @@ For each (encoder, image size) configuration, in the same run:
 
 The ratio pipeline time / bare forward time is the overhead of loading and writing
 (goal: <= 1.25). ``setup`` (reading the dataset, building the models, the key; a fixed cost
-per run, timed separately with ``plan_table``) is also reported, and the ratio without it. Weights are random (speed does not depend on them). Without ``--data``
+per run, timed separately with ``plan_table``) is also reported, and the ratio without it;
+``decode`` is the decoding threads alone on the same files (images/s), the pipeline's other
+ceiling. Weights are random (speed does not depend on them). Without ``--data``
 a stand-in dataset (smooth random images in the UEVAVD layout, ``--scenes`` contexts of
 605 views) is written to a temporary folder; pass ``--data`` to time a real world.
 
@@ -22,7 +24,9 @@ Run: ``python benchmarks/bench_prepare.py [--threads 2] [--scenes 2] [--device c
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
+import pstats
 import shutil
 import sys
 import tempfile
@@ -117,6 +121,8 @@ def main(argv=None) -> int:
                     help="encoder and image size (repeatable; default resnet18:128 and resnet50:256; "
                          "efficientnet_lite0:64 is the quick preset's)")
     ap.add_argument("--decompose", action="store_true", help="also pre-decompose (gt segmenter)")
+    ap.add_argument("--profile", default=None, metavar="FILE",
+                    help="append cProfile's top functions of each prepare run to FILE")
     ap.add_argument("--data", default=None, help="time this dataset instead of a stand-in (its own size)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -129,7 +135,7 @@ def main(argv=None) -> int:
         print(f"torch {torch.__version__}, {args.threads} threads, device {args.device}, decode workers "
               f"{args.workers}, decompose {args.decompose}")
         print(f"{'config':<16}{'views':>7}{'bare enc+clf':>14}{'bare enc':>11}{'prepare':>10}{'ratio':>7}"
-              f"{'setup':>8}{'prepare-setup':>15}{'ratio':>7}")
+              f"{'setup':>8}{'prepare-setup':>15}{'ratio':>7}{'decode':>11}")
         for arch, size in configs:
             size = int(size)
             if args.data:
@@ -143,7 +149,10 @@ def main(argv=None) -> int:
             manifest = read_dataset(root)
             recs = [r for r in manifest.records if r.context is not None]
             with Decoder(args.workers) as dec:
+                dec.images([r.image for r in recs[: 2 * args.workers]])  # threads started
+                t = time.perf_counter()
                 images = dec.images([r.image for r in recs])
+                decode = len(recs) / (time.perf_counter() - t)
             both, alone = bare_forward(arch, images, args.device, args.batch, clf_path, args.repeats)
             del images
             method = work / f"{arch}.toml"
@@ -153,16 +162,24 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             plan_table(root, method, classifier_path=clf_path)  # setup alone: read data, build models, key
             setup = time.perf_counter() - t
+            prof = cProfile.Profile() if args.profile else None
             t = time.perf_counter()
+            if prof:
+                prof.enable()
             prepare_table(root, method, classifier_path=clf_path, out_dir=out, workers=args.workers,
                           progress=False)
             sync(args.device)
             total = time.perf_counter() - t
+            if prof:
+                prof.disable()
+                with open(args.profile, "a") as fh:
+                    fh.write(f"# prepare_table, {arch} at {size} px, {len(recs)} views\n")
+                    pstats.Stats(prof, stream=fh).sort_stats("cumulative").print_stats(40)
             pipe, steady = len(recs) / total, len(recs) / max(total - setup, 1e-9)
             shutil.rmtree(out, ignore_errors=True)
             label = f"{arch}@{manifest.image_size[0]}px"
             print(f"{label:<16}{len(recs):>7}{both:>12.1f}/s{alone:>9.1f}/s{pipe:>8.1f}/s{both / pipe:>7.2f}"
-                  f"{setup:>7.1f}s{steady:>13.1f}/s{both / steady:>7.2f}")
+                  f"{setup:>7.1f}s{steady:>13.1f}/s{both / steady:>7.2f}{decode:>9.1f}/s")
             sys.stdout.flush()
     finally:
         shutil.rmtree(work, ignore_errors=True)

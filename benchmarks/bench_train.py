@@ -31,6 +31,7 @@ def main() -> None:
     ap.add_argument("--methods", default="map,memo_map,ibe_map")
     ap.add_argument("--sb3-seconds", type=float, default=None, help="default: IBE-MAP's wall time")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--progress", action="store_true", help="show each run's progress bar")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from uevavd.runtime import tune_malloc
@@ -60,7 +61,7 @@ def main() -> None:
             spec = load_method(method, over)
             t0 = time.perf_counter()
             run = train(spec, table, out=tmp / method, episodes=args.episodes, seed=0, device=args.device,
-                        progress=False)
+                        progress=args.progress)
             dt = time.perf_counter() - t0
             import json
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from uevavd.experiments.jobs import plan_jobs
 from uevavd.experiments.plan import AblationError, make_plan, parse_sweeps
@@ -248,6 +249,9 @@ def test_sweep_adds_settings_with_their_reward_constants(tiny):
         ({"seeds": 0}, "at least 1"),
         ({"sweep_methods": ["memo_map"]}, "not among --methods"),
         ({"backend": "slurm"}, "expected 'local' or 'ray'"),
+        ({"device": "gpu"}, "--device: device 'gpu': expected 'auto', 'cpu', 'cuda'"),
+        pytest.param({"device": "cuda"}, "--device: .*no CUDA device is available",
+                     marks=pytest.mark.skipif(torch.cuda.is_available(), reason="a CUDA device is there")),
     ],
 )
 def test_bad_arguments_are_refused(tiny, kwargs, message):

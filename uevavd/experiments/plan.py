@@ -12,6 +12,7 @@ from typing import Any
 
 from ..config import ConfigError, known_methods, load_method, parse_override
 from ..env.config import EnvConfig
+from ..perception.nets import resolve_device
 from ..perception.train import TrainSettings
 from ..presets import load_preset
 
@@ -219,6 +220,10 @@ def make_plan(
         raise AblationError(str(exc)) from None
     if backend not in ("local", "ray"):
         raise AblationError(f"--backend {backend!r}: expected 'local' or 'ray'")
+    try:  # before any work: a CUDA device that is not there would otherwise surface after the world
+        resolve_device(device)
+    except ValueError as exc:
+        raise AblationError(f"--device: {exc}") from None
 
     try:
         TrainSettings(**cfg.get("classifier", {})).check()

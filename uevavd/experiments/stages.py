@@ -73,7 +73,7 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
             log(f"  recognizer {r}: the model zoo's ({shipped}, sha256 checked), trained by this preset's recipe on "
                 "these train_605 images (--no-zoo trains it here)")
         else:
-            train_classifier(data, path, settings=settings, workers=plan.workers, progress=True)
+            train_classifier(data, path, settings=settings, workers=plan.workers, progress=True, device=plan.device)
         out[r] = path
     return out
 

@@ -35,8 +35,10 @@ def add_train_classifier(p: argparse.ArgumentParser):
                    help="train on a seeded sample of this many viewpoints (default: all 605)")
     p.add_argument("--workers", type=int, default=2, help="image decoding threads")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--device", default="auto", help="where the network trains: auto (CUDA when present), cpu, cuda")
 
     def run(args) -> int:
+        from .nets import resolve_device
         from .train import TrainSettings, train_classifier
 
         _logging()
@@ -44,9 +46,11 @@ def add_train_classifier(p: argparse.ArgumentParser):
             import torch
 
             torch.set_num_threads(args.threads)
+        resolve_device(args.device)  # a bad or absent device is refused before any work
         s = TrainSettings(arch=args.arch, init=args.init, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, seed=args.seed, max_views=args.max_views)
-        path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers)
+        path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers,
+                                device=args.device)
         print(path)
         print(f"report: {path.with_suffix('.md')}")
         return 0

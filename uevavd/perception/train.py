@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from ..data.splits import TARGETS
-from .nets import IMAGENET_MEAN, IMAGENET_STD
+from .nets import IMAGENET_MEAN, IMAGENET_STD, resolve_device
 from .weights import (
     WeightsError,
     imagenet_path,
@@ -156,31 +156,36 @@ def _to_float(images: np.ndarray) -> torch.Tensor:
 @torch.inference_mode()
 def predict(model: torch.nn.Module, images: np.ndarray, batch_size: int = 256, *,
             norm=(IMAGENET_MEAN, IMAGENET_STD)) -> np.ndarray:
-    """(N, H, W, 3) uint8 -> (N, K) float32 probabilities (CPU, eval mode); ``norm``: the
-    (mean, std) of :func:`input_norm`."""
+    """(N, H, W, 3) uint8 -> (N, K) float32 probabilities (eval mode, on the model's device,
+    returned on the CPU); ``norm``: the (mean, std) of :func:`input_norm`."""
     model.eval()
-    out = [torch.softmax(model(_normalise(_to_float(images[i : i + batch_size]), norm)), 1)
+    dev = next(model.parameters()).device
+    out = [torch.softmax(model(_normalise(_to_float(images[i : i + batch_size]), norm).to(dev)), 1).cpu()
            for i in range(0, len(images), batch_size)]
     return torch.cat(out).numpy() if out else np.zeros((0, 0), np.float32)
 
 
 def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: TrainSettings, *,
-        imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True):
+        imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True,
+        device: str = "auto"):
     """Train on (N, H, W, 3) uint8 crops with (N,) int class labels and (N,) view indices.
 
     Returns ``(model, info)``; ``info`` holds the held-out views, clean validation accuracy,
     per-epoch history and the initial weights used. Reproducible: torch's global generator
     (which layers such as dropout and Lite0's drop-connect draw from, and which torch seeds
     at random in every process) is seeded from ``settings.seed`` for the call and restored
-    after it.
+    after it. ``device`` ("cpu", "cuda", "auto") runs the forward and backward passes there;
+    batches and their augmentation are drawn on the CPU either way, so both devices see the
+    same images, and the model comes back on the CPU.
     """
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(settings.seed) + 12345)
-        return _fit(images, labels, views, settings, imagenet=imagenet, n_classes=n_classes, progress=progress)
+        return _fit(images, labels, views, settings, imagenet=imagenet, n_classes=n_classes, progress=progress,
+                    device=resolve_device(device))
 
 
 def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: TrainSettings, *,
-         imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True):
+         imagenet: str | None, n_classes: int, progress: bool, device: torch.device):
     from tqdm.auto import tqdm
 
     settings.check()
@@ -198,7 +203,7 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tr
         raise ValueError(f"{len(images)} crops leave {len(tr)} for training and {len(va)} for validation")
     model, init = initial_model(imagenet, n_classes, settings.seed, arch=settings.arch, init=settings.init)
     norm = input_norm(settings.arch)
-    model = model.to(memory_format=torch.channels_last)
+    model = model.to(device=device, memory_format=torch.channels_last)
     gen = torch.Generator().manual_seed(settings.seed)
     steps_per_epoch = math.ceil(len(tr) / settings.batch_size)
     total = settings.epochs * steps_per_epoch
@@ -213,8 +218,8 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tr
         losses = []
         for i in range(0, len(order), settings.batch_size):
             idx = order[i : i + settings.batch_size]
-            x = _normalise(augment(_to_float(images[idx]), settings, gen), norm)
-            loss = F.cross_entropy(model(x), torch.from_numpy(labels[idx]))
+            x = _normalise(augment(_to_float(images[idx]), settings, gen), norm).to(device, non_blocking=True)
+            loss = F.cross_entropy(model(x), torch.from_numpy(labels[idx]).to(device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -226,7 +231,7 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tr
         history.append({"epoch": epoch + 1, "loss": float(np.mean(losses)), "val_accuracy": acc})
         bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses):.3f}", val_acc=f"{acc:.3f}")
     bar.close()
-    model.eval()
+    model = model.cpu().eval()
     info = {
         "init": init,
         "val_views": val_views.tolist(),
@@ -243,10 +248,11 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tr
 
 def train_classifier(data: str | Path, out: str | Path | None = None, *, settings: TrainSettings | None = None,
                      imagenet: str | None = None, workers: int = 2, report_views: int = 3000,
-                     progress: bool = True) -> Path:
+                     progress: bool = True, device: str = "auto") -> Path:
     """Train on ``data``'s ``train_605`` crops, write the classifier file (safetensors) and
     its report (``<out>.md`` and ``<out>.png``) beside it. ``out=None`` writes to the
-    default location the pipeline reads (:func:`default_classifier_path`). Returns ``out``."""
+    default location the pipeline reads (:func:`default_classifier_path`). Returns ``out``.
+    ``device``: where the network trains ("auto": CUDA when present); see :func:`fit`."""
     from ..data.reader import read_dataset
     from .classifier import classifiers_dir, data_hash, train_records, write_classifier_file
     from .images import Decoder
@@ -265,7 +271,7 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
         images = dec.images([r.image for r in recs])
         labels = np.array([TARGETS.index(r.target) for r in recs], np.int64)
         views = np.array([r.view for r in recs], np.int64)
-        model, info = fit(images, labels, views, settings, imagenet=imagenet, progress=progress)
+        model, info = fit(images, labels, views, settings, imagenet=imagenet, progress=progress, device=device)
         meta = {
             "arch": settings.arch,
             "classes": list(TARGETS),
