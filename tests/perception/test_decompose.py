@@ -83,3 +83,30 @@ def test_ground_truth_fast_path_matches_the_definition():
         fast = gt.decompose_views(images, maps, cats, [trial, trial + 100])
         for i, s in enumerate(segs):
             np.testing.assert_array_equal(fast[i], decompose(images[i], s.target, s.segments, seed=trial + 100 * i))
+
+
+def test_scene_decomposed_in_slices_equals_one_pass(tmp_path):
+    """prepare decomposes a scene's views in one slice per decoding thread: same views,
+    same order, same pixels as one call over the scene."""
+    from uevavd.perception.images import Decoder
+    from uevavd.perception.segmenters import build_gt
+
+    rng = np.random.default_rng(1)
+    n = 37
+    maps = rng.integers(0, 9, (n, 16, 12)).astype(np.uint16)
+    images = rng.integers(0, 256, (n, 16, 12, 3), dtype=np.uint8)
+    cats = [{0: "none", 1: "target", **{k: "building" for k in range(2, 9)}}] * n
+    seeds = list(range(100, 100 + n))
+    gt = build_gt()
+    whole = gt.decompose_views(images, maps, cats, seeds)
+    with Decoder(4) as dec:
+        seen = []
+        out = np.zeros_like(images)
+
+        def part(s):
+            seen.append(s)
+            out[s] = gt.decompose_views(images[s], maps[s], cats[s], seeds[s])
+
+        dec.map_slices(part, n)
+    assert sorted((s.start, s.stop) for s in seen) == [(0, 10), (10, 20), (20, 30), (30, 37)]
+    np.testing.assert_array_equal(out, whole)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 
@@ -72,7 +73,8 @@ def decompose_instances(image: np.ndarray, instance_map: np.ndarray, target_ids,
     lut = np.zeros(len(present), np.uint8)
     lut[is_seg] = grays[:n_segs]
     lut[0] = grays[n_segs]
-    out = np.repeat(lut[instance_map][..., None], 3, axis=2)
-    mask = is_target[instance_map]
-    out[mask] = image[mask]
-    return out
+    # two lookups and OpenCV's merge and masked copy: half the time of numpy's boolean
+    # indexing, and they release the GIL, so decoding threads decompose views in parallel
+    gray = lut.take(instance_map)
+    out = cv2.merge([gray, gray, gray])
+    return cv2.copyTo(np.ascontiguousarray(image), is_target.take(instance_map).view(np.uint8), out)

@@ -63,13 +63,17 @@ class Decoder:
         self.workers = max(1, int(workers))
         self.pool = ThreadPoolExecutor(self.workers, thread_name_prefix="uevavd-decode")
 
+    def map_slices(self, fn, n: int) -> list:
+        """``[fn(slice) ...]`` over ``n`` items cut into one contiguous slice per worker
+        thread, in order (one slice, in this thread, when ``n`` is small)."""
+        if n < 2 * self.workers:
+            return [fn(slice(0, n))]
+        chunk = -(-n // self.workers)
+        futures = [self.pool.submit(fn, slice(i, min(i + chunk, n))) for i in range(0, n, chunk)]
+        return [f.result() for f in futures]
+
     def _map(self, fn, paths: Sequence[Path]) -> list[np.ndarray]:
-        if len(paths) < 2 * self.workers:
-            return [fn(p) for p in paths]
-        chunk = -(-len(paths) // self.workers)
-        parts = [paths[i : i + chunk] for i in range(0, len(paths), chunk)]
-        futures = [self.pool.submit(lambda ps: [fn(p) for p in ps], part) for part in parts]
-        return [a for f in futures for a in f.result()]
+        return [a for part in self.map_slices(lambda s: [fn(p) for p in paths[s]], len(paths)) for a in part]
 
     def images(self, paths: Sequence[Path]) -> np.ndarray:
         return _stack(self._map(read_rgb, paths), paths, "image")

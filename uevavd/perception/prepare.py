@@ -166,7 +166,14 @@ def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, segmenter, g
         cats = [ground_truth_categories(manifest, scene, recs)] * len(recs)
         if hasattr(segmenter, "decompose_views"):
             seeds = [view_seed(gray_seed, scene, r.view, r.target) for r in recs]
-            decomposed = segmenter.decompose_views(images, maps, cats, seeds)
+            # views are independent: one slice per decoding thread (the decomposition's
+            # lookups and OpenCV calls release the GIL)
+            decomposed = np.empty_like(images)
+
+            def part(s: slice) -> None:
+                decomposed[s] = segmenter.decompose_views(images[s], maps[s], cats[s], seeds[s])
+
+            decoder.map_slices(part, len(recs))
     return images, decomposed, maps, cats
 
 
