@@ -47,3 +47,24 @@ def test_tuned_process_reuses_freed_memory():
 def test_tuning_can_be_switched_off():
     tuned, _ = _run("1", {"UEVAVD_MALLOC_TUNING": "0"})
     assert tuned == "False"
+
+
+def _blas_threads() -> list[int]:
+    import numpy  # noqa: F401  (loads its BLAS)
+    from threadpoolctl import threadpool_info
+
+    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+
+def test_single_threaded_worker_limits_blas_in_pool_workers():
+    """The renderer's pool workers run numpy's BLAS on one thread each (N workers with N
+    spinning BLAS threads each oversubscribe the cores N-fold)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from uevavd.runtime import single_threaded_worker
+
+    with ProcessPoolExecutor(1, initializer=single_threaded_worker) as pool:
+        assert set(pool.submit(_blas_threads).result()) == {1}
+    if (os.cpu_count() or 1) > 1:  # what the limit changes: a plain worker takes every core
+        with ProcessPoolExecutor(1) as pool:
+            assert max(pool.submit(_blas_threads).result()) > 1

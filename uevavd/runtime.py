@@ -50,3 +50,15 @@ def tune_malloc(mmap_threshold: int = 256 << 20, trim_threshold: int = 1 << 30) 
     _done = ok_trim and ok_mmap
     log.debug("malloc tuning: trim threshold %s, mmap threshold %s", ok_trim, ok_mmap)
     return _done
+
+
+def single_threaded_worker() -> None:
+    """Initializer for process pools whose workers each run numpy work (the synthetic
+    world's renderer): one thread for the BLAS and OpenMP pools in the worker. Left alone,
+    each of N workers starts one BLAS thread per core, and OpenBLAS threads spin while they
+    wait, so N workers oversubscribe N cores N-fold; on a 16-core machine the paper world
+    rendered at about 11 views/s per worker against 55-73 views/s of one core alone
+    (docs/experiments.md, "On one GPU"). joblib's workers make the same limit by default."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)

@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ...runtime import single_threaded_worker
 from .. import layout
 from ..grid import N_VIEWS, view_coords
 from ..splits import CLASSIFIER_SCENE, TARGETS, UNOCCLUDED_SCENE, check_context, scene_name
@@ -253,7 +254,7 @@ def write_world(
         for n in todo:
             bar.update(_job(str(root), n, size, seed)[1])
     else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        with ProcessPoolExecutor(max_workers=workers, initializer=single_threaded_worker) as pool:
             futures = [pool.submit(_job, str(root), n, size, seed) for n in todo]
             for fut in as_completed(futures):
                 bar.update(fut.result()[1])
