@@ -74,6 +74,9 @@ class Learner:
     def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber") -> None:
         self.net = net
         self.target = copy.deepcopy(net).requires_grad_(False)
+        for m in self.target.modules():  # a deep copy leaves cuDNN's RNN weights in pieces, which
+            if isinstance(m, torch.nn.RNNBase):  # it would then compact on every call (no-op on CPU)
+                m.flatten_parameters()
         params = list(net.parameters())
         # fused Adam: one kernel over all parameters, ~3x faster than the per-tensor loop on
         # CPU (16 -> 5 ms per step for the paper-sized GRU agent), same update rule
