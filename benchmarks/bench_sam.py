@@ -20,7 +20,7 @@ import torch
 
 def _images(n: int, size: int, data: str | None) -> tuple[np.ndarray, np.ndarray]:
     if data:
-        from uevavd.perception.sam.data import load_views, read_manifest
+        from uevavd.perception.training.sam.data import load_views, read_manifest
 
         m = read_manifest(data)
         ctx = sorted({r.context for r in m if r.context is not None})

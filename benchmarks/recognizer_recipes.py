@@ -1,7 +1,7 @@
 """Choose the quick preset's recognizer recipe on training data only.
 
 Each recipe ``ARCH:INIT:EPOCHS:LR`` trains a recognizer on the world's ``train_605`` crops
-(``uevavd.perception.train.train_classifier``, the settings of the quick preset otherwise),
+(``uevavd.perception.training.classifier.train_classifier``, the settings of the quick preset otherwise),
 then is judged by its accuracy on the *clear* views (visible >= 0.9) of the world's training
 contexts: views of the training contexts are never used to train the recognizer, so this is
 held-out data, and no test split is read. Also printed: held-out ``train_605`` accuracy and
@@ -37,7 +37,7 @@ def main() -> None:
     from uevavd.data.splits import TARGETS
     from uevavd.perception.classifier import load_classifier
     from uevavd.perception.images import Decoder
-    from uevavd.perception.train import TrainSettings, train_classifier
+    from uevavd.perception.training.classifier import TrainSettings, train_classifier
     from uevavd.presets import load_preset
     from uevavd.runtime import tune_malloc
 

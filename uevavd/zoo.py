@@ -39,7 +39,7 @@ from .data.synthetic.writer import VERSION
 from .env.baselines import evaluate_beside_baselines
 from .hashing import file_sha256, json_digest
 from .perception.prepare import prepare_table
-from .perception.train import TrainSettings
+from .perception.training.classifier import TrainSettings
 from .policy.checkpoint import read_policy_file
 from .presets import ZOO, load_preset, world_contexts, world_root
 from .table import ObservationTable

@@ -32,7 +32,7 @@ def test_classifier_contract(tiny_classifier, tmp_path):
     from uevavd.data.splits import TARGETS
     from uevavd.perception.classifier import write_classifier_file
     from uevavd.perception.efficientnet import imagenet_backbone
-    from uevavd.perception.train import input_norm
+    from uevavd.perception.training.classifier import input_norm
 
     mean, std = input_norm("efficientnet_lite0")  # an untrained 5-way head on the ImageNet backbone
     lite = write_classifier_file(tmp_path / "lite.safetensors", imagenet_backbone(num_classes=5).state_dict(),

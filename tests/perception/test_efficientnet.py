@@ -94,7 +94,7 @@ def test_a_lite0_recognizer_trains_from_imagenet_and_loads(tmp_path):
         build_resnet18_classifier,
         write_classifier_file,
     )
-    from uevavd.perception.train import TrainSettings, fit, input_norm
+    from uevavd.perception.training.classifier import TrainSettings, fit, input_norm
 
     rng = np.random.default_rng(0)
     labels = np.repeat(np.arange(5), 8)
@@ -124,7 +124,7 @@ def test_recognizer_training_is_reproducible_whatever_the_global_rng():
     """torch 2.14 seeds its global generator at random in every process, and Lite0's dropout
     and drop-connect draw from it: the quick preset's recognizer (and every result after it)
     differed from run to run. fit() seeds it from settings.seed and restores it after."""
-    from uevavd.perception.train import TrainSettings, fit
+    from uevavd.perception.training.classifier import TrainSettings, fit
     from uevavd.perception.weights import state_dict_hash
 
     rng = np.random.default_rng(0)

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from uevavd.perception.sam import CheckpointError, build_sam_segmenter, load_sam
-from uevavd.perception.sam.data import GTViews
 from uevavd.perception.sam.model import SmallConfig, build_model, read_checkpoint, save_full
 from uevavd.perception.sam.prompts import clip_box, make_disjoint, merge_duplicates, ring_points
+from uevavd.perception.training.sam.data import GTViews
 
 TINY = SmallConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2, prompt_dim=32,
                    decoder_depth=1, decoder_heads=2, decoder_mlp=64)

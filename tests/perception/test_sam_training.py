@@ -7,11 +7,11 @@ import pytest
 import torch
 
 from uevavd.perception.sam import build_sam_segmenter, load_sam
-from uevavd.perception.sam.data import selection_keys, split_heldout
-from uevavd.perception.sam.evaluate import evaluate
-from uevavd.perception.sam.finetune import finetune_model
 from uevavd.perception.sam.model import SmallConfig, build_model, save_full
-from uevavd.perception.sam.training import TrainArgs, train_loop
+from uevavd.perception.training.sam.data import selection_keys, split_heldout
+from uevavd.perception.training.sam.evaluate import evaluate
+from uevavd.perception.training.sam.finetune import finetune_model
+from uevavd.perception.training.sam.loop import TrainArgs, train_loop
 
 TINY = SmallConfig(img_size=32, patch_size=8, embed_dim=32, depth=1, num_heads=2, prompt_dim=32,
                    decoder_depth=1, decoder_heads=2, decoder_mlp=64)
@@ -132,9 +132,9 @@ def test_report_leaves_out_the_training_views(tiny_world, views, base, tmp_path)
     """The mask-quality report's train row is measured on views the model was not trained
     on: the checkpoint's metadata names them (or, for files written before it did, they are
     redrawn from the seed and checked against the data hash)."""
-    from uevavd.perception.sam.data import load_views, read_manifest, view_selection
     from uevavd.perception.sam.model import save_decoder
-    from uevavd.perception.sam.report import miou_per_split, training_views
+    from uevavd.perception.training.sam.data import load_views, read_manifest, view_selection
+    from uevavd.perception.training.sam.report import miou_per_split, training_views
 
     train, _ = views  # 24 views of context 1, seed 0
     m = read_manifest(tiny_world)

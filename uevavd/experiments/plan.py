@@ -13,7 +13,7 @@ from typing import Any
 from ..config import ConfigError, known_methods, load_method, parse_override
 from ..env.config import EnvConfig
 from ..perception.nets import resolve_device
-from ..perception.train import TrainSettings
+from ..perception.training.classifier import TrainSettings
 from ..presets import load_preset
 
 #: The paper's default reward settings; sweeps vary one of them.

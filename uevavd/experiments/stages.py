@@ -16,7 +16,7 @@ from ..hashing import json_digest
 from ..perception.classifier import classifier_cache_path, data_hash, train_records
 from ..perception.prepare import prepare_table
 from ..perception.prepare_ray import prepare_table_ray
-from ..perception.train import TrainSettings, train_classifier
+from ..perception.training.classifier import TrainSettings, train_classifier
 from ..presets import world_contexts, world_root
 from ..zoo import Zoo
 from .plan import DEFAULT_SETTING, Plan, method_overrides

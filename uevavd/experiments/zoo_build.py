@@ -16,7 +16,7 @@ from ..data.reader import read_dataset
 from ..hashing import file_sha256
 from ..paths import cache_dir
 from ..perception.classifier import classifier_cache_path, data_hash, train_records
-from ..perception.train import TrainSettings
+from ..perception.training.classifier import TrainSettings
 from ..policy.checkpoint import read_policy_file
 from ..policy.rundir import RunDir
 from ..presets import world_contexts, world_root

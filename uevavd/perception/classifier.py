@@ -4,7 +4,7 @@ File format: a ``.safetensors`` state dict of a torchvision ResNet18 with a 5-wa
 and JSON metadata in the safetensors header under ``"uevavd"``: ``arch``, ``classes``,
 ``input_size`` (H, W), ``mean``/``std``, ``data_hash`` (the ``train_605`` crops it was
 trained on), ``train`` (settings and results). Written by ``uevavd train-classifier``
-(:mod:`uevavd.perception.train`); the pipeline's default location is
+(:mod:`uevavd.perception.training.classifier`); the pipeline's default location is
 ``<cache>/classifiers/<data_hash>.safetensors`` (:func:`default_classifier_path`).
 """
 

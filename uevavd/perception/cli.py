@@ -11,7 +11,7 @@ def _logging() -> None:
 
 
 def add_train_classifier(p: argparse.ArgumentParser):
-    from .train import TrainSettings
+    from .training.classifier import TrainSettings
 
     d = TrainSettings()
     p.add_argument("data", help="dataset root (UEVAVD layout) holding the train_605 scene")
@@ -39,7 +39,7 @@ def add_train_classifier(p: argparse.ArgumentParser):
 
     def run(args) -> int:
         from .nets import resolve_device
-        from .train import TrainSettings, train_classifier
+        from .training.classifier import TrainSettings, train_classifier
 
         _logging()
         if args.threads:

@@ -1,5 +1,6 @@
-"""Segment Anything as a ``segmenter`` plugin (``sam``), its fine-tuning and a small SAM
-trained from scratch on the synthetic world.
+"""Segment Anything as a ``segmenter`` plugin (``sam``): the models, prompts and segmenter
+(inference). Fine-tuning and the small SAM trained from scratch on the synthetic world are
+in :mod:`uevavd.perception.training.sam`.
 
     from uevavd.perception.sam import build_sam_segmenter
     seg = build_sam_segmenter(checkpoint="sam_vit_b_01ec64.pth", ring_points=16)

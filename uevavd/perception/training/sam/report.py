@@ -26,8 +26,8 @@ def training_views(loaded, manifest) -> tuple[set[str] | None, str]:
     count and accepted only when the redrawn views hash to the recorded ``data_hash``.
     ``None`` when our training metadata exists but the views cannot be recovered; an empty
     set when the file records no training here (an official checkpoint)."""
+    from ...sam.model import read_meta
     from .data import load_views, selection_keys, train_and_heldout_contexts
-    from .model import read_meta
 
     metas = [loaded.meta]
     if loaded.meta.get("kind") == "decoder" and loaded.meta.get("base_checkpoint"):
@@ -89,7 +89,7 @@ def _overlay(img: np.ndarray, masks: list[np.ndarray], colours: np.ndarray, alph
 def picture(seg, views, idx, *, scale: int = 4) -> np.ndarray:
     """One row per view: image | ground truth | SAM prompts + masks | pre-decomposed view.
     Returns (rows*H*scale, 4*W*scale, 3) uint8 RGB."""
-    from ..decompose import decompose
+    from ...decompose import decompose
 
     res = seg.segment_detailed(views.images[idx], views.boxes[idx])
     rows = []
@@ -132,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     import torch
 
-    from . import build_sam_segmenter
+    from ...sam import build_sam_segmenter
     from .data import load_views, read_manifest
 
     torch.set_num_threads(a.threads)

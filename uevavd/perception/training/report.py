@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_save, atomic_write
-from ..data.splits import TARGETS
+from ...atomic import atomic_save, atomic_write
+from ...data.splits import TARGETS
 
 BINS = np.linspace(0.0, 1.0, 11)
 
@@ -32,7 +32,7 @@ def _atomic_write_text(path: Path, text: str) -> None:
 def visibility_report(model, manifest, weights_path: Path, info: dict, *, decoder, max_views: int = 3000,
                       seed: int = 0) -> tuple[Path, Path | None]:
     """Write ``<weights>.md`` (and ``<weights>.png`` when there are training contexts)."""
-    from .train import input_norm, predict
+    from .classifier import input_norm, predict
 
     recs = [r for r in manifest.records if r.split == "train" and r.visible is not None]
     rng = np.random.default_rng(seed)

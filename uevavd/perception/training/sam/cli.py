@@ -24,7 +24,7 @@ def _common(p: argparse.ArgumentParser, *, steps: int, lr: float, points: int) -
 
 
 def _args(a):
-    from .training import TrainArgs
+    from .loop import TrainArgs
 
     return TrainArgs(steps=a.steps, batch_size=a.batch_size, lr=a.lr, points_per_view=a.points_per_view, seed=a.seed)
 
@@ -48,8 +48,8 @@ def add_train_small(p: argparse.ArgumentParser):
     def run(a) -> int:
         import torch
 
+        from ...sam.model import SmallConfig, default_small_path
         from .data import split_heldout
-        from .model import SmallConfig, default_small_path
         from .train_small import train_small
 
         torch.set_num_threads(a.threads)

@@ -20,13 +20,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ...paths import cache_dir
+from ....paths import cache_dir
+from ...sam.model import LoadedSam, file_sha256, load_sam, save_decoder
+from ...sam.segmenter import SamSegmenter
 from .data import GTViews, view_selection
 from .evaluate import evaluate
-from .model import LoadedSam, file_sha256, load_sam, save_decoder
-from .segmenter import SamSegmenter
+from .loop import TrainArgs, loss_summary, train_loop
 from .train_small import write_json
-from .training import TrainArgs, loss_summary, train_loop
 
 
 def cached_embeddings(seg: SamSegmenter, views: GTViews, base_sha: str, *, cache: Path | None = None,
@@ -49,7 +49,7 @@ def cached_embeddings(seg: SamSegmenter, views: GTViews, base_sha: str, *, cache
         torch.save(e, f)
         pieces.append(e)
     emb = torch.cat(pieces)
-    from ...atomic import atomic_write
+    from ....atomic import atomic_write
 
     atomic_write(path, lambda fh: torch.save(emb, fh))
     for f in part.iterdir():

@@ -19,8 +19,8 @@ import torch
 import torch.nn.functional as F
 from segment_anything import SamPredictor
 
+from ...sam.prompts import box_mask, centre_box, ring_points
 from .data import GTViews
-from .prompts import box_mask, centre_box, ring_points
 
 
 @dataclass
@@ -147,7 +147,7 @@ def lr_at(step: int, args: TrainArgs) -> float:
 
 
 def _atomic_torch_save(obj, path: Path) -> None:
-    from ...atomic import atomic_write
+    from ....atomic import atomic_write
 
     atomic_write(path, lambda fh: torch.save(obj, fh))
 

@@ -13,8 +13,8 @@ from collections import defaultdict
 
 import numpy as np
 
+from ...sam.prompts import mask_iou
 from .data import GTViews
-from .prompts import mask_iou
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

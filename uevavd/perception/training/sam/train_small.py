@@ -18,11 +18,11 @@ import numpy as np
 import torch
 from segment_anything import SamPredictor
 
+from ...sam.model import LoadedSam, SmallConfig, build_model, default_small_path, file_sha256, save_full
+from ...sam.segmenter import SamSegmenter, images_to_input
 from .data import GTViews, view_selection
 from .evaluate import evaluate
-from .model import LoadedSam, SmallConfig, build_model, default_small_path, file_sha256, save_full
-from .segmenter import SamSegmenter, images_to_input
-from .training import TrainArgs, loss_summary, train_loop
+from .loop import TrainArgs, loss_summary, train_loop
 
 
 def write_json(path: Path, obj) -> None:
