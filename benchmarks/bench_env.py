@@ -218,7 +218,7 @@ def bench_network_policy(device: str, cfg: EnvConfig, feature_dim: int = 2048, r
               lambda net: GreedyPolicy(net, device=device, features=features)))
     for title, bias in (("untrained (worst case)", 0.0), (f"stop advantage +{STOP_BIAS}", STOP_BIAS)):
         torch.manual_seed(0)
-        net = build_network(spec, feature_dim, n_ranges=cfg.max_range).eval()
+        net = build_network(spec.state, spec.head, feature_dim, n_ranges=cfg.max_range).eval()
         with torch.no_grad():
             net.head.adv_type[2].bias[STOP] += bias
         params = sum(p.numel() for p in net.parameters())

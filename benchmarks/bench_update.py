@@ -70,7 +70,8 @@ def main() -> None:
     try:
         for method in args.methods.split(","):
             torch.manual_seed(0)
-            net = build_network(load_method(method), table.feature_dim, n_ranges=cfg.max_range)
+            spec = load_method(method)
+            net = build_network(spec.state, spec.head, table.feature_dim, n_ranges=cfg.max_range)
             learner = agent.Learner(net, lr=1e-4, gamma=cfg.gamma, grad_clip=10.0)
             replay = _replay(tensors, cfg.t_max)
             times: dict[str, list[float]] = {name: [] for name in paths}

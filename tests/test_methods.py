@@ -22,7 +22,7 @@ def test_method_builds_and_updates(method, head):
     over["head.name"] = head
     over["head.hidden"] = 16
     spec = load_method(method, over)
-    net = build_network(spec, table.feature_dim)
+    net = build_network(spec.state, spec.head, table.feature_dim)
     env = BatchedAODEnv(table, "train", 8, device="cpu", seed=0)
     # multi-step episodes from the env (moves, then a stop, or T_max moves), so every head's
     # TD target bootstraps at non-terminal steps

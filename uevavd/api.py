@@ -167,7 +167,7 @@ def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, method:
     table = None if table is None else load_table(table)
     check_policy_fits(path, settings, table=table, method=method, env=cfg)
     spec = loads_method(method_toml, source=str(path))
-    net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
+    net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
     load_net_state(net, state, path)
     features = None
     if table is not None:

@@ -114,7 +114,7 @@ def _spec(method, head):
 def test_update_matches_padded_reference_and_ignores_padding(table, method, head):
     torch.manual_seed(0)
     spec = _spec(method, head)
-    net = build_network(spec, table.feature_dim)
+    net = build_network(spec.state, spec.head, table.feature_dim)
     assert spec.component("head")[0] == HEADS[head]["head.name"]
     learner = Learner(net, lr=1e-3, gamma=0.9, grad_clip=0.0)
     with torch.no_grad():  # a target network that differs from the online one

@@ -351,7 +351,7 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
     spec = resolve_spec(run_dir)
     from .network import build_network
 
-    net = build_network(spec, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
+    net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
     path = run_dir / weights if weights else RunDir(run_dir).checkpoint
     state = load_checkpoint(path, expect=settings, keys=ARCH_KEYS)  # the network, not a resume
     load_net_state(net, state["net"], path)

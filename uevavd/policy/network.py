@@ -7,7 +7,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..config import MethodSpec
+from ..config import Component
+from ..data.grid import DEFAULT_MAX_RANGE, N_TYPES
 
 
 class QNetwork(nn.Module):
@@ -43,11 +44,13 @@ class QNetwork(nn.Module):
         return self.head(s), hidden
 
 
-def build_network(spec: MethodSpec, feature_dim: int, *, n_types: int = 7, n_ranges: int = 4) -> QNetwork:
-    """Build the method's estimator (with the table's feature size) and head."""
-    estimator = spec.state.build(feature_dim=feature_dim)
+def build_network(state: Component, head: Component, feature_dim: int, *, n_types: int = N_TYPES,
+                  n_ranges: int = DEFAULT_MAX_RANGE) -> QNetwork:
+    """The Q network of a method's ``state`` and ``head`` sections (``spec.state``,
+    ``spec.head``): the estimator built for the table's feature size, the head for its
+    state size (unless the head section sets ``state_dim``) and the action space."""
+    estimator = state.build(feature_dim=feature_dim)
     head_kwargs: dict[str, Any] = {"n_types": n_types, "n_ranges": n_ranges}
-    if "state_dim" not in spec.head.kwargs:
+    if "state_dim" not in head.kwargs:
         head_kwargs["state_dim"] = estimator.state_dim
-    head = spec.head.build(**head_kwargs)
-    return QNetwork(estimator, head)
+    return QNetwork(estimator, head.build(**head_kwargs))

@@ -178,7 +178,7 @@ def train(
     # -- seeding and setup (everything that can refuse the input, before the run directory
     # is written: a table without the train or an eval split leaves no half-made run) --------
     torch.manual_seed(cfg.seed)
-    net = build_network(spec, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
+    net = build_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=cfg.seed + 1, device=dev)
