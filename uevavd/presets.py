@@ -10,7 +10,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from .data.splits import resolve_split, split_of, subset
 from .hashing import json_digest
+from .paths import cache_dir
 
 ZOO = Path(__file__).resolve().parent / "model_zoo"
 
@@ -44,7 +46,6 @@ def load_preset(name_or_path: str | Path) -> dict[str, Any]:
 def world_root(preset: Mapping[str, Any]) -> Path:
     """Where a preset's synthetic world is cached: ``<cache>/worlds/<name>-<digest of its
     [world] table>`` (another seed, size or context count is another folder)."""
-    from .paths import cache_dir
 
     return cache_dir() / "worlds" / f"{preset.get('name', 'world')}-{json_digest(preset['world'], 12)}"
 
@@ -52,7 +53,6 @@ def world_root(preset: Mapping[str, Any]) -> Path:
 def world_contexts(preset: Mapping[str, Any], split: str | None = None) -> list[int]:
     """The context ids of a preset's world (``[world] per_block``), only those of ``split``
     (a split name or alias such as "test") when given."""
-    from .data.splits import resolve_split, split_of, subset
 
     contexts = list(subset(preset["world"]["per_block"]))
     if split is None:

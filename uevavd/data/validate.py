@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .layout import MANIFEST
+from ..atomic import atomic_write
+from .layout import CATEGORIES, MANIFEST
 from .reader import UNUSED_FILE_KINDS, Problem, scan
 from .records import Manifest
 from .splits import CLASSIFIER_SCENE, N_CONTEXTS, SPLITS, UNOCCLUDED_SCENE, counts
@@ -141,7 +142,6 @@ def segmentation_problem(manifest, scene: str, recs: list) -> str | None:
     ``gt``), or None: views without a segmentation PNG, no ``seg/categories.json``, or no
     instance of category ``target`` in it (every target pixel would then be grayed like the
     background). The one rule ``validate`` and ``prepare`` share."""
-    from .layout import CATEGORIES
 
     missing = [r for r in recs if r.seg is None]
     if missing:
@@ -352,7 +352,6 @@ def _write_json(path: Path, report: ValidationReport) -> None:
 
     data = {**report.summary(), "problem_list": [
         {"kind": p.kind, "path": str(p.path), "message": p.message} for p in report.problems]}
-    from ..atomic import atomic_write
 
     atomic_write(path, json.dumps(data, indent=1))
 

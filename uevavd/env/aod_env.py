@@ -39,6 +39,7 @@ from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view
 from ..table import ObservationTable, TableError
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
+from .render import render_frame
 
 F16_MAX = float(np.finfo(np.float16).max)
 
@@ -259,7 +260,6 @@ class AODEnv(gym.Env):
             return None
         if not self._path:
             raise RuntimeError("render() before reset()")
-        from .render import render_frame
 
         return render_frame(self.table, self._scene, self._path, self._t)
 

@@ -9,6 +9,9 @@ from __future__ import annotations
 import torch
 
 from ..data.grid import STOP
+from .evaluate import evaluate_policy
+from .oracle import OraclePolicy
+from .visibility_oracle import VisibilityOraclePolicy
 
 
 class RandomPolicy:
@@ -70,13 +73,11 @@ def build_visibility_oracle(*, table, config, seed: int = 0):
 
     if np.isnan(np.asarray(table.visible)).all():
         return None
-    from .visibility_oracle import VisibilityOraclePolicy
 
     return VisibilityOraclePolicy(table, config)
 
 
 def build_oracle(*, table, config, seed: int = 0):
-    from .oracle import OraclePolicy
 
     return OraclePolicy(table, config)
 
@@ -116,7 +117,6 @@ def evaluate_beside_baselines(table, split: str, policy, name: str, config, *, d
     context. What ``uevavd evaluate``, ``Run.evaluate`` and the model zoo print."""
     import pandas as pd
 
-    from .evaluate import evaluate_policy
 
     policies = {name: policy, **(reference_policies(table, config) if baselines else {})}
     results = {n: evaluate_policy(table, split, p, config, device=device, contexts=contexts)

@@ -26,6 +26,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from ..atomic import atomic_write
 from ..data.grid import N_VIEWS
 from ..table import ObservationTable
 from .aod_env import load_table
@@ -124,7 +125,6 @@ class EvalResult:
         """Summary and breakdowns as JSON; written atomically to ``path`` when given."""
         text = json.dumps(self.to_dict(), indent=1)
         if path is not None:
-            from ..atomic import atomic_write
 
             atomic_write(path, text)
         return text

@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 
 from ..data.grid import NX, NY, grid_indices, view_coords
+from ..data.reader import DatasetError, read_dataset
+from ..perception.images import read_rgb
 
 #: Side of each of the two square panels, in pixels.
 PANEL = 256
@@ -55,7 +57,6 @@ def _view_image(table: Any, scene: int, view: int) -> tuple[np.ndarray | None, s
     target = table.class_names[int(table.targets[scene])]
     try:
         record = manifest.records[manifest.index(name, target, int(view))]
-        from ..perception.images import read_rgb
 
         return read_rgb(record.image), ""
     except (KeyError, ValueError, OSError) as exc:
@@ -64,7 +65,6 @@ def _view_image(table: Any, scene: int, view: int) -> tuple[np.ndarray | None, s
 
 @lru_cache(maxsize=4)
 def _manifest(root: str):
-    from ..data.reader import DatasetError, read_dataset
 
     if not Path(root).is_dir():
         return None

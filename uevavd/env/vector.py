@@ -28,8 +28,9 @@ from gymnasium import spaces
 from gymnasium.vector.utils import batch_space
 
 from ..data.grid import N_TYPES, STOP
+from .aod_env import AODEnv
 from .batched import BatchedAODEnv
-from .config import EnvConfig
+from .config import EnvConfig, make_config
 
 ACTION_FORMS = ("multi", "flat")
 
@@ -42,8 +43,6 @@ class AODVectorEnv(gym.vector.VectorEnv):
     def __init__(self, table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
                  num_envs: int = 1, actions: str = "multi", device: str | torch.device = "cpu",
                  contexts: Any = None, **overrides: Any) -> None:
-        from .aod_env import AODEnv
-        from .config import make_config
 
         if actions not in ACTION_FORMS:
             raise ValueError(f"actions={actions!r}: expected one of {ACTION_FORMS}")

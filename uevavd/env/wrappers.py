@@ -9,6 +9,7 @@ import numpy as np
 from gymnasium import spaces
 
 from ..data.grid import unflat_action
+from .vector import action_masks
 
 
 class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -43,7 +44,6 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def action_masks(self) -> np.ndarray:
         """(7 * A,) bool: the joint actions allowed at the current view (sb3-contrib's MaskablePPO)."""
-        from .vector import action_masks
 
         env = self.env.unwrapped
         return action_masks(env._tr.mask[env._view][None], "flat")[0]

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from ..env.aod_env import load_table
+from ..perception.classifier import read_classifier_file
 from .report_data import md_table as _table
 
 #: Visible fraction at or above which a view counts as clear (the world's validity rule's).
@@ -27,7 +29,6 @@ def audit_table(table, terrains: Mapping[int, str] | None = None) -> dict[str, A
     """``{split: {"clear_views", "clear_accuracy", "accuracy", "contexts": [...],
     "by_visible": [...]}}`` of an :class:`~uevavd.table.ObservationTable`
     (or its folder). Splits without visible fractions report accuracy only."""
-    from ..env.aod_env import load_table
 
     tbl = load_table(table)
     pred = tbl.probs.argmax(-1)  # (S, V)
@@ -60,7 +61,6 @@ def audit_table(table, terrains: Mapping[int, str] | None = None) -> dict[str, A
 def classifier_summary(path: str | Path) -> dict[str, Any]:
     """Architecture, initialisation, epochs and held-out (train_605 viewpoints) accuracy of a
     classifier file."""
-    from ..perception.classifier import read_classifier_file
 
     _, meta = read_classifier_file(path)
     train = meta.get("train", {})

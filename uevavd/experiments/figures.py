@@ -21,7 +21,7 @@ import seaborn as sns  # noqa: E402
 from ..atomic import atomic_save  # noqa: E402
 from ..data.grid import ACTION_TYPES, STOP, XS, YS, ZS, view_coords  # noqa: E402
 from .report_data import baselines as reference_names  # noqa: E402
-from .report_data import label, order_methods  # noqa: E402
+from .report_data import estimate_units, label, order_methods  # noqa: E402
 from .stats import smooth  # noqa: E402
 
 #: Fig. 9 panels: (column, y-axis label).
@@ -86,7 +86,6 @@ def curve_bands(data: pd.DataFrame, col: str) -> pd.DataFrame:
     (:func:`uevavd.experiments.report_data.estimate_units`): with one recognizer the Student-t
     interval over seeds (mean ± t(0.975, n-1) · sd / √n; NaN, no band, with fewer than two
     seeds), with several the nested bootstrap; clipped to :data:`METRIC_RANGE`."""
-    from .report_data import estimate_units
 
     lo_b, hi_b = METRIC_RANGE.get(col, (-np.inf, np.inf))
     rows = []

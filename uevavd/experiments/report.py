@@ -25,7 +25,9 @@ import numpy as np
 import pandas as pd
 
 from ..atomic import atomic_write
+from .audit import audit_markdown
 from .claims import Claim, check_claims, diagnose
+from .figures import plot_curves, plot_strips
 from .report_data import (
     DEFAULT_C,
     DEFAULT_THRE,
@@ -238,7 +240,6 @@ def _gengap_section(final: pd.DataFrame, setting: str) -> list[str]:
 
 def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, out_dir: Path,
                     window: int | None) -> list[str]:
-    from .figures import plot_curves
 
     curves = curve_rows(results)
     curves = curves[(curves["setting"] == setting) & (curves["episodes"] >= 0)]
@@ -303,7 +304,6 @@ def _sweep_section(final: pd.DataFrame, param: str, table_no: int, ablation_dir:
 
 
 def _strips_section(ablation_dir: Path, meta: dict | None, out_dir: Path) -> list[str]:
-    from .figures import plot_strips
 
     out = ["## Observation sequences (Fig. 8)", ""]
     trajs, note = load_trajectories(ablation_dir / "trajectories.json")
@@ -375,7 +375,6 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     audit = _read_json(ablation_dir / "recognizer_audit.json", notes) if (
         ablation_dir / "recognizer_audit.json").is_file() else None
     if audit:
-        from .audit import audit_markdown
 
         lines += audit_markdown(audit)
     lines += _results_section(final, setting)

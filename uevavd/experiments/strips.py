@@ -17,6 +17,7 @@ import numpy as np
 
 from ..data.grid import N_VIEWS, view_coords
 from ..data.layout import IMAGE_EXT, view_stem
+from ..data.reader import read_dataset
 from .report_data import order_methods
 
 _REQUIRED = ("method", "views")
@@ -83,7 +84,6 @@ class CropLookup:
         else:
             self.source = f"`{self.root}` by canonical file name"
             try:
-                from ..data.reader import read_dataset
 
                 manifest = read_dataset(self.root, check=False)
                 for rec in manifest:

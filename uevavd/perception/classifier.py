@@ -20,7 +20,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..atomic import atomic_save
+from ..data.reader import read_dataset
+from ..data.splits import CLASSIFIER_SCENE
 from ..paths import cache_dir
+from .efficientnet import check_size, fold_lite0, make_lite0
 from .nets import BatchRunner, check_images
 from .weights import WeightsError, load_state_dict_file, load_strict, make_resnet, state_dict_hash
 
@@ -34,7 +38,6 @@ def classifiers_dir() -> Path:
 
 def train_records(manifest) -> list:
     """The unoccluded ``train_605`` records the classifier trains on (in manifest order)."""
-    from ..data.splits import CLASSIFIER_SCENE
 
     recs = [r for r in manifest.records if r.scene == CLASSIFIER_SCENE]
     if not recs:
@@ -64,7 +67,6 @@ def classifier_cache_path(data_digest: str, settings: Any) -> Path:
 def default_classifier_path(data: str | os.PathLike[str]) -> Path:
     """Where ``uevavd train-classifier`` puts, and the pipeline looks for, the classifier of
     dataset ``data`` (a root folder): ``<cache>/classifiers/<data_hash>.safetensors``."""
-    from ..data.reader import read_dataset
 
     return classifiers_dir() / f"{data_hash(train_records(read_dataset(data)))}.safetensors"
 
@@ -74,7 +76,6 @@ def write_classifier_file(path: str | os.PathLike[str], state_dict: Mapping[str,
     """Save state dict + metadata as safetensors, atomically."""
     from safetensors.torch import save_file
 
-    from ..atomic import atomic_save
 
     meta = {"format": FORMAT, **meta}
     tensors = {k: v.detach().cpu().contiguous() for k, v in state_dict.items()}
@@ -118,7 +119,6 @@ class ResNetClassifier:
         self.meta = dict(meta or {})
         lite = arch == "efficientnet_lite0"
         if lite:  # torch.fx cannot fold its batch norms: fold them here
-            from .efficientnet import fold_lite0
 
             model = fold_lite0(model)
         self.runner = BatchRunner(model, device=device, batch_size=batch_size, mean=tuple(mean), std=tuple(std),
@@ -127,7 +127,6 @@ class ResNetClassifier:
     def predict_proba(self, images: np.ndarray) -> np.ndarray:
         images = check_images(images, f"{self.arch} classifier")
         if self.arch == "efficientnet_lite0":
-            from .efficientnet import check_size
 
             check_size(images, f"{self.arch} classifier")
         if len(images) == 0:
@@ -167,7 +166,6 @@ def make_recognizer(arch: str, *, num_classes: int, seed: int = 0, empty: bool =
     """An untrained recognizer network of a supported architecture (a torchvision ResNet or
     EfficientNet-Lite0), ``num_classes`` outputs."""
     if arch == "efficientnet_lite0":
-        from .efficientnet import make_lite0
 
         return make_lite0(num_classes=num_classes, seed=seed)
     return make_resnet(arch, num_classes=num_classes, seed=seed, empty=empty)

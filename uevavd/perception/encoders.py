@@ -13,6 +13,7 @@ import logging
 import numpy as np
 import torch
 
+from .classifier import default_classifier_path, read_classifier_file
 from .nets import BatchRunner, check_images
 from .weights import (
     WeightsError,
@@ -63,7 +64,6 @@ def load_backbone(arch: str, weights: str, *, seed: int = 0, classifier: str | N
         model = make_resnet(arch, seed=seed)
         return model, f"random:{seed}", state_dict_hash(model.state_dict())
     if kind == "classifier":
-        from .classifier import default_classifier_path, read_classifier_file
 
         path = classifier or (default_classifier_path(data) if data else None)
         if path is None:

@@ -10,6 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..data.validate import decode_bytes
+
 cv2.setNumThreads(1)  # our own pool parallelises; cv2's inner threads would oversubscribe
 
 
@@ -20,7 +22,6 @@ class ImageReadError(OSError, ValueError):
 
 def _decode(path: str | os.PathLike[str], flags: int, what: str) -> np.ndarray:
     """Read and decode one file; truncated PNG/JPEG files are refused, not filled in."""
-    from ..data.validate import decode_bytes
 
     try:
         data = Path(path).read_bytes()

@@ -31,7 +31,9 @@ from filelock import FileLock
 
 from ..config import MethodSpec, load_method
 from ..data.grid import N_VIEWS
+from ..data.reader import read_dataset
 from ..data.splits import TARGETS
+from ..data.validate import segmentation_problem
 from ..paths import tables_dir
 from ..table import SCHEMA_VERSION, ObservationTable, TableError
 from .decompose import decompose, view_seed
@@ -146,7 +148,6 @@ def ground_truth_categories(manifest, scene: str, recs: list) -> dict[int, str]:
     """The scene's instance id -> category table for a ground-truth segmenter; an error
     naming the file when the scene's segmentation cannot serve it
     (:func:`uevavd.data.validate.segmentation_problem`, the rule ``validate`` checks too)."""
-    from ..data.validate import segmentation_problem
 
     problem = segmentation_problem(manifest, scene, recs)
     if problem:
@@ -256,7 +257,6 @@ def plan_table(
     overrides: Mapping[str, Any] | None = None,
 ) -> TablePlan:
     """Read the dataset, build the components and compute the table key (no images decoded)."""
-    from ..data.reader import read_dataset
 
     data_root = Path(data_root).expanduser().resolve()
     spec = resolve_spec(spec_or_method, overrides)

@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from .base import Segmentation
+from .decompose import decompose_instances
 
 GT_VERSION = 1
 
@@ -65,7 +66,6 @@ class GroundTruthSegmenter:
                         categories: Sequence[Mapping[int, str]], seeds: Sequence[int]) -> np.ndarray:
         """Fast path of segment + :func:`~uevavd.perception.decompose.decompose` (identical
         output): (N, H, W, 3) uint8 pre-decomposed views, one table lookup per view."""
-        from .decompose import decompose_instances
 
         out = np.empty_like(images)
         for i, (img, m, cats, seed) in enumerate(zip(images, instance_maps, categories, seeds, strict=True)):

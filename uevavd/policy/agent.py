@@ -20,9 +20,12 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from ..data.grid import N_VIEWS, STOP
 from ..state.base import InputGateCache
+from ..table import ObservationTable
 from . import targets as T
-from .network import QNetwork
+from .checkpoint import ARCH_KEYS, load_checkpoint, load_net_state
+from .network import QNetwork, build_network
 from .replay import EpisodeBatch
 from .rundir import RunDir, read_settings, resolve_spec
 
@@ -289,7 +292,6 @@ class GreedyPolicy:
 
     @torch.no_grad()
     def act(self, obs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        from ..data.grid import N_VIEWS, STOP
 
         boxes = torch.as_tensor(obs["box"], device=self.device, dtype=torch.float32)
         full_mask = torch.as_tensor(obs["mask"], device=self.device).bool()
@@ -344,12 +346,10 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
     """The greedy policy of a training run directory (its latest checkpoint). With
     ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
     its actions are the same either way."""
-    from .checkpoint import ARCH_KEYS, load_checkpoint, load_net_state
 
     run_dir = Path(run_dir)
     settings = read_settings(run_dir)
     spec = resolve_spec(run_dir)
-    from .network import build_network
 
     net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
     path = run_dir / weights if weights else RunDir(run_dir).checkpoint
@@ -362,7 +362,6 @@ def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
     """The run's table features (S, 605, D) float16 (memory-mapped), or None if not on disk."""
     import numpy as np
 
-    from ..table import ObservationTable
 
     path = settings.get("table_path")
     if not path or not Path(path).is_dir():

@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from ..atomic import atomic_write
+from ..atomic import atomic_save, atomic_write
 from .rundir import RunDir
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
@@ -90,7 +90,6 @@ def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Te
     :data:`POLICY_KEYS` in its header, written atomically."""
     from safetensors.torch import save_file
 
-    from ..atomic import atomic_save
 
     tensors = {k: v.detach().cpu().contiguous() for k, v in net_state.items()}
     meta = {"format": POLICY_FORMAT, "method_toml": method_toml,

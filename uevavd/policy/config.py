@@ -6,6 +6,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from ..config import ConfigError
+
 #: ``TrainConfig.gamma``'s default; at this value it follows ``env.gamma``.
 DEFAULT_GAMMA = 0.9
 
@@ -72,7 +74,6 @@ class TrainConfig:
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
         divisor) or silently learn nothing is refused here, before a run directory exists."""
-        from ..config import ConfigError
 
         def need(ok: bool, key: str, what: str) -> None:
             if not ok:
@@ -110,7 +111,6 @@ class TrainConfig:
             return self
         if self.gamma == DEFAULT_GAMMA:
             return self.replace(gamma=float(env_gamma))
-        from ..config import ConfigError
 
         raise ConfigError(
             f"train.gamma = {self.gamma} and env.gamma = {env_gamma} differ, but a run has one discount "

@@ -24,7 +24,11 @@ import torch
 
 from ..atomic import atomic_write
 from ..config import MethodSpec
+from ..env.aod_env import load_table, select_scenes
+from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
+from ..env.evaluate import evaluate_policy
+from ..perception.nets import resolve_device as _resolve
 from .agent import GreedyPolicy, Learner, TableLookup, epsilon_greedy
 from .checkpoint import (
     CheckpointError,
@@ -46,7 +50,6 @@ TB_EVERY_UPDATES = 100
 def resolve_device(device: str) -> torch.device:
     """``"auto"`` -> CUDA when present, else CPU; a CUDA device that is not there is a
     one-line error (the perception layer's rule, :func:`uevavd.perception.nets.resolve_device`)."""
-    from ..perception.nets import resolve_device as _resolve
 
     return _resolve(device)
 
@@ -101,8 +104,6 @@ class _Evaluator:
 
     def __init__(self, table: Any, cfg: TrainConfig, env_cfg: EnvConfig, device: torch.device,
                  net: Any) -> None:
-        from ..env.aod_env import select_scenes
-        from ..env.batched import EnvTensors
 
         self.device = device
         self.features = torch.from_numpy(np.array(table.features)).to(device)
@@ -119,7 +120,6 @@ class _Evaluator:
                                              with_features=needs)
 
     def __call__(self, net: Any) -> dict[str, dict[str, Any]]:
-        from ..env.evaluate import evaluate_policy
 
         out = {split: evaluate_policy(tb, split, GreedyPolicy(net, device=self.device, features=self.features)).summary()
                for split, tb in self.tensors.items()}
@@ -145,8 +145,6 @@ def train(
     holding another configuration (naming what differs); returns at once for a finished
     run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
     """
-    from ..env.aod_env import load_table
-    from ..env.batched import BatchedAODEnv
 
     # -- settings -----------------------------------------------------------------------------
     spec = apply_overrides(spec, overrides)

@@ -11,6 +11,7 @@ import inspect
 from types import ModuleType
 from typing import Any
 
+from ..config import load_method
 from ..plugins.manager import PluginManager
 from ..plugins.registry import KINDS, Entry
 
@@ -20,7 +21,6 @@ def check_registry_entry(entry: Entry) -> None:
     assert entry.kind in KINDS, f"{entry.name}: unknown kind {entry.kind!r}"
     target = entry.load()
     if entry.kind == "method":
-        from ..config import load_method
 
         spec = load_method(target)
         assert spec.name, f"method {entry.name}: no name"

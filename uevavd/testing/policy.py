@@ -12,6 +12,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..data.grid import N_VIEWS, view_coords
+from ..table import ObservationTable
+
 
 def check_state_estimator(est: Any, *, batch: int = 3, steps: int = 4) -> None:
     """Shapes, causality (s_t never reads o_{>t}), and step() agreeing with forward()."""
@@ -73,8 +76,6 @@ def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed:
     learnable: each scene has a random "good" region of views (near a random viewpoint)
     whose probabilities favour the true class, and the features encode the view's
     position and a noisy recognisability signal. For tests and development only."""
-    from ..data.grid import N_VIEWS, view_coords
-    from ..table import ObservationTable
 
     rng = np.random.default_rng(seed)
     s = n_train + n_hard

@@ -28,6 +28,7 @@ from .ground import lookup
 from .raycast import _INF, _ellipsoid_cast, _hull_cast
 from .scenes import TARGET_ID, Scene
 from .shading import _shade, _ShadowMap
+from .world import build_context
 
 
 @dataclass
@@ -283,6 +284,5 @@ def render_views(scene: Scene, size: int, views=None, *, shade: bool = True) -> 
 
 def render_context(context_id: int, *, size: int, seed: int) -> ContextViews:
     """All 605 views of context ``context_id`` at ``size`` px for a world seed (in memory)."""
-    from .world import build_context
 
     return render_views(build_context(context_id, seed=seed), size)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..grid import N_VIEWS
 from ..splits import BLOCK, TARGETS, block_of, check_context, scene_name, split_of
 from .geometry import Primitives
 from .ground import Strip
@@ -169,7 +170,6 @@ def training_stages(seed: int) -> np.ndarray:
     """(605,) int: the ``train_605`` stage (0..TRAIN_STAGES-1) each viewpoint is rendered in.
     A seeded permutation dealt round-robin, so every stage's views spread over the grid; the
     same assignment for every target (held-out viewpoints meet every stage)."""
-    from ..grid import N_VIEWS
 
     perm = np.random.default_rng([int(seed), 7605]).permutation(N_VIEWS)
     stages = np.empty(N_VIEWS, np.int64)

@@ -29,6 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ...atomic import atomic_write
 from ...runtime import single_threaded_worker
 from .. import layout
 from ..grid import N_VIEWS, view_coords
@@ -53,7 +54,6 @@ _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    from ...atomic import atomic_write
 
     atomic_write(path, data)
 

@@ -31,6 +31,9 @@ from typing import Any
 import torch
 from segment_anything.modeling import ImageEncoderViT, MaskDecoder, PromptEncoder, Sam, TwoWayTransformer
 
+from ...atomic import atomic_save
+from ...paths import cache_dir
+
 MODEL_TYPES = ("vit_b", "vit_l", "vit_h", "vit_t", "small")
 META_KEY = "uevavd"
 
@@ -324,7 +327,6 @@ def save_safetensors(path: str | os.PathLike[str], state: dict[str, torch.Tensor
     p = Path(path).expanduser()
     p.parent.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().to("cpu").contiguous() for k, v in state.items()}
-    from ...atomic import atomic_save
 
     return atomic_save(p, lambda tmp: save_file(tensors, tmp, metadata={META_KEY: json.dumps(meta, sort_keys=True)}))
 
@@ -348,6 +350,5 @@ def save_decoder(path: str | os.PathLike[str], model: torch.nn.Module, base: Loa
 
 def default_small_path() -> Path:
     """Where ``uevavd train-sam-small`` writes and the ``sam`` plugin looks by default."""
-    from ...paths import cache_dir
 
     return cache_dir() / "sam" / "sam_small.safetensors"

@@ -22,7 +22,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ...data.reader import read_dataset
 from ...data.splits import TARGETS
+from ..classifier import classifiers_dir, data_hash, train_records, write_classifier_file
+from ..efficientnet import LITE0_FILE, LITE_MEAN, LITE_STD, check_size, imagenet_backbone, make_lite0
+from ..images import Decoder
 from ..nets import IMAGENET_MEAN, IMAGENET_STD, resolve_device
 from ..weights import (
     WeightsError,
@@ -32,6 +36,7 @@ from ..weights import (
     make_resnet,
     state_dict_hash,
 )
+from .report import visibility_report
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +93,6 @@ def sample_views(views: np.ndarray, settings: TrainSettings) -> np.ndarray:
 def input_norm(arch: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The (mean, std) an architecture's ImageNet weights expect, on [0, 1] RGB."""
     if arch == "efficientnet_lite0":
-        from ..efficientnet import LITE_MEAN, LITE_STD
 
         return LITE_MEAN, LITE_STD
     return IMAGENET_MEAN, IMAGENET_STD
@@ -99,7 +103,6 @@ def initial_model(imagenet: str | None, n_classes: int, seed: int, *, arch: str 
     """A recognizer with a fresh ``n_classes`` head; backbone from ImageNet when asked and
     available (ResNet18: ``imagenet`` file or torch's cache; Lite0: its package)."""
     if arch == "efficientnet_lite0":
-        from ..efficientnet import LITE0_FILE, imagenet_backbone, make_lite0
 
         if init == "random":
             return make_lite0(num_classes=n_classes, seed=seed), f"random:{seed}"
@@ -191,7 +194,6 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tr
     settings.check()
     images, labels, views = np.asarray(images), np.asarray(labels, np.int64), np.asarray(views, np.int64)
     if settings.arch == "efficientnet_lite0":
-        from ..efficientnet import check_size
 
         check_size(images, "train-classifier")
     all_views = sample_views(np.unique(views), settings)
@@ -253,10 +255,6 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
     its report (``<out>.md`` and ``<out>.png``) beside it. ``out=None`` writes to the
     default location the pipeline reads (:func:`default_classifier_path`). Returns ``out``.
     ``device``: where the network trains ("auto": CUDA when present); see :func:`fit`."""
-    from ...data.reader import read_dataset
-    from ..classifier import classifiers_dir, data_hash, train_records, write_classifier_file
-    from ..images import Decoder
-    from .report import visibility_report
 
     settings = settings or TrainSettings()
     manifest = read_dataset(data)

@@ -19,6 +19,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ....data.reader import read_dataset
+
 BACKGROUND = ("none",)
 
 
@@ -129,7 +131,6 @@ def load_views(manifest, *, contexts: Sequence[int], per_context: int, seed: int
 def read_manifest(root: str | Path):
     """The dataset under ``root`` (reader, unchecked: views that parse are used; problems
     are summarised on stderr)."""
-    from ....data.reader import read_dataset
 
     manifest = read_dataset(root, check=False)
     if manifest.problems:

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ....atomic import atomic_write
 from ....paths import cache_dir
 from ...sam.model import LoadedSam, file_sha256, load_sam, save_decoder
 from ...sam.segmenter import SamSegmenter
@@ -49,7 +50,6 @@ def cached_embeddings(seg: SamSegmenter, views: GTViews, base_sha: str, *, cache
         torch.save(e, f)
         pieces.append(e)
     emb = torch.cat(pieces)
-    from ....atomic import atomic_write
 
     atomic_write(path, lambda fh: torch.save(emb, fh))
     for f in part.iterdir():

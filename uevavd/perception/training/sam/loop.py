@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 from segment_anything import SamPredictor
 
+from ....atomic import atomic_write
 from ...sam.prompts import box_mask, centre_box, ring_points
 from .data import GTViews
 
@@ -147,7 +148,6 @@ def lr_at(step: int, args: TrainArgs) -> float:
 
 
 def _atomic_torch_save(obj, path: Path) -> None:
-    from ....atomic import atomic_write
 
     atomic_write(path, lambda fh: torch.save(obj, fh))
 

@@ -16,6 +16,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ...decompose import decompose
+from ...sam import build_sam_segmenter
+from ...sam.model import read_meta
+from .data import load_views, read_manifest, selection_keys, train_and_heldout_contexts, view_key
+from .evaluate import evaluate
+
 
 def training_views(loaded, manifest) -> tuple[set[str] | None, str]:
     """(keys of the views of ``manifest`` the model was trained on, how that is known).
@@ -26,8 +32,6 @@ def training_views(loaded, manifest) -> tuple[set[str] | None, str]:
     count and accepted only when the redrawn views hash to the recorded ``data_hash``.
     ``None`` when our training metadata exists but the views cannot be recovered; an empty
     set when the file records no training here (an official checkpoint)."""
-    from ...sam.model import read_meta
-    from .data import load_views, selection_keys, train_and_heldout_contexts
 
     metas = [loaded.meta]
     if loaded.meta.get("kind") == "decoder" and loaded.meta.get("base_checkpoint"):
@@ -55,8 +59,6 @@ def miou_per_split(seg, root: str | Path, *, per_context: int = 60, seed: int = 
     """{split: evaluate(...)} over ``per_context`` random views of each context of each split
     present under ``root``, drawn with ``seed`` from the views not in ``exclude`` (the
     keys of the views the model was trained on, see :func:`training_views`)."""
-    from .data import load_views, read_manifest, view_key
-    from .evaluate import evaluate
 
     m = read_manifest(root)
     split = {r.context: r.split for r in m if r.context is not None}
@@ -89,7 +91,6 @@ def _overlay(img: np.ndarray, masks: list[np.ndarray], colours: np.ndarray, alph
 def picture(seg, views, idx, *, scale: int = 4) -> np.ndarray:
     """One row per view: image | ground truth | SAM prompts + masks | pre-decomposed view.
     Returns (rows*H*scale, 4*W*scale, 3) uint8 RGB."""
-    from ...decompose import decompose
 
     res = seg.segment_detailed(views.images[idx], views.boxes[idx])
     rows = []
@@ -132,8 +133,6 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     import torch
 
-    from ...sam import build_sam_segmenter
-    from .data import load_views, read_manifest
 
     torch.set_num_threads(a.threads)
     seg = build_sam_segmenter(checkpoint=a.checkpoint, device="cpu")

@@ -1,0 +1,103 @@
+"""The package's shape (docs/architecture.md): no module-level import cycle, no module over
+400 lines, and imports of its own modules inside functions only where the map says why."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import uevavd
+
+ROOT = Path(uevavd.__file__).resolve().parent
+MAX_LINES = 400
+#: where an import of the package's own modules may sit inside a function, and why
+LAZY_MODULES = {"api.py", "commands.py", "config.py", "config_rules.py"}  # lazy CLI/API, plugin loading
+MUTUAL = {  # a module and the one it uses lazily: the two use each other
+    ("data/synthetic/world.py", "render"),
+    ("env/aod_env.py", "vector"),
+    ("perception/training/classifier.py", "report"),
+    ("perception/training/report.py", "classifier"),
+}
+OPTIONAL = {("experiments/references.py", "env.sb3")}  # Stable-Baselines3, only for --sb3
+
+
+def _modules() -> dict[str, tuple[Path, ast.Module]]:
+    out = {}
+    for p in sorted(ROOT.rglob("*.py")):
+        rel = p.relative_to(ROOT.parent).with_suffix("")
+        name = ".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)
+        out[name] = (p, ast.parse(p.read_text(encoding="utf-8")))
+    return out
+
+
+def _target(mods, name: str, path: Path, node: ast.ImportFrom) -> list[str]:
+    pkg = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    if node.level:
+        parts = pkg.split(".")
+        base = ".".join(parts[: len(parts) - node.level + 1] + ([node.module] if node.module else []))
+    else:
+        base = node.module or ""
+    found = [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base for a in node.names]
+    return [f for f in found if f in mods]
+
+
+def _own_import(node: ast.AST) -> bool:
+    return isinstance(node, ast.ImportFrom) and bool(node.level or (node.module or "").startswith("uevavd"))
+
+
+def test_no_module_level_import_cycle():
+    mods = _modules()
+    graph = {}
+    for name, (path, tree) in mods.items():
+        deps = set()
+        for node in tree.body:
+            if _own_import(node):
+                deps |= set(_target(mods, name, path, node))
+        graph[name] = deps - {name}
+    state: dict[str, int] = {}
+    cycles: list[list[str]] = []
+
+    def visit(u: str, stack: list[str]) -> None:
+        state[u] = 1
+        stack.append(u)
+        for v in sorted(graph[u]):
+            if state.get(v) == 1:
+                cycles.append(stack[stack.index(v):] + [v])
+            elif v not in state:
+                visit(v, stack)
+        stack.pop()
+        state[u] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [])
+    assert not cycles, f"module-level import cycles: {cycles}"
+
+
+def test_no_module_over_the_limit():
+    long = {str(p.relative_to(ROOT)): n for p, _ in _modules().values()
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
+    assert not long, f"modules over {MAX_LINES} lines: {long}"
+
+
+def test_function_level_own_imports_only_where_the_map_allows():
+    unexplained = []
+    for _name, (path, tree) in _modules().items():
+        rel = str(path.relative_to(ROOT))
+        for fn in ast.walk(tree):
+            if not isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+                continue
+            for node in ast.walk(fn):
+                if not _own_import(node):
+                    continue
+                mod = node.module or ""
+                allowed = (
+                    path.name in ("cli.py", "__init__.py") or rel in LAZY_MODULES or rel.startswith("plugins/")
+                    or "plugins" in mod  # the lazy plugin loading
+                    or (node.level and not mod)  # uevavd.__version__ or a sibling package's lazy export
+                    or (rel, mod) in MUTUAL or (rel, mod) in OPTIONAL
+                )
+                if not allowed:
+                    unexplained.append(f"{rel}:{node.lineno} from {'.' * node.level}{mod}")
+    assert not unexplained, ("imports of the package's own modules inside functions, not explained in "
+                             f"docs/architecture.md: {unexplained}; import them at module level")
