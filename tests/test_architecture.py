@@ -11,7 +11,7 @@ import uevavd
 ROOT = Path(uevavd.__file__).resolve().parent
 MAX_LINES = 400
 #: where an import of the package's own modules may sit inside a function, and why
-LAZY_MODULES = {"api.py", "commands.py", "config.py", "config_rules.py"}  # lazy CLI/API, plugin loading
+LAZY_MODULES = {"api.py", "info.py", "config.py", "config_rules.py"}  # lazy CLI/API, plugin loading
 MUTUAL = {  # a module and the one it uses lazily: the two use each other
     ("data/synthetic/world.py", "render"),
     ("env/aod_env.py", "vector"),

@@ -29,3 +29,17 @@ def test_info_reports_libraries_and_weights(capsys, tmp_path, monkeypatch):
     assert main(["info"]) == 0
     text = capsys.readouterr().out
     assert "sam_vit_b_01ec64.pth" in text and "gymnasium" in text
+
+
+def test_a_reader_that_leaves_early_gets_no_traceback():
+    """`uevavd info | head -1`: the pipe closes under the command, which stops quietly."""
+    import subprocess
+    import sys
+
+    # -u: every print goes to the pipe at once, as a long listing does once its buffer fills
+    proc = subprocess.Popen([sys.executable, "-u", "-c", "import sys; from uevavd.cli import main; sys.exit(main(['info']))"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
+    proc.stdout.close()  # the reader leaves before the first line
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) in (0, 141)
+    assert "Traceback" not in err and "BrokenPipe" not in err, err

@@ -22,9 +22,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run, or a model zoo policy (--pretrained), beside the baselines"),
     "train-sam-small": ("uevavd.perception.training.sam.cli:add_train_small", "train the small SAM from scratch on a world's ground truth"),
     "finetune-sam": ("uevavd.perception.training.sam.cli:add_finetune", "fine-tune a SAM checkpoint's mask decoder on ground-truth target masks"),
-    "zoo": ("uevavd.commands:add_zoo", "the model zoo: list, check or rebuild the shipped recognizer and policies"),
-    "info": ("uevavd.commands:add_info", "version, torch and device, components, config and cache paths"),
-    "plugins": ("uevavd.commands:add_plugins", "list plugins and what each registered, by kind"),
+    "zoo": ("uevavd.experiments.cli:add_zoo", "the model zoo: list, check or rebuild the shipped recognizer and policies"),
+    "info": ("uevavd.info:add_info", "version, torch and device, components, config and cache paths"),
+    "plugins": ("uevavd.plugins.cli:add_plugins", "list plugins and what each registered, by kind"),
 }
 
 
@@ -92,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("interrupted; finished work is kept and a rerun resumes", file=sys.stderr)
             return 130
+        except BrokenPipeError:  # the reader left (`uevavd info | head`): stop quietly, as cat does
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
+            return 141
         except Exception as exc:  # noqa: BLE001 - bad input is one line; anything else propagates
             if isinstance(exc, bad_input_types()) or os_fault(exc):
                 return error(name, exc)

@@ -133,3 +133,43 @@ def add_report(parser: argparse.ArgumentParser):
         return 0
 
     return handler
+
+
+def add_zoo(parser: argparse.ArgumentParser):
+    sub = parser.add_subparsers(dest="zoo_command", metavar="ACTION", required=True)
+    sub.add_parser("list", help="the shipped models, their sizes and published numbers (sha256 checked)")
+    sub.add_parser("check", help="exit 1 when the shipped models no longer match the world, preset or methods")
+    build = sub.add_parser("build", help="retrain the shipped models with the quick preset's pipeline and rewrite "
+                                         "model_zoo/pretrained/quick (about 5 minutes on 2 cores)")
+    build.add_argument("--out", default=None, help="zoo folder to write (default: the package's)")
+    build.add_argument("--workers", type=int, default=None, help="parallel processes (default: the number of cores)")
+    return run_zoo
+
+
+def run_zoo(args: argparse.Namespace) -> int:
+    from ..zoo import PUBLISHED, Zoo, ZooError
+    from .zoo_build import build_zoo
+
+    try:
+        if args.zoo_command == "build":
+            build_zoo(args.out, workers=args.workers)
+            return 0
+        zoo = Zoo.load()
+        problems = zoo.problems()
+        if args.zoo_command == "check":
+            print("\n".join(f"stale: {p}" for p in problems) or f"{zoo.root}: the shipped models match the world, "
+                                                                  "the preset and the methods")
+            return 1 if problems else 0
+        for name, rec in sorted(zoo.manifest["files"].items()):
+            zoo.verified(name)
+            print(f"{name:<26} {rec['bytes'] / 1e6:5.1f} MB  sha256 {rec['sha256'][:16]}... ok")
+        print(f"\npublished numbers (exhaustive evaluation; {', '.join(PUBLISHED)}):")
+        for m in zoo.methods:
+            published = zoo.manifest["policies"][m]["published"]
+            for split, row in sorted(published.items(), key=lambda kv: ("train", "simple", "hard").index(kv[0])):
+                print(f"  {m:<9} {split:<7} " + "  ".join(f"{row[k]:8.4f}" for k in PUBLISHED))
+        for p in problems:
+            print(f"stale: {p} (rebuild with `uevavd zoo build`)")
+        return 0
+    except (ZooError, ValueError, FileNotFoundError) as exc:
+        return _error("zoo", exc)

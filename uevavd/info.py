@@ -1,6 +1,6 @@
-"""``uevavd info`` and ``uevavd plugins``: what is installed and registered.
+"""``uevavd info``: the version, torch and device, components, config and cache paths.
 
-Neither imports torch unless asked (``info`` reports torch; ``plugins`` never needs it).
+Imports torch only to report it.
 """
 
 from __future__ import annotations
@@ -8,59 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import sys
 from typing import Any
-
-
-def add_plugins(parser: argparse.ArgumentParser):
-    parser.add_argument("--all", action="store_true", help="also list blocked and failed plugins, with errors")
-    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    return run_plugins
-
-
-def plugin_rows(include_all: bool) -> list[dict[str, Any]]:
-    from .plugins.manager import manager
-
-    rows = []
-    for info in manager.plugins:
-        if info.status != "loaded" and not include_all:
-            continue
-        rows.append(
-            {
-                "name": info.name,
-                "version": info.version,
-                "builtin": info.builtin,
-                "status": info.status,
-                "source": info.source,
-                "error": info.error,
-                "registered": info.registered,
-            }
-        )
-    return rows
-
-
-def run_plugins(args: argparse.Namespace) -> int:
-    import warnings
-
-    from .plugins.manager import PluginWarning
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", PluginWarning)
-        rows = plugin_rows(args.all)
-    failed = [w for w in caught if issubclass(w.category, PluginWarning)]
-    if args.json:
-        print(json.dumps(rows, indent=2))
-        return 0
-    for row in rows:
-        origin = "built-in" if row["builtin"] else "third-party"
-        print(f"{row['name']} {row['version']} ({origin}, {row['status']})")
-        if row["error"]:
-            print(f"    error: {row['error']}")
-        for kind, names in sorted(row["registered"].items()):
-            print(f"    {kind}: {', '.join(names)}")
-    if failed and not args.all:
-        print(f"\n{len(failed)} plugin(s) failed to load; `uevavd plugins --all` shows why", file=sys.stderr)
-    return 0
 
 
 def add_info(parser: argparse.ArgumentParser):
@@ -172,44 +120,3 @@ def _print_section(title: str, rows: dict[str, Any], width: int = 12) -> None:
     print(f"{title + ':':>12}")
     for key, value in rows.items():
         print(f"{key:>{width}}: {value}")
-
-
-def add_zoo(parser: argparse.ArgumentParser):
-    sub = parser.add_subparsers(dest="zoo_command", metavar="ACTION", required=True)
-    sub.add_parser("list", help="the shipped models, their sizes and published numbers (sha256 checked)")
-    sub.add_parser("check", help="exit 1 when the shipped models no longer match the world, preset or methods")
-    build = sub.add_parser("build", help="retrain the shipped models with the quick preset's pipeline and rewrite "
-                                         "model_zoo/pretrained/quick (about 5 minutes on 2 cores)")
-    build.add_argument("--out", default=None, help="zoo folder to write (default: the package's)")
-    build.add_argument("--workers", type=int, default=None, help="parallel processes (default: the number of cores)")
-    return run_zoo
-
-
-def run_zoo(args: argparse.Namespace) -> int:
-    from .cli import error
-    from .experiments.zoo_build import build_zoo
-    from .zoo import PUBLISHED, Zoo, ZooError
-
-    try:
-        if args.zoo_command == "build":
-            build_zoo(args.out, workers=args.workers)
-            return 0
-        zoo = Zoo.load()
-        problems = zoo.problems()
-        if args.zoo_command == "check":
-            print("\n".join(f"stale: {p}" for p in problems) or f"{zoo.root}: the shipped models match the world, "
-                                                                  "the preset and the methods")
-            return 1 if problems else 0
-        for name, rec in sorted(zoo.manifest["files"].items()):
-            zoo.verified(name)
-            print(f"{name:<26} {rec['bytes'] / 1e6:5.1f} MB  sha256 {rec['sha256'][:16]}... ok")
-        print(f"\npublished numbers (exhaustive evaluation; {', '.join(PUBLISHED)}):")
-        for m in zoo.methods:
-            published = zoo.manifest["policies"][m]["published"]
-            for split, row in sorted(published.items(), key=lambda kv: ("train", "simple", "hard").index(kv[0])):
-                print(f"  {m:<9} {split:<7} " + "  ".join(f"{row[k]:8.4f}" for k in PUBLISHED))
-        for p in problems:
-            print(f"stale: {p} (rebuild with `uevavd zoo build`)")
-        return 0
-    except (ZooError, ValueError, FileNotFoundError) as exc:
-        return error("zoo", exc)
