@@ -80,7 +80,7 @@ class Learner:
         for m in self.target.modules():  # a deep copy leaves cuDNN's RNN weights in pieces, which
             if isinstance(m, torch.nn.RNNBase):  # it would then compact on every call (no-op on CPU)
                 m.flatten_parameters()
-        params = list(net.parameters())
+        params = self._params = list(net.parameters())
         # fused Adam: one kernel over all parameters, ~3x faster than the per-tensor loop on
         # CPU (16 -> 5 ms per step for the paper-sized GRU agent), same update rule
         fused = all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params)
@@ -119,8 +119,13 @@ class Learner:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         norm = None
-        if self.grad_clip > 0:
-            norm = torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.grad_clip, foreach=True)
+        if self.grad_clip > 0:  # clip_grad_norm_, in its two public halves
+            params = self._params
+            norm = torch.nn.utils.get_total_norm([p.grad for p in params if p.grad is not None], foreach=True)
+            # its multiply by a coefficient clamped to exactly 1 changes no bit: skipped where
+            # reading the coefficient costs no device sync (CPU), ~0.4 ms of a paper-sized update
+            if norm.device.type != "cpu" or bool(self.grad_clip / (norm + 1e-6) < 1.0):
+                torch.nn.utils.clip_grads_with_norm_(params, self.grad_clip, norm, foreach=True)
         self.optimizer.step()
         self.updates += 1
         td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
