@@ -206,7 +206,7 @@ def bench_network_policy(device: str, cfg: EnvConfig, feature_dim: int = 2048, r
     stop advantage raised by STOP_BIAS (about 2 decisions per episode)."""
     from uevavd.config import load_method
     from uevavd.data.grid import STOP
-    from uevavd.policy.agent import GreedyPolicy
+    from uevavd.policy.acting import GreedyPolicy
     from uevavd.policy.network import build_network
 
     table = synthetic_table(dim=feature_dim, seed=1)

@@ -12,7 +12,7 @@ them alike (median of ``--repeats`` rounds of 30 updates each):
   before 2026-11-23);
 * packed GRU - the hand-written unroll of ``uevavd.state.packed_gru`` (skips W_hh h_0);
 * current - that, and the final observation of a terminated episode not encoded
-  (``uevavd.policy.agent.needed_observations``).
+  (``uevavd.policy.learner.needed_observations``).
 
 All three compute the same loss (tests/policy/test_learner.py, tests/state/test_packed_gru.py).
 
@@ -46,7 +46,7 @@ def main() -> None:
 
     tune_malloc()  # as `uevavd train` does (and every side measured here); UEVAVD_MALLOC_TUNING=0 turns it off
 
-    import uevavd.policy.agent as agent
+    import uevavd.policy.learner as learning
     import uevavd.state.gru as packed  # the estimator's module reads supports_packed from here
     from uevavd.config import load_method
     from uevavd.env.batched import EnvTensors
@@ -57,11 +57,11 @@ def main() -> None:
     table = toy_table(n_train=100, n_hard=25, feature_dim=2048)
     cfg = EnvConfig()
     tensors = EnvTensors(table, "train", cfg, features_dtype=torch.float16)
-    lookup = agent.TableLookup(tensors)
-    current_needed, current_supports = agent.needed_observations, packed.supports_packed
+    lookup = learning.TableLookup(tensors)
+    current_needed, current_supports = learning.needed_observations, packed.supports_packed
     paths = {
-        "baseline (all o_t, nn.GRU)": (agent.observed, lambda gru: False),
-        "packed GRU": (agent.observed, current_supports),
+        "baseline (all o_t, nn.GRU)": (learning.observed, lambda gru: False),
+        "packed GRU": (learning.observed, current_supports),
         "current (packed GRU, no final o_L)": (current_needed, current_supports),
     }
     peak = _square_gemm_rate()
@@ -72,12 +72,12 @@ def main() -> None:
             torch.manual_seed(0)
             spec = load_method(method)
             net = build_network(spec.state, spec.head, table.feature_dim, n_ranges=cfg.max_range)
-            learner = agent.Learner(net, lr=1e-4, gamma=cfg.gamma, grad_clip=10.0)
+            learner = learning.Learner(net, lr=1e-4, gamma=cfg.gamma, grad_clip=10.0)
             replay = _replay(tensors, cfg.t_max)
             times: dict[str, list[float]] = {name: [] for name in paths}
             for _ in range(args.repeats):
                 for name, (needed, supports) in paths.items():
-                    agent.needed_observations, packed.supports_packed = needed, supports
+                    learning.needed_observations, packed.supports_packed = needed, supports
                     for _ in range(3):  # warm-up
                         learner.update(replay.sample(args.batch, 0.4), lookup)
                     t0 = time.perf_counter()
@@ -86,7 +86,7 @@ def main() -> None:
                     times[name].append(1000 * (time.perf_counter() - t0) / args.updates)
             base = statistics.median(times[next(iter(paths))])
             for name, ts in times.items():
-                agent.needed_observations, packed.supports_packed = paths[name]
+                learning.needed_observations, packed.supports_packed = paths[name]
                 gemms = _record_gemms(lambda lr=learner, rp=replay: lr.update(rp.sample(args.batch, 0.4), lookup))
                 floor_ms, gflop = _floor(gemms, args.repeats)
                 ms = statistics.median(ts)
@@ -96,7 +96,7 @@ def main() -> None:
                       f"at {100 * floor_ms / ms:3.0f} % of the floor, "
                       f"{100 * 1000 * gflop / peak / ms:3.0f} % of the square-GEMM rate")
     finally:
-        agent.needed_observations, packed.supports_packed = current_needed, current_supports
+        learning.needed_observations, packed.supports_packed = current_needed, current_supports
 
 
 def _record_gemms(fn) -> list[tuple[str, tuple, tuple]]:

@@ -48,7 +48,7 @@ def main() -> int:
     from uevavd.env.config import EnvConfig
     from uevavd.env.evaluate import evaluate_policy
     from uevavd.env.oracle import OraclePolicy
-    from uevavd.policy.agent import load_policy
+    from uevavd.policy.acting import load_policy
     from uevavd.policy.trainer import train
 
     if args.toy:

@@ -151,7 +151,7 @@ def _uevavd(spec, table, seed: int, budget: float, eval_every: float) -> list[di
         rows = [json.loads(line) for line in (run / "evals.jsonl").read_text().splitlines()]
         done = json.loads((run / "done.json").read_text())
         curve = [{"wall": r["wall_s"], "train": r["mean_return"], "steps": 0} for r in rows]
-        from uevavd.policy.agent import load_policy
+        from uevavd.policy.acting import load_policy
 
         policy = load_policy(run)
         final = {s: _eval(table, s, policy, spec) for s in EVAL_SPLITS}

@@ -15,7 +15,7 @@ import torch
 
 from uevavd.config import load_method
 from uevavd.env.evaluate import evaluate_policy
-from uevavd.policy.agent import GreedyPolicy, load_policy
+from uevavd.policy.acting import GreedyPolicy, load_policy
 from uevavd.policy.checkpoint import load_checkpoint
 from uevavd.policy.trainer import train
 from uevavd.testing.policy import toy_table

@@ -5,7 +5,7 @@ import torch
 
 from uevavd.config import known_methods, load_method
 from uevavd.env.batched import BatchedAODEnv
-from uevavd.policy.agent import Learner, TableLookup
+from uevavd.policy.learner import Learner, TableLookup
 from uevavd.policy.network import build_network
 from uevavd.policy.replay import EpisodeReplay
 from uevavd.testing.policy import toy_table

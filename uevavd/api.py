@@ -113,7 +113,7 @@ class Run:
 
     def policy(self, device: str = "cpu"):
         """The greedy policy of the run's latest checkpoint (``act(obs)`` over batched obs)."""
-        from .policy.agent import load_policy
+        from .policy.acting import load_policy
 
         return load_policy(self.path, device=device)
 
@@ -157,7 +157,7 @@ def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, method:
     from .config import loads_method
     from .env.aod_env import load_table
     from .env.config import make_config
-    from .policy.agent import GreedyPolicy
+    from .policy.acting import GreedyPolicy
     from .policy.checkpoint import check_policy_fits, load_net_state, read_policy_file
     from .policy.network import build_network
 

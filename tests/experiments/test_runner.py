@@ -99,7 +99,7 @@ def test_final_rows_are_the_exhaustive_evaluation_of_the_final_policy(ablation):
     """Every context x 605 starts under the run's env config, cached in final_eval.json."""
     from uevavd.env.config import EnvConfig
     from uevavd.env.evaluate import evaluate_policy
-    from uevavd.policy.agent import load_policy
+    from uevavd.policy.acting import load_policy
 
     df = pd.read_csv(ablation["results"])
     for job in ablation["jobs"]:
@@ -121,7 +121,7 @@ def test_final_eval_is_recomputed_when_missing_or_stale(ablation, tmp_path):
 
     from uevavd.env.config import EnvConfig
     from uevavd.env.evaluate import evaluate_policy
-    from uevavd.policy.agent import load_policy
+    from uevavd.policy.acting import load_policy
 
     job = ablation["jobs"][0]
     copy = dataclasses.replace(job, out=str(tmp_path / "run"))

@@ -11,7 +11,7 @@ import torch
 
 from uevavd.data.grid import N_VIEWS, STOP
 from uevavd.env.evaluate import evaluate_policy
-from uevavd.policy.agent import GreedyPolicy
+from uevavd.policy.acting import GreedyPolicy
 from uevavd.policy.heads import build_branching_dueling, build_joint_dueling
 from uevavd.policy.network import QNetwork
 from uevavd.state.gru import build_gru

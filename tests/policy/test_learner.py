@@ -10,7 +10,7 @@ from uevavd.config import load_method
 from uevavd.env.batched import EnvTensors
 from uevavd.env.config import EnvConfig
 from uevavd.policy import targets as T
-from uevavd.policy.agent import Learner, TableLookup
+from uevavd.policy.learner import Learner, TableLookup
 from uevavd.policy.network import build_network
 from uevavd.policy.replay import EpisodeReplay
 

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from uevavd.config import load_method
-from uevavd.policy.agent import load_policy
+from uevavd.policy.acting import load_policy
 from uevavd.policy.checkpoint import CheckpointError, load_checkpoint, read_policy_file
 from uevavd.policy.trainer import RunDirError, train
 
@@ -38,7 +38,7 @@ def test_interrupted_and_resumed_run_equals_straight_run(table, tmp_path):
     with pytest.raises(RunDirError, match="seed"):
         train(spec, table, out=tmp_path / "b", **{**kw, "seed": 4})
     from uevavd.env.evaluate import evaluate_policy
-    from uevavd.policy.agent import GreedyPolicy
+    from uevavd.policy.acting import GreedyPolicy
 
     policy = load_policy(resumed)
     assert policy.needs_features  # an in-memory table has no folder to read features from

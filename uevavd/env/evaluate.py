@@ -11,7 +11,7 @@ Policy protocol (any object with these two methods)::
 ``act`` is called once per step with the observations of *all* n episodes (keys as in
 the batched env: features, box, mask, t, scene, view, plus ``"done"`` (n,) bool marking
 episodes that already ended; their actions are ignored, so a policy may skip computing
-them and return any valid action there, as :class:`~uevavd.policy.agent.GreedyPolicy`
+them and return any valid action there, as :class:`~uevavd.policy.acting.GreedyPolicy`
 does). A policy whose attribute ``needs_features`` is False gets ``features`` of width 0
 (faster). Recurrent policies keep their hidden state per episode index between calls.
 """

@@ -14,7 +14,7 @@ from ..data.grid import N_VIEWS
 from ..env.baselines import baseline_entries
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
-from ..policy.agent import load_policy
+from ..policy.acting import load_policy
 from ..policy.rundir import RunDir, read_settings
 from ..table import ObservationTable
 from .io import atomic_write_text

@@ -13,7 +13,7 @@ from ..env.baselines import RandomPolicy
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
 from ..env.oracle import OraclePolicy
-from ..policy.agent import load_policy
+from ..policy.acting import load_policy
 from ..table import ObservationTable
 from .jobs import Job
 from .plan import DEFAULT_SETTING, Plan, env_config

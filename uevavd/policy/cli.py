@@ -149,7 +149,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from ..env.baselines import reference_policies
     from ..env.config import EnvConfig
     from ..env.evaluate import evaluate_policy
-    from .agent import load_policy
+    from .acting import load_policy
     from .rundir import read_settings
 
     if not RunDir(args.run_dir).settings.is_file():

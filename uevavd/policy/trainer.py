@@ -29,7 +29,7 @@ from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
 from ..perception.nets import resolve_device as _resolve
-from .agent import GreedyPolicy, Learner, TableLookup, epsilon_greedy
+from .acting import GreedyPolicy, epsilon_greedy
 from .checkpoint import (
     CheckpointError,
     checkpoint_meta,
@@ -38,6 +38,7 @@ from .checkpoint import (
     save_policy_file,
 )
 from .config import TrainConfig
+from .learner import Learner, TableLookup
 from .network import build_network
 from .replay import EpisodeReplay
 from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, resolve_spec
