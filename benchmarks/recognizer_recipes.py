@@ -37,7 +37,7 @@ def main() -> None:
     from uevavd.data.splits import TARGETS
     from uevavd.perception.classifier import load_classifier
     from uevavd.perception.images import Decoder
-    from uevavd.perception.training.classifier import TrainSettings, train_classifier
+    from uevavd.perception.training.classifier import ClassifierRecipe, train_classifier
     from uevavd.presets import load_preset
     from uevavd.runtime import tune_malloc
 
@@ -53,7 +53,7 @@ def main() -> None:
     rows = []
     for recipe in args.recipes:
         arch, init, epochs, lr = recipe.split(":")
-        settings = TrainSettings(**{**base, "arch": arch, "init": init, "epochs": int(epochs), "lr": float(lr),
+        settings = ClassifierRecipe(**{**base, "arch": arch, "init": init, "epochs": int(epochs), "lr": float(lr),
                                     "seed": args.seed})
         path = args.out / f"{arch}-{init}-{epochs}-{lr}-seed{args.seed}.safetensors"
         t0 = time.perf_counter()

@@ -29,14 +29,14 @@ from .policy.rundir import RunDir
 def train_classifier(data: str | os.PathLike[str], out: str | os.PathLike[str] | None = None, *,
                      workers: int = 2, progress: bool = True, **settings: Any) -> Path:
     """Train the recognizer on ``data``'s ``train_605`` crops (``settings``: the fields of
-    :class:`uevavd.perception.training.classifier.TrainSettings`, e.g. a preset's ``[classifier]``); reuse
+    :class:`uevavd.perception.training.classifier.ClassifierRecipe`, e.g. a preset's ``[classifier]``); reuse
     it when a file of these settings exists. Returns the ``.safetensors`` path."""
     from .data.reader import read_dataset
     from .perception.classifier import classifier_cache_path, data_hash, train_records
-    from .perception.training.classifier import TrainSettings
+    from .perception.training.classifier import ClassifierRecipe
     from .perception.training.classifier import train_classifier as _train
 
-    s = TrainSettings(**settings)
+    s = ClassifierRecipe(**settings)
     s.check()
     if out is None:  # the cache `uevavd ablate` uses too
         out = classifier_cache_path(data_hash(train_records(read_dataset(data))), s)

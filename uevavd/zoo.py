@@ -39,7 +39,7 @@ from .data.synthetic.writer import VERSION
 from .env.baselines import evaluate_beside_baselines
 from .hashing import file_sha256, json_digest
 from .perception.prepare import prepare_table
-from .perception.training.classifier import TrainSettings
+from .perception.training.classifier import ClassifierRecipe
 from .policy.checkpoint import read_policy_file
 from .presets import ZOO, load_preset, world_contexts, world_root
 from .table import ObservationTable
@@ -171,9 +171,9 @@ class Zoo:
 
 
 def recognizer_settings(preset: Mapping[str, Any], seed: int) -> dict[str, Any]:
-    """The recognizer's training settings under a preset (``TrainSettings`` as a dict)."""
+    """The recognizer's training settings under a preset (``ClassifierRecipe`` as a dict)."""
 
-    return json.loads(json.dumps(TrainSettings(**{**preset.get("classifier", {}), "seed": seed}).__dict__))
+    return json.loads(json.dumps(ClassifierRecipe(**{**preset.get("classifier", {}), "seed": seed}).__dict__))
 
 
 def _world_of(preset: Mapping[str, Any], contexts: Sequence[int], label: str, *, workers: int,

@@ -94,12 +94,12 @@ def test_a_lite0_recognizer_trains_from_imagenet_and_loads(tmp_path):
         build_resnet18_classifier,
         write_classifier_file,
     )
-    from uevavd.perception.training.classifier import TrainSettings, fit, input_norm
+    from uevavd.perception.training.classifier import ClassifierRecipe, fit, input_norm
 
     rng = np.random.default_rng(0)
     labels = np.repeat(np.arange(5), 8)
     images = np.clip(rng.normal(40 * labels[:, None, None, None] + 40, 20, (40, 32, 32, 3)), 0, 255).astype(np.uint8)
-    settings = TrainSettings(arch="efficientnet_lite0", epochs=2, batch_size=4)
+    settings = ClassifierRecipe(arch="efficientnet_lite0", epochs=2, batch_size=4)
     model, info = fit(images, labels, np.tile(np.arange(8), 5), settings, progress=False)
     assert info["init"] == f"imagenet:{eff.LITE0_FILE}"
     mean, std = input_norm("efficientnet_lite0")
@@ -124,14 +124,14 @@ def test_recognizer_training_is_reproducible_whatever_the_global_rng():
     """torch 2.14 seeds its global generator at random in every process, and Lite0's dropout
     and drop-connect draw from it: the quick preset's recognizer (and every result after it)
     differed from run to run. fit() seeds it from settings.seed and restores it after."""
-    from uevavd.perception.training.classifier import TrainSettings, fit
+    from uevavd.perception.training.classifier import ClassifierRecipe, fit
     from uevavd.perception.weights import state_dict_hash
 
     rng = np.random.default_rng(0)
     labels = np.repeat(np.arange(5), 8)
     images = np.clip(rng.normal(40 * labels[:, None, None, None] + 40, 30, (40, 32, 32, 3)), 0, 255).astype(np.uint8)
     views = np.tile(np.arange(8), 5)
-    s = TrainSettings(arch="efficientnet_lite0", epochs=1, batch_size=4)
+    s = ClassifierRecipe(arch="efficientnet_lite0", epochs=1, batch_size=4)
     first = state_dict_hash(fit(images, labels, views, s, progress=False)[0].state_dict())
     torch.manual_seed(987)  # whatever ran before in the process
     before = torch.random.get_rng_state()

@@ -13,7 +13,7 @@ from typing import Any
 from ..config import ConfigError, known_methods, load_method, parse_override
 from ..env.config import EnvConfig
 from ..perception.nets import resolve_device
-from ..perception.training.classifier import TrainSettings
+from ..perception.training.classifier import ClassifierRecipe
 from ..presets import load_preset
 
 #: The paper's default reward settings; sweeps vary one of them.
@@ -226,10 +226,10 @@ def make_plan(
         raise AblationError(f"--device: {exc}") from None
 
     try:
-        TrainSettings(**cfg.get("classifier", {})).check()
+        ClassifierRecipe(**cfg.get("classifier", {})).check()
     except (TypeError, ValueError) as exc:
         raise AblationError(f"preset {preset!r} [classifier]: {exc} (accepted keys: "
-                            f"{sorted(TrainSettings.__dataclass_fields__)})") from None
+                            f"{sorted(ClassifierRecipe.__dataclass_fields__)})") from None
     for m in methods:
         try:
             load_method(m, overrides=dict(cfg.get("overrides", {})))

@@ -16,7 +16,7 @@ from ..hashing import json_digest
 from ..perception.classifier import classifier_cache_path, data_hash, train_records
 from ..perception.prepare import prepare_table
 from ..perception.prepare_ray import prepare_table_ray
-from ..perception.training.classifier import TrainSettings, train_classifier
+from ..perception.training.classifier import ClassifierRecipe, train_classifier
 from ..presets import world_contexts, world_root
 from ..zoo import Zoo
 from .plan import DEFAULT_SETTING, Plan, method_overrides
@@ -55,7 +55,7 @@ def stage_world(plan: Plan, log) -> Path:
 
 
 def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
-    """The recognizers, one per recognizer seed (``TrainSettings.seed``: its initialisation of
+    """The recognizers, one per recognizer seed (``ClassifierRecipe.seed``: its initialisation of
     the head, held-out viewpoints and augmentation), each cached by (hash of the dataset's
     train_605 images, training settings): a regenerated world under the same path never
     reuses an old classifier."""
@@ -63,7 +63,7 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
     digest = data_hash(train_records(read_dataset(data)))
     out = {}
     for r in plan.recognizers:
-        settings = TrainSettings(**{**plan.preset.get("classifier", {}), "seed": r})
+        settings = ClassifierRecipe(**{**plan.preset.get("classifier", {}), "seed": r})
         path = classifier_cache_path(digest, settings)
         shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
         if path.is_file():

@@ -16,7 +16,7 @@ from ..data.reader import read_dataset
 from ..hashing import file_sha256
 from ..paths import cache_dir
 from ..perception.classifier import classifier_cache_path, data_hash, train_records
-from ..perception.training.classifier import TrainSettings
+from ..perception.training.classifier import ClassifierRecipe
 from ..policy.checkpoint import read_policy_file
 from ..policy.rundir import RunDir
 from ..presets import world_contexts, world_root
@@ -51,7 +51,7 @@ def build_zoo(out: str | os.PathLike[str] | None = None, *, preset: str = "quick
     cfg = plan.preset
     data = world_root(cfg)
     recognizer = classifier_cache_path(data_hash(train_records(read_dataset(data))),
-                                       TrainSettings(**recognizer_settings(cfg, 0)))
+                                       ClassifierRecipe(**recognizer_settings(cfg, 0)))
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, dict[str, Any]] = {}
 

@@ -57,7 +57,7 @@ def data_hash(records) -> str:
 
 
 def classifier_cache_path(data_digest: str, settings: Any) -> Path:
-    """Where a recognizer trained with ``settings`` (a TrainSettings) on the ``train_605``
+    """Where a recognizer trained with ``settings`` (a ClassifierRecipe) on the ``train_605``
     crops of digest ``data_digest`` is cached: ``<cache>/classifiers/<data>-<settings>.safetensors``,
     so a regenerated world or other settings never reuse an old recognizer."""
     key = hashlib.sha256(json.dumps(settings.__dict__, sort_keys=True, default=str).encode()).hexdigest()[:12]

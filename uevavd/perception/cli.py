@@ -11,9 +11,9 @@ def _logging() -> None:
 
 
 def add_train_classifier(p: argparse.ArgumentParser):
-    from .training.classifier import TrainSettings
+    from .training.classifier import ClassifierRecipe
 
-    d = TrainSettings()
+    d = ClassifierRecipe()
     p.add_argument("data", help="dataset root (UEVAVD layout) holding the train_605 scene")
     p.add_argument("--out", default=None,
                    help="output .safetensors (default: <cache>/classifiers/<data hash>.safetensors, "
@@ -39,7 +39,7 @@ def add_train_classifier(p: argparse.ArgumentParser):
 
     def run(args) -> int:
         from .nets import resolve_device
-        from .training.classifier import TrainSettings, train_classifier
+        from .training.classifier import ClassifierRecipe, train_classifier
 
         _logging()
         if args.threads:
@@ -47,7 +47,7 @@ def add_train_classifier(p: argparse.ArgumentParser):
 
             torch.set_num_threads(args.threads)
         resolve_device(args.device)  # a bad or absent device is refused before any work
-        s = TrainSettings(arch=args.arch, init=args.init, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+        s = ClassifierRecipe(arch=args.arch, init=args.init, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
                           val_fraction=args.val_fraction, seed=args.seed, max_views=args.max_views)
         path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers,
                                 device=args.device)

@@ -1,11 +1,11 @@
 """Training the recognition classifier (``uevavd train-classifier``).
 
 A torchvision ResNet18 (the paper's recognizer) or an EfficientNet-Lite0 on the unoccluded
-``train_605`` crops of the five targets (``TrainSettings.arch``). A share
+``train_605`` crops of the five targets (``ClassifierRecipe.arch``). A share
 of the *viewpoints* (the same views for every target) is held out for validation.
 Augmentation keeps the task honest: photometric jitter (brightness, contrast,
 saturation), small shifts and scale; no flips or rotations (orientation is fixed by the
-camera model). Initial weights (``TrainSettings.init``): ImageNet (ResNet18: when the user
+camera model). Initial weights (``ClassifierRecipe.init``): ImageNet (ResNet18: when the user
 names a file or torch's cache has it, else random with a logged warning; Lite0: from its
 installed package), or random.
 """
@@ -45,7 +45,10 @@ ARCHS = ("resnet18", "efficientnet_lite0")
 
 
 @dataclass
-class TrainSettings:
+class ClassifierRecipe:
+    """How the recognition classifier is trained (a preset's ``[classifier]`` section): not
+    a run's ``settings.json``, nor an ablation's sweep setting."""
+
     arch: str = "resnet18"  #: "resnet18" (the paper's) or "efficientnet_lite0"
     init: str = "imagenet"  #: "imagenet" or "random"
     epochs: int = 12
@@ -82,7 +85,7 @@ def split_views(n_views: int, val_fraction: float, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n_views, size=k, replace=False)).astype(np.int64)
 
 
-def sample_views(views: np.ndarray, settings: TrainSettings) -> np.ndarray:
+def sample_views(views: np.ndarray, settings: ClassifierRecipe) -> np.ndarray:
     """The viewpoints used for training + validation: all, or a seeded ``max_views`` sample."""
     if settings.max_views is None or settings.max_views >= len(views):
         return views
@@ -125,7 +128,7 @@ def initial_model(imagenet: str | None, n_classes: int, seed: int, *, arch: str 
     return model, f"imagenet:{path.name}"
 
 
-def augment(x: torch.Tensor, s: TrainSettings, gen: torch.Generator) -> torch.Tensor:
+def augment(x: torch.Tensor, s: ClassifierRecipe, gen: torch.Generator) -> torch.Tensor:
     """(N, 3, H, W) float in [0, 1] -> jittered, shifted and scaled copy (no flips/rotations)."""
     n = x.shape[0]
 
@@ -168,7 +171,7 @@ def predict(model: torch.nn.Module, images: np.ndarray, batch_size: int = 256, *
     return torch.cat(out).numpy() if out else np.zeros((0, 0), np.float32)
 
 
-def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: TrainSettings, *,
+def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: ClassifierRecipe, *,
         imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True,
         device: str = "auto"):
     """Train on (N, H, W, 3) uint8 crops with (N,) int class labels and (N,) view indices.
@@ -187,7 +190,7 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tra
                     device=resolve_device(device))
 
 
-def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: TrainSettings, *,
+def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: ClassifierRecipe, *,
          imagenet: str | None, n_classes: int, progress: bool, device: torch.device):
     from tqdm.auto import tqdm
 
@@ -248,7 +251,7 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Tr
     return model, info
 
 
-def train_classifier(data: str | Path, out: str | Path | None = None, *, settings: TrainSettings | None = None,
+def train_classifier(data: str | Path, out: str | Path | None = None, *, settings: ClassifierRecipe | None = None,
                      imagenet: str | None = None, workers: int = 2, report_views: int = 3000,
                      progress: bool = True, device: str = "auto") -> Path:
     """Train on ``data``'s ``train_605`` crops, write the classifier file (safetensors) and
@@ -256,7 +259,7 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
     default location the pipeline reads (:func:`default_classifier_path`). Returns ``out``.
     ``device``: where the network trains ("auto": CUDA when present); see :func:`fit`."""
 
-    settings = settings or TrainSettings()
+    settings = settings or ClassifierRecipe()
     manifest = read_dataset(data)
     recs = train_records(manifest)
     digest = data_hash(recs)
