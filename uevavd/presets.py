@@ -46,14 +46,12 @@ def load_preset(name_or_path: str | Path) -> dict[str, Any]:
 def world_root(preset: Mapping[str, Any]) -> Path:
     """Where a preset's synthetic world is cached: ``<cache>/worlds/<name>-<digest of its
     [world] table>`` (another seed, size or context count is another folder)."""
-
     return cache_dir() / "worlds" / f"{preset.get('name', 'world')}-{json_digest(preset['world'], 12)}"
 
 
 def world_contexts(preset: Mapping[str, Any], split: str | None = None) -> list[int]:
     """The context ids of a preset's world (``[world] per_block``), only those of ``split``
     (a split name or alias such as "test") when given."""
-
     contexts = list(subset(preset["world"]["per_block"]))
     if split is None:
         return contexts

@@ -142,7 +142,6 @@ def segmentation_problem(manifest, scene: str, recs: list) -> str | None:
     ``gt``), or None: views without a segmentation PNG, no ``seg/categories.json``, or no
     instance of category ``target`` in it (every target pixel would then be grayed like the
     background). The one rule ``validate`` and ``prepare`` share."""
-
     missing = [r for r in recs if r.seg is None]
     if missing:
         return (f"scene {scene}: {len(missing)} of its {len(recs)} views have no ground-truth segmentation "
@@ -349,7 +348,6 @@ def add_validate(parser: argparse.ArgumentParser):
 
 
 def _write_json(path: Path, report: ValidationReport) -> None:
-
     data = {**report.summary(), "problem_list": [
         {"kind": p.kind, "path": str(p.path), "message": p.message} for p in report.problems]}
 

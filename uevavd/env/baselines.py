@@ -78,7 +78,6 @@ def build_visibility_oracle(*, table, config, seed: int = 0):
 
 
 def build_oracle(*, table, config, seed: int = 0):
-
     return OraclePolicy(table, config)
 
 
@@ -116,7 +115,6 @@ def evaluate_beside_baselines(table, split: str, policy, name: str, config, *, d
     :meth:`~uevavd.env.evaluate.EvalResult.summary`'s columns; and ``policy``'s rows per
     context. What ``uevavd evaluate``, ``Run.evaluate`` and the model zoo print."""
     import pandas as pd
-
 
     policies = {name: policy, **(reference_policies(table, config) if baselines else {})}
     results = {n: evaluate_policy(table, split, p, config, device=device, contexts=contexts)

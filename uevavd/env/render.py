@@ -65,7 +65,6 @@ def _view_image(table: Any, scene: int, view: int) -> tuple[np.ndarray | None, s
 
 @lru_cache(maxsize=4)
 def _manifest(root: str):
-
     if not Path(root).is_dir():
         return None
     try:

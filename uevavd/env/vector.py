@@ -43,7 +43,6 @@ class AODVectorEnv(gym.vector.VectorEnv):
     def __init__(self, table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
                  num_envs: int = 1, actions: str = "multi", device: str | torch.device = "cpu",
                  contexts: Any = None, **overrides: Any) -> None:
-
         if actions not in ACTION_FORMS:
             raise ValueError(f"actions={actions!r}: expected one of {ACTION_FORMS}")
         cfg = make_config(config, **overrides)

@@ -44,7 +44,6 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def action_masks(self) -> np.ndarray:
         """(7 * A,) bool: the joint actions allowed at the current view (sb3-contrib's MaskablePPO)."""
-
         env = self.env.unwrapped
         return action_masks(env._tr.mask[env._view][None], "flat")[0]
 

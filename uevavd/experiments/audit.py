@@ -29,7 +29,6 @@ def audit_table(table, terrains: Mapping[int, str] | None = None) -> dict[str, A
     """``{split: {"clear_views", "clear_accuracy", "accuracy", "contexts": [...],
     "by_visible": [...]}}`` of an :class:`~uevavd.table.ObservationTable`
     (or its folder). Splits without visible fractions report accuracy only."""
-
     tbl = load_table(table)
     pred = tbl.probs.argmax(-1)  # (S, V)
     correct = pred == np.asarray(tbl.targets)[:, None]
@@ -61,7 +60,6 @@ def audit_table(table, terrains: Mapping[int, str] | None = None) -> dict[str, A
 def classifier_summary(path: str | Path) -> dict[str, Any]:
     """Architecture, initialisation, epochs and held-out (train_605 viewpoints) accuracy of a
     classifier file."""
-
     _, meta = read_classifier_file(path)
     train = meta.get("train", {})
     settings = train.get("settings", {})

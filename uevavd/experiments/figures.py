@@ -86,7 +86,6 @@ def curve_bands(data: pd.DataFrame, col: str) -> pd.DataFrame:
     (:func:`uevavd.experiments.report_data.estimate_units`): with one recognizer the Student-t
     interval over seeds (mean ± t(0.975, n-1) · sd / √n; NaN, no band, with fewer than two
     seeds), with several the nested bootstrap; clipped to :data:`METRIC_RANGE`."""
-
     lo_b, hi_b = METRIC_RANGE.get(col, (-np.inf, np.inf))
     rows = []
     for (m, split, k), g in data.groupby(["method", "split", "eval_point"], sort=True):

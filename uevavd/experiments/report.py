@@ -240,7 +240,6 @@ def _gengap_section(final: pd.DataFrame, setting: str) -> list[str]:
 
 def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, out_dir: Path,
                     window: int | None) -> list[str]:
-
     curves = curve_rows(results)
     curves = curves[(curves["setting"] == setting) & (curves["episodes"] >= 0)]
     out = ["## Learning curves (Fig. 9)", ""]
@@ -304,7 +303,6 @@ def _sweep_section(final: pd.DataFrame, param: str, table_no: int, ablation_dir:
 
 
 def _strips_section(ablation_dir: Path, meta: dict | None, out_dir: Path) -> list[str]:
-
     out = ["## Observation sequences (Fig. 8)", ""]
     trajs, note = load_trajectories(ablation_dir / "trajectories.json")
     if not trajs:

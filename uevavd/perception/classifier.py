@@ -38,7 +38,6 @@ def classifiers_dir() -> Path:
 
 def train_records(manifest) -> list:
     """The unoccluded ``train_605`` records the classifier trains on (in manifest order)."""
-
     recs = [r for r in manifest.records if r.scene == CLASSIFIER_SCENE]
     if not recs:
         raise ValueError(
@@ -67,7 +66,6 @@ def classifier_cache_path(data_digest: str, settings: Any) -> Path:
 def default_classifier_path(data: str | os.PathLike[str]) -> Path:
     """Where ``uevavd train-classifier`` puts, and the pipeline looks for, the classifier of
     dataset ``data`` (a root folder): ``<cache>/classifiers/<data_hash>.safetensors``."""
-
     return classifiers_dir() / f"{data_hash(train_records(read_dataset(data)))}.safetensors"
 
 
@@ -75,7 +73,6 @@ def write_classifier_file(path: str | os.PathLike[str], state_dict: Mapping[str,
                           meta: Mapping[str, Any]) -> Path:
     """Save state dict + metadata as safetensors, atomically."""
     from safetensors.torch import save_file
-
 
     meta = {"format": FORMAT, **meta}
     tensors = {k: v.detach().cpu().contiguous() for k, v in state_dict.items()}

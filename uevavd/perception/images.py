@@ -22,7 +22,6 @@ class ImageReadError(OSError, ValueError):
 
 def _decode(path: str | os.PathLike[str], flags: int, what: str) -> np.ndarray:
     """Read and decode one file; truncated PNG/JPEG files are refused, not filled in."""
-
     try:
         data = Path(path).read_bytes()
     except OSError as exc:

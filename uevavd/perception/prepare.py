@@ -148,7 +148,6 @@ def ground_truth_categories(manifest, scene: str, recs: list) -> dict[int, str]:
     """The scene's instance id -> category table for a ground-truth segmenter; an error
     naming the file when the scene's segmentation cannot serve it
     (:func:`uevavd.data.validate.segmentation_problem`, the rule ``validate`` checks too)."""
-
     problem = segmentation_problem(manifest, scene, recs)
     if problem:
         raise ValueError(problem)
@@ -257,7 +256,6 @@ def plan_table(
     overrides: Mapping[str, Any] | None = None,
 ) -> TablePlan:
     """Read the dataset, build the components and compute the table key (no images decoded)."""
-
     data_root = Path(data_root).expanduser().resolve()
     spec = resolve_spec(spec_or_method, overrides)
     manifest = read_dataset(data_root)

@@ -66,7 +66,6 @@ class GroundTruthSegmenter:
                         categories: Sequence[Mapping[int, str]], seeds: Sequence[int]) -> np.ndarray:
         """Fast path of segment + :func:`~uevavd.perception.decompose.decompose` (identical
         output): (N, H, W, 3) uint8 pre-decomposed views, one table lookup per view."""
-
         out = np.empty_like(images)
         for i, (img, m, cats, seed) in enumerate(zip(images, instance_maps, categories, seeds, strict=True)):
             out[i] = decompose_instances(img, m, [k for k, c in cats.items() if c == "target"], seed=seed)

@@ -192,7 +192,6 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
     """The greedy policy of a training run directory (its latest checkpoint). With
     ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
     its actions are the same either way."""
-
     run_dir = Path(run_dir)
     settings = read_settings(run_dir)
     spec = resolve_spec(run_dir)
@@ -207,7 +206,6 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
 def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
     """The run's table features (S, 605, D) float16 (memory-mapped), or None if not on disk."""
     import numpy as np
-
 
     path = settings.get("table_path")
     if not path or not Path(path).is_dir():

@@ -90,7 +90,6 @@ def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Te
     :data:`POLICY_KEYS` in its header, written atomically."""
     from safetensors.torch import save_file
 
-
     tensors = {k: v.detach().cpu().contiguous() for k, v in net_state.items()}
     meta = {"format": POLICY_FORMAT, "method_toml": method_toml,
             "settings": json.dumps({k: settings.get(k) for k in POLICY_KEYS})}

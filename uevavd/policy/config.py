@@ -74,7 +74,6 @@ class TrainConfig:
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
         divisor) or silently learn nothing is refused here, before a run directory exists."""
-
         def need(ok: bool, key: str, what: str) -> None:
             if not ok:
                 raise ConfigError(f"train.{key} = {getattr(self, key)!r}: expected {what}")

@@ -28,7 +28,7 @@ from ..env.aod_env import load_table, select_scenes
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
-from ..perception.nets import resolve_device as _resolve
+from ..perception.nets import resolve_device
 from .acting import GreedyPolicy, epsilon_greedy
 from .checkpoint import (
     CheckpointError,
@@ -45,14 +45,6 @@ from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings,
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
-
-
-
-def resolve_device(device: str) -> torch.device:
-    """``"auto"`` -> CUDA when present, else CPU; a CUDA device that is not there is a
-    one-line error (the perception layer's rule, :func:`uevavd.perception.nets.resolve_device`)."""
-
-    return _resolve(device)
 
 
 def apply_overrides(spec: MethodSpec, overrides: dict[str, Any] | None) -> MethodSpec:
@@ -105,7 +97,6 @@ class _Evaluator:
 
     def __init__(self, table: Any, cfg: TrainConfig, env_cfg: EnvConfig, device: torch.device,
                  net: Any) -> None:
-
         self.device = device
         self.features = torch.from_numpy(np.array(table.features)).to(device)
         # the greedy policy reads the table's features itself when the estimator offers the
@@ -121,7 +112,6 @@ class _Evaluator:
                                              with_features=needs)
 
     def __call__(self, net: Any) -> dict[str, dict[str, Any]]:
-
         out = {split: evaluate_policy(tb, split, GreedyPolicy(net, device=self.device, features=self.features)).summary()
                for split, tb in self.tensors.items()}
         net.train()
@@ -146,7 +136,6 @@ def train(
     holding another configuration (naming what differs); returns at once for a finished
     run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
     """
-
     # -- settings -----------------------------------------------------------------------------
     spec = apply_overrides(spec, overrides)
     table = load_table(table)

@@ -76,7 +76,6 @@ def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed:
     learnable: each scene has a random "good" region of views (near a random viewpoint)
     whose probabilities favour the true class, and the features encode the view's
     position and a noisy recognisability signal. For tests and development only."""
-
     rng = np.random.default_rng(seed)
     s = n_train + n_hard
     xyz = view_coords(np.arange(N_VIEWS)) / 50.0  # (605, 3)

@@ -284,5 +284,4 @@ def render_views(scene: Scene, size: int, views=None, *, shade: bool = True) -> 
 
 def render_context(context_id: int, *, size: int, seed: int) -> ContextViews:
     """All 605 views of context ``context_id`` at ``size`` px for a world seed (in memory)."""
-
     return render_views(build_context(context_id, seed=seed), size)

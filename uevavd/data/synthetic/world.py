@@ -170,7 +170,6 @@ def training_stages(seed: int) -> np.ndarray:
     """(605,) int: the ``train_605`` stage (0..TRAIN_STAGES-1) each viewpoint is rendered in.
     A seeded permutation dealt round-robin, so every stage's views spread over the grid; the
     same assignment for every target (held-out viewpoints meet every stage)."""
-
     perm = np.random.default_rng([int(seed), 7605]).permutation(N_VIEWS)
     stages = np.empty(N_VIEWS, np.int64)
     stages[perm] = np.arange(N_VIEWS) % TRAIN_STAGES

@@ -54,7 +54,6 @@ _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-
     atomic_write(path, data)
 
 

@@ -350,5 +350,4 @@ def save_decoder(path: str | os.PathLike[str], model: torch.nn.Module, base: Loa
 
 def default_small_path() -> Path:
     """Where ``uevavd train-sam-small`` writes and the ``sam`` plugin looks by default."""
-
     return cache_dir() / "sam" / "sam_small.safetensors"

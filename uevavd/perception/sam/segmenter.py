@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from segment_anything import SamPredictor
 
 from ..base import Segmentation
+from ..nets import resolve_device
 from .model import LoadedSam
 from .prompts import box_mask, centre_box, clip_box, make_disjoint, merge_duplicates, ring_points
 
@@ -36,15 +37,6 @@ class SamView:
     points: np.ndarray
     box: np.ndarray | None
     raw: list[np.ndarray]
-
-
-def resolve_device(device: str) -> torch.device:
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={device!r} but no CUDA device is available here; use device=\"cpu\" or \"auto\"")
-    return dev
 
 
 def images_to_input(images: np.ndarray, predictor: SamPredictor) -> torch.Tensor:

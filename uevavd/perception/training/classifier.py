@@ -258,7 +258,6 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
     its report (``<out>.md`` and ``<out>.png``) beside it. ``out=None`` writes to the
     default location the pipeline reads (:func:`default_classifier_path`). Returns ``out``.
     ``device``: where the network trains ("auto": CUDA when present); see :func:`fit`."""
-
     settings = settings or ClassifierRecipe()
     manifest = read_dataset(data)
     recs = train_records(manifest)

@@ -131,7 +131,6 @@ def load_views(manifest, *, contexts: Sequence[int], per_context: int, seed: int
 def read_manifest(root: str | Path):
     """The dataset under ``root`` (reader, unchecked: views that parse are used; problems
     are summarised on stderr)."""
-
     manifest = read_dataset(root, check=False)
     if manifest.problems:
         print(f"note: {len(manifest.problems)} problem(s) in {root} (first: {manifest.problems[0]}); "

@@ -148,7 +148,6 @@ def lr_at(step: int, args: TrainArgs) -> float:
 
 
 def _atomic_torch_save(obj, path: Path) -> None:
-
     atomic_write(path, lambda fh: torch.save(obj, fh))
 
 

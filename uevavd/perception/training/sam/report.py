@@ -32,7 +32,6 @@ def training_views(loaded, manifest) -> tuple[set[str] | None, str]:
     count and accepted only when the redrawn views hash to the recorded ``data_hash``.
     ``None`` when our training metadata exists but the views cannot be recovered; an empty
     set when the file records no training here (an official checkpoint)."""
-
     metas = [loaded.meta]
     if loaded.meta.get("kind") == "decoder" and loaded.meta.get("base_checkpoint"):
         metas.append(read_meta(loaded.meta["base_checkpoint"]))
@@ -59,7 +58,6 @@ def miou_per_split(seg, root: str | Path, *, per_context: int = 60, seed: int = 
     """{split: evaluate(...)} over ``per_context`` random views of each context of each split
     present under ``root``, drawn with ``seed`` from the views not in ``exclude`` (the
     keys of the views the model was trained on, see :func:`training_views`)."""
-
     m = read_manifest(root)
     split = {r.context: r.split for r in m if r.context is not None}
     exclude = exclude or set()
@@ -91,7 +89,6 @@ def _overlay(img: np.ndarray, masks: list[np.ndarray], colours: np.ndarray, alph
 def picture(seg, views, idx, *, scale: int = 4) -> np.ndarray:
     """One row per view: image | ground truth | SAM prompts + masks | pre-decomposed view.
     Returns (rows*H*scale, 4*W*scale, 3) uint8 RGB."""
-
     res = seg.segment_detailed(views.images[idx], views.boxes[idx])
     rows = []
     for k, (i, r) in enumerate(zip(idx, res, strict=True)):
