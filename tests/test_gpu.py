@@ -18,25 +18,13 @@ from uevavd.env.evaluate import evaluate_policy
 from uevavd.policy.acting import GreedyPolicy, load_policy
 from uevavd.policy.checkpoint import load_checkpoint
 from uevavd.policy.trainer import train
-from uevavd.testing.policy import toy_table
+from uevavd.testing.policy import small_run, toy_table
 
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]
-
-SMALL = {
-    "state.input_dim": 24, "state.box_dim": 8, "state.state_dim": 16, "state.hidden": 16,
-    "head.hidden": 16, "train.n_envs": 16, "train.batch_size": 8, "train.buffer_episodes": 400,
-    "train.learning_starts": 40, "train.updates_per_step": 1.0, "train.target_update": 5,
-    "train.epoch_episodes": 100, "train.eval_contexts": 1, "train.threads": 1,
-}
-
 
 @pytest.fixture(scope="module")
 def table():
     return toy_table(n_train=3, n_hard=2, feature_dim=8)
-
-
-def _overrides(method: str) -> dict:
-    return {k: v for k, v in SMALL.items() if method != "map" or k != "state.hidden"}
 
 
 @pytest.mark.parametrize("method", ["map", "memo_map"])
@@ -45,7 +33,7 @@ def _overrides(method: str) -> dict:
 @pytest.mark.filterwarnings("error:RNN module weights are not part of single contiguous chunk:UserWarning")
 def test_cuda_run_resumes_exactly_and_its_policy_acts_on_cpu(table, tmp_path, method):
     spec = load_method(method)
-    kw = dict(episodes=200, seed=3, progress=False, overrides=_overrides(method), device="cuda")
+    kw = dict(episodes=200, seed=3, progress=False, overrides=small_run(method), device="cuda")
     straight = train(spec, table, out=tmp_path / "a", **kw)
     train(spec, table, out=tmp_path / "b", max_epochs=1, **kw)
     resumed = train(spec, table, out=tmp_path / "b", **kw)
@@ -62,7 +50,7 @@ def test_cuda_run_resumes_exactly_and_its_policy_acts_on_cpu(table, tmp_path, me
 
 def test_greedy_policy_acts_alike_on_cpu_and_cuda(table, tmp_path):
     run = train(load_method("ibe_map"), table, out=tmp_path / "r", episodes=200, seed=0, progress=False,
-                overrides=_overrides("ibe_map"), device="cpu")
+                overrides=small_run("ibe_map"), device="cpu")
     policy = load_policy(run, device="cpu")
     feats = torch.from_numpy(np.asarray(table.features))
     cpu = evaluate_policy(table, "train", GreedyPolicy(policy.net, features=feats))

@@ -104,3 +104,18 @@ def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed:
         feats, probs, boxes, scenes=[f"toy{i:03d}" for i in range(s)], targets=targets.tolist(),
         splits=splits, contexts=list(range(1, s + 1)), config={"toy": seed, "feature_dim": feature_dim},
     )
+
+
+#: Method overrides that make a run tiny (networks of 16-24 units, 16 environments, epochs of
+#: 100 episodes, one evaluated context): for tests on :func:`toy_table` (feature_dim 8).
+SMALL_RUN = {
+    "state.input_dim": 24, "state.box_dim": 8, "state.state_dim": 16,
+    "head.hidden": 16, "train.n_envs": 16, "train.batch_size": 8, "train.buffer_episodes": 400,
+    "train.learning_starts": 40, "train.updates_per_step": 1.0, "train.target_update": 5,
+    "train.epoch_episodes": 100, "train.eval_contexts": 1, "train.threads": 1,
+}
+
+
+def small_run(method: str) -> dict[str, Any]:
+    """:data:`SMALL_RUN` for ``method``; the GRU methods' hidden size too."""
+    return {**SMALL_RUN, **({"state.hidden": 16} if method != "map" else {})}
