@@ -57,7 +57,7 @@ def main() -> None:
     table = toy_table(n_train=100, n_hard=25, feature_dim=2048)
     cfg = EnvConfig()
     tensors = EnvTensors(table, "train", cfg, features_dtype=torch.float16)
-    lookup = learning.TableLookup(tensors)
+    lookup = learning.FeatureLookup(tensors)
     current_needed, current_supports = learning.needed_observations, packed.supports_packed
     paths = {
         "baseline (all o_t, nn.GRU)": (learning.observed, lambda gru: False),

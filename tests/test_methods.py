@@ -5,7 +5,7 @@ import torch
 
 from uevavd.config import known_methods, load_method
 from uevavd.env.batched import BatchedAODEnv
-from uevavd.policy.learner import Learner, TableLookup
+from uevavd.policy.learner import FeatureLookup, Learner
 from uevavd.policy.network import build_network
 from uevavd.policy.replay import EpisodeReplay
 from uevavd.testing.policy import toy_table
@@ -51,6 +51,6 @@ def test_method_builds_and_updates(method, head):
     assert bool((batch.valid & ~batch.done).any())
     learner = Learner(net, lr=1e-3, gamma=0.9, grad_clip=1.0)
     before = [p.detach().clone() for p in net.parameters()]
-    loss, td = learner.update(batch, TableLookup(env.tables))
+    loss, td = learner.update(batch, FeatureLookup(env.tensors))
     assert torch.isfinite(torch.tensor(loss)) and td.shape == (16,)
     assert any(not torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))

@@ -63,10 +63,10 @@ def train(method: Any, table: Any, *, out: str | os.PathLike[str], episodes: int
           overrides: Mapping[str, Any] | None = None, device: str = "auto", progress: bool = True) -> Run:
     """Train ``method`` on ``table`` (an ObservationTable or its folder) into ``out``;
     resumes an unfinished run of the same settings. Returns the :class:`Run`."""
-    from .perception.prepare import resolve_spec
+    from .config import as_method
     from .policy.trainer import train as _train
 
-    spec = resolve_spec(method, dict(overrides or {}) or None)
+    spec = as_method(method, dict(overrides or {}) or None)
     return Run(_train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress))
 
 

@@ -144,6 +144,14 @@ class Component:
 
         return manager.registry.build(self.kind, self.name, **{**_thaw(self.kwargs), **runtime})
 
+    def accepts(self, argument: str) -> bool:
+        """Whether the builder takes keyword ``argument``: a runtime value a host may offer
+        (the dataset folder, a recognizer's path) is passed only to builders that name it,
+        as pluggy passes a hook implementation only the arguments it names."""
+        from .plugins.manager import manager
+
+        return argument in manager.registry.signature(self.kind, self.name).parameters
+
 
 @dataclasses.dataclass(frozen=True)
 class PerceptionSection:
@@ -286,6 +294,16 @@ def load_method(
     return MethodSpec(name=data["name"], data=_freeze(data), source=str(path))
 
 
+def as_method(spec_or_method: MethodSpec | str | os.PathLike[str],
+              overrides: Mapping[str, Any] | None = None) -> MethodSpec:
+    """A :class:`MethodSpec` from a spec, a registered method name or a TOML path, with
+    dotted ``overrides`` applied and validated: what an entry point that takes "a method"
+    resolves once, before handing its consumers the sections they need."""
+    if isinstance(spec_or_method, MethodSpec):
+        return spec_or_method.with_overrides(overrides)
+    return load_method(spec_or_method, overrides)
+
+
 def loads_method(text: str, source: str = "<string>") -> MethodSpec:
     """A resolved method spec from TOML text (what :meth:`MethodSpec.to_toml` writes, e.g.
     the ``method.toml`` inside a saved policy); validated like a method file."""
@@ -307,6 +325,6 @@ def known_methods() -> list[str]:
 
 __all__ = [
     "COMPONENT_SECTIONS", "DATACLASS_SECTIONS", "PERCEPTION_KEYS", "TOP_KEYS", "TOP_SECTIONS", "Component", "ConfigError",
-    "MethodSpec", "PerceptionSection", "apply_overrides", "check_type", "known_methods", "load_method", "loads_method",
+    "MethodSpec", "PerceptionSection", "apply_overrides", "as_method", "check_type", "known_methods", "load_method", "loads_method",
     "parse_override", "resolve_method_target", "validate",
 ]

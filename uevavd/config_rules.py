@@ -153,9 +153,9 @@ def _builder_fields(kind: str, name: str, where: str, source: str) -> dict[str, 
 
     try:
         builder = manager.registry.builder(kind, name)
+        sig = manager.registry.signature(kind, name)
     except UnknownComponentError as exc:
         raise ConfigError(f"{source}: {where}.name: {exc}") from None
-    sig = inspect.signature(builder)
     try:
         hints = typing.get_type_hints(builder)
     except Exception:  # noqa: BLE001 - unresolvable annotations: accept any value

@@ -10,7 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uevavd.data.annotations import AnnotationError, parse_box_obj, parse_box_text, parse_voc_xml, read_table
+from uevavd.data.annotations import (
+    AnnotationError,
+    parse_box_obj,
+    parse_box_text,
+    parse_voc_xml,
+    read_annotation_table,
+)
 from uevavd.data.grid import N_VIEWS, coords_to_view
 from uevavd.data.naming import NameParseError, normalize_target, parse_scene_dir, parse_view_stem
 from uevavd.data.reader import DatasetError, Manifest, ViewRecord, image_size, read_dataset, scan
@@ -95,7 +101,7 @@ def test_annotation_formats():
 def test_table_rows_are_reported(tmp_path):
     t = tmp_path / "annotations.csv"
     t.write_text("image,x1,y1,x2,y2\na.png,1,2,3,4\nb.png,1,2,x,4\n")
-    boxes, errors = read_table(t)
+    boxes, errors = read_annotation_table(t)
     assert boxes == {"a": boxes["a"]} and boxes["a"].box == (1, 2, 3, 4)
     assert len(errors) == 1 and "annotations.csv row 3" in errors[0]
 

@@ -10,7 +10,7 @@ from uevavd.config import load_method
 from uevavd.env.batched import EnvTensors
 from uevavd.env.config import EnvConfig
 from uevavd.policy import targets as T
-from uevavd.policy.learner import Learner, TableLookup
+from uevavd.policy.learner import FeatureLookup, Learner
 from uevavd.policy.network import build_network
 from uevavd.policy.replay import EpisodeReplay
 
@@ -121,7 +121,7 @@ def test_update_matches_padded_reference_and_ignores_padding(table, method, head
         for p in learner.target.parameters():
             p.add_(0.1 * torch.randn_like(p))
     tables = EnvTensors(table, "train", EnvConfig())
-    lookup = TableLookup(tables)
+    lookup = FeatureLookup(tables)
     replay = EpisodeReplay(64, 5, seed=0)
     replay.add(*_episodes(tables))
     batch = replay.sample(16, 0.5)

@@ -39,8 +39,8 @@ Box = tuple[int, int, int, int]
 #: Per-image annotation extensions, in the order the reader prefers them.
 ANNOTATION_EXTS: tuple[str, ...] = (".txt", ".json", ".xml")
 #: Stems of per-scene annotation tables (compared lower-case) and their extensions.
-TABLE_STEMS: tuple[str, ...] = ("annotations", "annotation", "boxes", "bboxes", "bbox", "labels", "gt")
-TABLE_EXTS: tuple[str, ...] = (".csv", ".txt", ".json")
+ANNOTATION_TABLE_STEMS: tuple[str, ...] = ("annotations", "annotation", "boxes", "bboxes", "bbox", "labels", "gt")
+ANNOTATION_TABLE_EXTS: tuple[str, ...] = (".csv", ".txt", ".json")
 
 _BOX_KEYS = ("bbox", "box", "bndbox", "bounding_box", "boundingbox", "xyxy")
 _LABEL_KEYS = ("label", "class", "category", "target", "name", "cls")
@@ -68,10 +68,10 @@ class BoxAnnotation:
     label: str | None = None
 
 
-def is_table_name(name: str) -> bool:
+def is_annotation_table(name: str) -> bool:
     """Whether a file name is a per-scene annotation table (e.g. ``annotations.csv``)."""
     stem, ext = os.path.splitext(os.path.basename(str(name)))
-    return ext.lower() in TABLE_EXTS and stem.lower() in TABLE_STEMS
+    return ext.lower() in ANNOTATION_TABLE_EXTS and stem.lower() in ANNOTATION_TABLE_STEMS
 
 
 def _to_int(value, where: str) -> int:
@@ -188,7 +188,7 @@ def read_box_file(path: str | Path) -> BoxAnnotation:
     return parse_box_text(text, where)
 
 
-def table_key(name: str) -> str:
+def row_image_stem(name: str) -> str:
     """The image stem a table row refers to: base name without an image extension."""
     base = re.split(r"[\\/]", str(name).strip())[-1]
     return base[: -len(Path(base).suffix)] if base.lower().endswith(IMAGE_EXTS) else base
@@ -250,10 +250,10 @@ def _rows_from_json(obj, where: str) -> list[tuple[str, str, object]]:
     raise AnnotationError(f"{where}: expected a JSON object keyed by image name or a list of records")
 
 
-def read_table(path: Path) -> tuple[dict[str, BoxAnnotation], list[str]]:
+def read_annotation_table(path: Path) -> tuple[dict[str, BoxAnnotation], list[str]]:
     """Read a per-scene annotation table.
 
-    Returns ``(boxes, errors)``: boxes keyed by image stem (see :func:`table_key`), and
+    Returns ``(boxes, errors)``: boxes keyed by image stem (see :func:`row_image_stem`), and
     one message per row that could not be parsed (naming the file and row). Raises
     :class:`AnnotationError` when the file as a whole cannot be read.
     """
@@ -275,7 +275,7 @@ def read_table(path: Path) -> tuple[dict[str, BoxAnnotation], list[str]]:
     boxes: dict[str, BoxAnnotation] = {}
     errors: list[str] = []
     for name, row_where, value in rows:
-        key = table_key(name)
+        key = row_image_stem(name)
         try:
             if not key:
                 raise AnnotationError(f"{row_where}: no image name")

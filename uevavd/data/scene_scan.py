@@ -14,12 +14,12 @@ from pathlib import Path
 
 from .annotations import (
     ANNOTATION_EXTS,
-    TABLE_STEMS,
+    ANNOTATION_TABLE_STEMS,
     AnnotationError,
     BoxAnnotation,
-    is_table_name,
+    is_annotation_table,
+    read_annotation_table,
     read_box_file,
-    read_table,
 )
 from .grid import N_VIEWS, coords_to_view, view_coords
 from .layout import CATEGORIES, DATASET_CARD, MANIFEST, SCENE_META, SEG_DIR, view_stem
@@ -44,7 +44,7 @@ _NOT_DATA_STEMS = frozenset({"readme", "license", "licence", "notice", "changelo
 ANNOTATION_DIRS: tuple[str, ...] = ("annotations", "annotation", "labels", "boxes", "bboxes", "gt")
 _MAX_LISTED = 12
 # Stems of annotation-extension files that are not per-image boxes (tables, metadata).
-_NOT_PER_IMAGE = frozenset({*TABLE_STEMS, SCENE_META.rpartition(".")[0], CATEGORIES.rpartition(".")[0]})
+_NOT_PER_IMAGE = frozenset({*ANNOTATION_TABLE_STEMS, SCENE_META.rpartition(".")[0], CATEGORIES.rpartition(".")[0]})
 
 # Canonical names (layout.view_stem) take a fast path; everything else goes to naming.
 _CANONICAL = re.compile(r"^x([+-]\d{2,3})_y([+-]\d{2,3})_z(\d{3})_([a-z]+)_(\d{2,3}|train_605)$")
@@ -112,17 +112,17 @@ def _is_data_name(name: str) -> bool:
     return not (low.startswith(".") or low in _NOT_DATA_NAMES or low.partition(".")[0] in _NOT_DATA_STEMS)
 
 
-def _load_tables(scene_dir: Path, files: list[str], problems: list[Problem],
+def _load_annotation_tables(scene_dir: Path, files: list[str], problems: list[Problem],
                  origin: dict[str, Path] | None = None) -> dict[str, BoxAnnotation]:
     """Boxes of the scene's annotation tables by image stem (first table wins); ``origin``
     receives the table each stem came from."""
     merged: dict[str, BoxAnnotation] = {}
     for name in files:
-        if name.partition(".")[0].lower() not in TABLE_STEMS or not is_table_name(name):
+        if name.partition(".")[0].lower() not in ANNOTATION_TABLE_STEMS or not is_annotation_table(name):
             continue
         path = scene_dir / name
         try:
-            boxes, errors = read_table(path)
+            boxes, errors = read_annotation_table(path)
         except AnnotationError as e:
             problems.append(Problem("unparseable_annotation", path, str(e).removeprefix(f"{path}: ")))
             continue
@@ -168,15 +168,15 @@ def _unused_files(scene_dir: Path, files: list[str], ann_files: dict[str, tuple[
             path = d / name
             if not sub and is_image_name(name):
                 continue  # images are judged one by one in _scan_scene
-            if is_table_name(name):
+            if is_annotation_table(name):
                 if sub:
                     problems.append(Problem("unknown_file", path, "annotation table not read: tables are read from "
                                             f"the scene folder itself ({scene_dir / name})"))
-                continue  # read by _load_tables (its rows are checked below)
+                continue  # read by _load_annotation_tables (its rows are checked below)
             if ext not in ANNOTATION_EXTS or not stem:
                 problems.append(Problem("unknown_file", path, "not an image (" + ", ".join(IMAGE_EXTS) + "), a box "
                                         "annotation (" + ", ".join(ANNOTATION_EXTS) + ") or an annotation table "
-                                        f"({TABLE_STEMS[0]}.csv, ...); the reader cannot use it"))
+                                        f"({ANNOTATION_TABLE_STEMS[0]}.csv, ...); the reader cannot use it"))
                 continue
             if stem.lower() in _NOT_PER_IMAGE or str(path) in used_ann:
                 continue
@@ -272,7 +272,7 @@ def scan_scene(sid: SceneId, scene_dir: Path, check: bool, problems: list[Proble
                 else:
                     ann_others[stem].append(os.path.join(d, name))
     table_origin: dict[str, Path] = {}
-    table = _load_tables(scene_dir, files, problems, table_origin)
+    table = _load_annotation_tables(scene_dir, files, problems, table_origin)
     seg_names = {n.rpartition(".")[0]: n for n in _list_files(scene_dir / SEG_DIR) if n.lower().endswith(".png")}
     visible = _read_visible(scene_dir, problems)
     images = [n for n in files if is_image_name(n)]

@@ -1,7 +1,7 @@
 """``BatchedAODEnv``: N AOD episodes in lockstep as torch tensors, on CPU or GPU.
 
 Same semantics as :class:`~uevavd.env.aod_env.AODEnv` (DESIGN.md 2), with automatic
-reset. Every step is a handful of tensor gathers over precomputed tables; there is no
+reset. Every step is a handful of tensor gathers over precomputed tensors; there is no
 Python loop over environments. API (stable; the DQN trainer builds on it)::
 
     env = BatchedAODEnv(table, "train", n_envs=1024, config=EnvConfig(), device="cpu", seed=0)
@@ -36,7 +36,7 @@ from .config import EnvConfig, make_config
 
 
 class EnvTensors:
-    """The lookup tables of one (table, split, config) on a device.
+    """The device tensors of one (table, split, config) on a device.
 
     ``features`` (S', 605, D) float32 or float16, ``boxes`` (S', 605, 4) float32,
     ``reco`` / ``acc`` (S', 605) bool, ``next_view`` / ``steps`` (605, 7, A) int64,
@@ -93,7 +93,7 @@ class EnvTensors:
 
     def observe(self, local_scene: torch.Tensor, view: torch.Tensor, t: torch.Tensor) -> dict[str, torch.Tensor]:
         """Observation dict (see module doc) of envs at (local scene, view) after t decisions."""
-        # index_select on flattened tables: several times faster than 2-D advanced indexing
+        # index_select on flattened tensors: several times faster than 2-D advanced indexing
         flat = local_scene * N_VIEWS + view
         a = self.config.max_range
         return {
@@ -171,10 +171,10 @@ class BatchedAODEnv:
         self.config = make_config(config)
         self.split = split
         self.n_envs = n_envs
-        self.tables = EnvTensors(
+        self.tensors = EnvTensors(
             self.table, split, self.config, device=device, contexts=contexts, features_dtype=features_dtype
         )
-        self.device = self.tables.device
+        self.device = self.tensors.device
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(int(seed))
         self._discounts = torch.tensor(
@@ -188,7 +188,7 @@ class BatchedAODEnv:
     # -- starts -----------------------------------------------------------------------------
     def _sample_starts(self) -> tuple[torch.Tensor, torch.Tensor]:
         n, g, dev = self.n_envs, self.generator, self.device
-        scene = torch.randint(len(self.tables.scenes), (n,), generator=g, device=dev)
+        scene = torch.randint(len(self.tensors.scenes), (n,), generator=g, device=dev)
         fixed = self.config.start_view
         if fixed is None:
             view = torch.randint(N_VIEWS, (n,), generator=g, device=dev)
@@ -197,7 +197,7 @@ class BatchedAODEnv:
         return scene, view
 
     def _obs(self) -> dict[str, torch.Tensor]:
-        return self.tables.observe(self._scene, self._view, self._t.clone())
+        return self.tensors.observe(self._scene, self._view, self._t.clone())
 
     def reset(self, *, scenes: Any = None, views: Any = None) -> dict[str, torch.Tensor]:
         """Start new episodes in all envs; ``scenes`` (table indices in the split) and
@@ -205,12 +205,12 @@ class BatchedAODEnv:
         scene, view = self._sample_starts()
         if scenes is not None:
             s = torch.as_tensor(scenes, dtype=torch.int64, device=self.device).expand(self.n_envs)
-            if bool(((s < 0) | (s >= len(self.tables.local))).any()) or bool((self.tables.local[s.clamp(0, len(self.tables.local) - 1)] < 0).any()):
+            if bool(((s < 0) | (s >= len(self.tensors.local))).any()) or bool((self.tensors.local[s.clamp(0, len(self.tensors.local) - 1)] < 0).any()):
                 raise ValueError(
                     f"reset scenes {s.unique().tolist()}: expected table scene indices of split "
-                    f"{self.split!r}, i.e. among {self.tables.scenes.tolist()}"
+                    f"{self.split!r}, i.e. among {self.tensors.scenes.tolist()}"
                 )
-            scene = self.tables.local[s]
+            scene = self.tensors.local[s]
         if views is not None:
             v = torch.as_tensor(views, dtype=torch.int64, device=self.device).expand(self.n_envs)
             if bool(((v < 0) | (v >= N_VIEWS)).any()):
@@ -228,7 +228,7 @@ class BatchedAODEnv:
         """Advance all envs by one decision; returns ``(obs, reward, done, info)``."""
         if not self._started:
             raise RuntimeError("BatchedAODEnv.step() before reset()")
-        tb = self.tables
+        tb = self.tensors
         a_type, a_range = tb.check_actions(a_type, a_range, self.n_envs)
         out = tb.transition(self._scene, self._view, self._t, a_type, a_range)
         reward, done = out["reward"], out["final"]
@@ -271,7 +271,7 @@ class BatchedAODEnv:
             "n_envs": self.n_envs,
             "config": self.config.to_dict(),
             "split": self.split,
-            "scenes": self.tables.scenes.tolist(),
+            "scenes": self.tensors.scenes.tolist(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -280,7 +280,7 @@ class BatchedAODEnv:
             ("n_envs", self.n_envs),
             ("split", self.split),
             ("config", self.config.to_dict()),
-            ("scenes", self.tables.scenes.tolist()),
+            ("scenes", self.tensors.scenes.tolist()),
         )
         for key, mine in mine_all:
             if state.get(key) != mine:

@@ -26,7 +26,7 @@ from .config import EnvConfig, make_config
 
 
 @dataclass(frozen=True)
-class OracleTables:
+class OracleSolution:
     """``value`` (S, T_max + 1, 605) float64: V(view, k) (k = 0 unused, zeros);
     ``q`` (S, T_max + 1, 605, 7, A) float64 action values (None unless asked for:
     it is 28x the size of ``value``); ``best_type`` / ``best_range``
@@ -40,7 +40,7 @@ class OracleTables:
 
 def oracle_values(
     table: ObservationTable, config: EnvConfig | dict | None = None, *, with_q: bool = False
-) -> OracleTables:
+) -> OracleSolution:
     """Solve the DP for every scene of ``table`` (vectorised over scenes and views)."""
     cfg = make_config(config)
     tr = transitions(cfg.max_range)
@@ -69,7 +69,7 @@ def oracle_values(
         value[:, k] = np.where(stop_better, term, best_move)
         best_type[:, k] = np.where(stop_better, STOP, i // a)
         best_range[:, k] = np.where(stop_better, 0, i % a)
-    return OracleTables(value, q, best_type, best_range)
+    return OracleSolution(value, q, best_type, best_range)
 
 
 class OraclePolicy:
@@ -81,13 +81,13 @@ class OraclePolicy:
 
     def __init__(self, table: ObservationTable, config: EnvConfig | dict | None = None) -> None:
         self.config = make_config(config)
-        self.tables = oracle_values(table, self.config)
+        self.solution = oracle_values(table, self.config)
         self._dev: torch.device | None = None
 
     def _on(self, dev: torch.device) -> None:
         if self._dev != dev:
-            self._type = torch.as_tensor(self.tables.best_type, device=dev)
-            self._range = torch.as_tensor(self.tables.best_range, device=dev)
+            self._type = torch.as_tensor(self.solution.best_type, device=dev)
+            self._range = torch.as_tensor(self.solution.best_range, device=dev)
             self._dev = dev
 
     def reset(self, n: int) -> None:
@@ -101,4 +101,4 @@ class OraclePolicy:
 
     def value(self, scene: int, view: int) -> float:
         """The optimal return from ``view`` of table scene ``scene`` at t = 0."""
-        return float(self.tables.value[scene, self.config.t_max, view])
+        return float(self.solution.value[scene, self.config.t_max, view])

@@ -132,7 +132,7 @@ class AODVectorEnv(gym.vector.VectorEnv):
                 "action_mask": mask, "t": obs["t"].cpu().numpy()}
 
     def _final_obs(self, info: dict[str, torch.Tensor], done: np.ndarray) -> np.ndarray:
-        tb = self._batched.tables
+        tb = self._batched.tensors
         scene = tb.local.index_select(0, info["final_scene"])
         last = self._numpy(tb.observe(scene, info["final_view"], info["final_decisions"]))
         out = np.empty(self.num_envs, dtype=object)

@@ -15,7 +15,6 @@ renamed into place at the end. Images decode in worker threads, overlapping the 
 from __future__ import annotations
 
 import hashlib
-import inspect
 import json
 import logging
 import os
@@ -29,7 +28,7 @@ from typing import Any
 import numpy as np
 from filelock import FileLock
 
-from ..config import MethodSpec, load_method
+from ..config import Component, MethodSpec, PerceptionSection, as_method
 from ..data.grid import N_VIEWS
 from ..data.reader import read_dataset
 from ..data.splits import TARGETS
@@ -49,15 +48,6 @@ from .shards import (
 )
 
 log = logging.getLogger(__name__)
-
-
-def resolve_spec(spec_or_method: MethodSpec | str | os.PathLike[str],
-                 overrides: Mapping[str, Any] | None = None) -> MethodSpec:
-    """A :class:`MethodSpec` from a spec, a registered method name or a TOML path, with
-    dotted ``overrides`` applied and validated."""
-    if not isinstance(spec_or_method, MethodSpec):
-        return load_method(spec_or_method, overrides)
-    return spec_or_method.with_overrides(overrides)
 
 
 def context_scenes(manifest) -> list[tuple[str, list]]:
@@ -98,33 +88,26 @@ def dataset_fingerprint(manifest, scenes: list[tuple[str, list]]) -> str:
     return h.hexdigest()[:16]
 
 
-def _accepts(builder, name: str) -> bool:
-    return name in inspect.signature(builder).parameters
-
-
-def build_components(spec: MethodSpec, data_root: Path, classifier_path: str | None):
-    """``(segmenter or None, encoder, classifier)`` for the spec's perception section."""
-    from ..plugins.manager import manager
-
-    perception = spec.perception
-
-    def runtime(comp: Any, extra: dict[str, Any]) -> dict[str, Any]:
-        builder = manager.registry.builder(comp.kind, comp.name)
-        return {k: v for k, v in extra.items() if k not in comp.kwargs and _accepts(builder, k)}
+def build_components(perception: PerceptionSection, data_root: Path, classifier_path: str | None, *,
+                     where: str = "the perception section"):
+    """``(segmenter or None, encoder, classifier)`` of a method's perception section;
+    ``where`` names the method in errors."""
+    def runtime(comp: Component, extra: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in extra.items() if k not in comp.kwargs and comp.accepts(k)}
 
     for section, comp in (("perception.encoder", perception.encoder), ("perception.classifier", perception.classifier)):
         if comp is None:
-            raise ValueError(f"method {spec.name!r} ({spec.source}) names no {section}; a table needs both an "
+            raise ValueError(f"{where} names no {section}; a table needs both an "
                              "encoder and a classifier, e.g. encoder = { name = \"resnet50\" }")
     decomposing = perception.decompose
     if decomposing and perception.segmenter is not None and perception.segmenter.name == "none":
         raise ValueError(
-            f"method {spec.name!r} ({spec.source}): perception.decompose = true with segmenter 'none' would turn "
+            f"{where}: perception.decompose = true with segmenter 'none' would turn "
             "every view into one flat gray (no target mask); use segmenter 'gt' or 'sam', or set "
             "perception.decompose = false")
     segmenter = perception.segmenter.build() if decomposing and perception.segmenter is not None else None
     if decomposing and segmenter is None:
-        raise ValueError(f"method {spec.name!r}: perception.decompose = true needs a perception.segmenter")
+        raise ValueError(f"{where}: perception.decompose = true needs a perception.segmenter")
     enc_extra: dict[str, Any] = {"data": str(data_root)}
     if classifier_path is not None:
         enc_extra["classifier"] = str(classifier_path)  # weights="classifier" takes this recognizer's backbone
@@ -234,9 +217,12 @@ def _scene_arrays(recs, features, probs, image_hw) -> dict[str, np.ndarray]:
 
 @dataclass
 class TablePlan:
-    """Everything a table build needs, and its key (see :func:`plan_table`)."""
+    """Everything a table build needs, and its key (see :func:`plan_table`): the method's
+    perception section and its built components; of the rest of the method only
+    ``provenance`` (its name and hash, recorded in the table beside the section)."""
 
-    spec: MethodSpec
+    perception: PerceptionSection
+    provenance: dict[str, str]
     data_root: Path
     manifest: Any
     scenes: list[tuple[str, list]]
@@ -255,13 +241,16 @@ def plan_table(
     classifier_path: str | os.PathLike[str] | None = None,
     overrides: Mapping[str, Any] | None = None,
 ) -> TablePlan:
-    """Read the dataset, build the components and compute the table key (no images decoded)."""
+    """Read the dataset, build the components and compute the table key (no images decoded).
+    The method is resolved here, once; what follows reads its perception section only."""
     data_root = Path(data_root).expanduser().resolve()
-    spec = resolve_spec(spec_or_method, overrides)
+    spec = as_method(spec_or_method, overrides)
+    perception = spec.perception
     manifest = read_dataset(data_root)
     scenes = context_scenes(manifest)
     segmenter, encoder, classifier = build_components(
-        spec, data_root, None if classifier_path is None else str(classifier_path))
+        perception, data_root, None if classifier_path is None else str(classifier_path),
+        where=f"method {spec.name!r} ({spec.source})")
     if tuple(classifier.classes) != TARGETS:
         raise ValueError(f"classifier classes {list(classifier.classes)}; the table needs {list(TARGETS)}")
     trained_on = (getattr(classifier, "meta", None) or {}).get("input_size")
@@ -274,7 +263,7 @@ def plan_table(
     if decomposing and getattr(segmenter, "needs_ground_truth", False):
         for scene, recs in scenes:  # fail before any image is decoded
             ground_truth_categories(manifest, scene, recs)
-    gray_seed = spec.perception.gray_seed
+    gray_seed = perception.gray_seed
     parts = {
         "schema_version": SCHEMA_VERSION,
         "dataset": dataset_fingerprint(manifest, scenes),
@@ -284,8 +273,8 @@ def plan_table(
         "encoder": encoder.identity(),
         "classifier": classifier.identity(),
     }
-    return TablePlan(spec, data_root, manifest, scenes, segmenter, encoder, classifier, gray_seed, parts,
-                table_key(parts))
+    return TablePlan(perception, {"method": spec.name, "method_hash": spec.hash}, data_root, manifest, scenes,
+                     segmenter, encoder, classifier, gray_seed, parts, table_key(parts))
 
 
 def prepare_table(
@@ -312,7 +301,7 @@ def prepare_table(
     from tqdm.auto import tqdm
 
     p = plan_table(data_root, spec_or_method, classifier_path=classifier_path, overrides=overrides)
-    spec, data_root, manifest, scenes = p.spec, p.data_root, p.manifest, p.scenes
+    data_root, manifest, scenes = p.data_root, p.manifest, p.scenes
     segmenter, encoder, classifier, gray_seed = p.segmenter, p.encoder, p.classifier, p.gray_seed
     parts, key = p.parts, p.key
     out_dir = Path(out_dir).expanduser() if out_dir is not None else tables_dir()
@@ -365,9 +354,8 @@ def prepare_table(
         names = [s for s, _ in scenes]
         stack = {a: np.stack([shards[s][a] for s in names]) for a in SHARD_ARRAYS}
         config = {
-            "method": spec.name,
-            "method_hash": spec.hash,
-            "perception": spec.perception.as_dict(),
+            **p.provenance,
+            "perception": p.perception.as_dict(),
             "key_parts": parts,
             "data_root": str(data_root),
         }

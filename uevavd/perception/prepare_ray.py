@@ -9,7 +9,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ..config import MethodSpec
+from ..config import MethodSpec, as_method
 from ..data.grid import N_VIEWS
 from ..data.splits import TARGETS
 from ..paths import tables_dir
@@ -57,7 +57,8 @@ def prepare_table_ray(
         raise RuntimeError("--backend ray needs Ray: pip install 'uevavd[ray]'") from None
     from tqdm.auto import tqdm
 
-    p = plan_table(data_root, spec_or_method, classifier_path=classifier_path, overrides=overrides)
+    spec = as_method(spec_or_method, overrides)
+    p = plan_table(data_root, spec, classifier_path=classifier_path)
     out_dir = Path(out_dir).expanduser().resolve() if out_dir is not None else tables_dir()
     final = out_dir / p.key
     if final.is_dir():
@@ -69,7 +70,7 @@ def prepare_table_ray(
     partial = out_dir / f"{p.key}.partial"
     partial.mkdir(parents=True, exist_ok=True)
     spec_path = partial / "method.toml"  # the resolved spec, so every task builds the same components
-    p.spec.save(spec_path)
+    spec.save(spec_path)
     k = len(TARGETS)
     todo = [s for s, _ in p.scenes if _read_shard(partial / f"{s}.npz", p.encoder.feature_dim, k) is None]
     del p  # the driver's models are not needed while the tasks run

@@ -21,7 +21,7 @@ from ..table import ObservationTable
 from . import targets as T
 from .checkpoint import ARCH_KEYS, load_checkpoint, load_net_state
 from .network import QNetwork, build_network
-from .rundir import RunDir, read_settings, resolve_spec
+from .rundir import RunDir, read_settings, run_spec
 
 
 def random_actions(mask: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -194,7 +194,7 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
     its actions are the same either way."""
     run_dir = Path(run_dir)
     settings = read_settings(run_dir)
-    spec = resolve_spec(run_dir)
+    spec = run_spec(run_dir)
 
     net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
     path = run_dir / weights if weights else RunDir(run_dir).checkpoint

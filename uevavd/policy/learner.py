@@ -1,6 +1,6 @@
 """Learning of the DQN agents (Tianshou's "algorithm" half; acting is in :mod:`.acting`).
 
-* :class:`TableLookup` - the observation table as device tensors, for replayed episodes.
+* :class:`FeatureLookup` - the observation table as device tensors, for replayed episodes.
 * :class:`Learner` - the double-DQN update on a batch of whole episodes, with
   :func:`needed_observations` (what a batch encodes) and :func:`episode_q` (Q over episodes).
 
@@ -22,13 +22,13 @@ from .network import QNetwork
 from .replay import EpisodeBatch
 
 
-class TableLookup:
+class FeatureLookup:
     """Feature lookup for replayed episodes, sharing the environment's device tensors
     (:class:`uevavd.env.batched.EnvTensors`): features (S', 605, D), boxes (S', 605, 4),
     mask (605, 7, A) bool, and ``local`` mapping table scene indices to rows."""
 
-    def __init__(self, tables: Any) -> None:
-        self.features, self.boxes, self.mask, self.local = tables.features, tables.boxes, tables.mask, tables.local
+    def __init__(self, tensors: Any) -> None:
+        self.features, self.boxes, self.mask, self.local = tensors.features, tensors.boxes, tensors.mask, tensors.local
 
     def gather(self, scene: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """scene (B,) table indices, views (B, L) -> features (B, L, D) float32, boxes (B, L, 4)
@@ -66,7 +66,7 @@ class Learner:
     def sync_target(self) -> None:
         self.target.load_state_dict(self.net.state_dict())
 
-    def update(self, batch: EpisodeBatch, lookup: TableLookup) -> tuple[float, torch.Tensor]:
+    def update(self, batch: EpisodeBatch, lookup: FeatureLookup) -> tuple[float, torch.Tensor]:
         """One gradient step. Returns (loss, per-episode mean |TD error| (B,))."""
         head = self.net.head
         # Only the observations the loss reads are encoded (see needed_observations): o_0..o_L

@@ -93,7 +93,7 @@ def read_settings(run_dir: str | Path) -> dict[str, Any]:
     return settings
 
 
-def resolve_spec(run_dir: str | Path) -> MethodSpec:
+def run_spec(run_dir: str | Path) -> MethodSpec:
     """The method spec saved in a run directory."""
     path = RunDir(run_dir).method
     if not path.is_file():

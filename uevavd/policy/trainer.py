@@ -38,10 +38,10 @@ from .checkpoint import (
     save_policy_file,
 )
 from .config import TrainConfig
-from .learner import Learner, TableLookup
+from .learner import FeatureLookup, Learner
 from .network import build_network
 from .replay import EpisodeReplay
-from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, resolve_spec
+from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_spec
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
@@ -172,7 +172,7 @@ def train(
                            seed=cfg.seed + 1, device=dev)
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=cfg.seed + 2,
                         features_dtype=torch.float16)
-    lookup = TableLookup(env.tables)
+    lookup = FeatureLookup(env.tensors)
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
     spec.save(RunDir(out).method)
@@ -340,4 +340,4 @@ def _log_settings(writer: Any, settings: dict[str, Any]) -> None:
         writer._get_file_writer().add_summary(summary)  # in this run's event file (add_hparams opens another)
 
 
-__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "RUN_KEYS", "read_settings", "resolve_spec", "apply_overrides"]
+__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "RUN_KEYS", "read_settings", "run_spec", "apply_overrides"]
