@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_write
-from ..config import MethodSpec
+from ..config import MethodSpec, PerceptionSection
 from ..env.aod_env import load_table, select_scenes
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
@@ -47,11 +47,6 @@ from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings,
 TB_EVERY_UPDATES = 100
 
 
-def apply_overrides(spec: MethodSpec, overrides: dict[str, Any] | None) -> MethodSpec:
-    """The spec with dotted overrides (``{"train.batch_size": 32}``) applied and validated."""
-    return spec.with_overrides(overrides)
-
-
 def _write_json(path: Path, obj: Any) -> None:
     atomic_write(path, obj if isinstance(obj, str) else json.dumps(obj, indent=1, sort_keys=True, default=str))
 
@@ -64,18 +59,18 @@ def _versions() -> dict[str, str]:
 
 
 #: The perception keys a table's recorded config must share with the method trained on it.
-PERCEPTION_KEYS = ("segmenter.name", "decompose", "gray_seed", "encoder.name", "encoder.weights", "classifier.name")
+TABLE_PERCEPTION_KEYS = ("segmenter.name", "decompose", "gray_seed", "encoder.name", "encoder.weights", "classifier.name")
 
 
-def check_table_perception(spec: MethodSpec, table: Any) -> None:
-    """Refuse a table built for another perception config than ``spec``'s (its
+def check_table_perception(perception: PerceptionSection, table: Any, method: str) -> None:
+    """Refuse a table built for another perception config than ``method``'s (its
     ``meta.json`` records the method's ``[perception]``): raw features for IBE-MAP, or a
     ResNet18 table for a ResNet50 method, would train and record a run that is not what its
     ``method.toml`` says. Tables made with ``from_arrays`` (no recorded perception) pass."""
     recorded = (table.meta.get("config") or {}).get("perception")
     if not isinstance(recorded, dict):
         return
-    want = spec.perception.as_dict()
+    want = perception.as_dict()
 
     def get(d: dict, dotted: str):
         head, _, rest = dotted.partition(".")
@@ -85,11 +80,11 @@ def check_table_perception(spec: MethodSpec, table: Any) -> None:
         return v
 
     diffs = [f"perception.{k}: table {get(recorded, k)!r}, method {get(want, k)!r}"
-             for k in PERCEPTION_KEYS if get(recorded, k) != get(want, k)]
+             for k in TABLE_PERCEPTION_KEYS if get(recorded, k) != get(want, k)]
     if diffs:
         raise RunDirError(f"table {table.path or table.key} was built for another perception config than method "
-                          f"{spec.name!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA --method "
-                          f"{spec.name}` (with the same --set overrides) and pass that one")
+                          f"{method!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA --method "
+                          f"{method}` (with the same --set overrides) and pass that one")
 
 
 class _Evaluator:
@@ -137,9 +132,9 @@ def train(
     run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
     """
     # -- settings -----------------------------------------------------------------------------
-    spec = apply_overrides(spec, overrides)
+    spec = spec.with_overrides(overrides)
     table = load_table(table)
-    check_table_perception(spec, table)
+    check_table_perception(spec.perception, table, spec.name)
     cfg = spec.train_config(seed=seed, **({"episodes": episodes} if episodes is not None else {}))
     env_cfg = spec.env
     cfg = cfg.resolve_gamma(env_cfg.gamma)  # one discount: env.gamma (train.gamma is deprecated)
@@ -340,4 +335,4 @@ def _log_settings(writer: Any, settings: dict[str, Any]) -> None:
         writer._get_file_writer().add_summary(summary)  # in this run's event file (add_hparams opens another)
 
 
-__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "RUN_KEYS", "read_settings", "run_spec", "apply_overrides"]
+__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "RUN_KEYS", "read_settings", "run_spec"]
