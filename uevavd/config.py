@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import hashlib
-import json
 import os
 import tomllib
 from collections.abc import Mapping
@@ -54,6 +52,7 @@ from .config_rules import (
     parse_override,
     validate,
 )
+from .hashing import json_digest
 
 
 # -- locating method files ------------------------------------------------------------------
@@ -187,8 +186,7 @@ class MethodSpec:
     @property
     def hash(self) -> str:
         """Stable 16-hex digest of the resolved config (independent of key order and source)."""
-        blob = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"), default=str)
-        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+        return json_digest(self.to_dict(), 16, compact=True)
 
     def to_dict(self) -> dict[str, Any]:
         return _thaw(self.data)

@@ -11,7 +11,6 @@ the occluded-view fraction overall and per split, and every problem grouped by k
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 from collections import Counter, defaultdict
 from collections.abc import Iterable
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write
+from ..hashing import sha256_hex
 from .layout import CATEGORIES, MANIFEST
 from .reader import UNUSED_FILE_KINDS, Problem, scan
 from .records import Manifest
@@ -214,7 +214,7 @@ def _decode_task(item: tuple[Path, bool, bool]):
     except OSError as e:
         return path, None, f"cannot read ({e})", None, 0
     size, err = check_image_bytes(data, path, seg=seg) if seg is not None else (None, None)
-    digest = hashlib.sha256(data).hexdigest() if want_hash else None
+    digest = sha256_hex(data) if want_hash else None
     return path, size, err, digest, len(data)
 
 

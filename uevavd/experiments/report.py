@@ -67,10 +67,6 @@ TABLE_METRICS: tuple[tuple[str, str, int], ...] = (
 )
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    atomic_write(path, text)
-
-
 def _read_json(path: Path, notes: list[str]):
     if not path.is_file():
         notes.append(f"`{path.name}` not found in the ablation directory.")
@@ -383,6 +379,6 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     lines += _strips_section(ablation_dir, meta, out_dir)
     lines += _claims_section(claims, diagnose(results, claims))
     path = out_dir / "report.md"
-    _atomic_write(path, "\n".join(lines))
+    atomic_write(path, "\n".join(lines))
     return path
 

@@ -23,6 +23,7 @@ import torch
 from ..atomic import atomic_save
 from ..data.reader import read_dataset
 from ..data.splits import CLASSIFIER_SCENE
+from ..hashing import json_digest
 from ..paths import cache_dir
 from .efficientnet import check_size, fold_lite0, make_lite0
 from .nets import BatchRunner, check_images
@@ -59,7 +60,7 @@ def classifier_cache_path(data_digest: str, settings: Any) -> Path:
     """Where a recognizer trained with ``settings`` (a ClassifierRecipe) on the ``train_605``
     crops of digest ``data_digest`` is cached: ``<cache>/classifiers/<data>-<settings>.safetensors``,
     so a regenerated world or other settings never reuse an old recognizer."""
-    key = hashlib.sha256(json.dumps(settings.__dict__, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    key = json_digest(settings.__dict__, 12)
     return classifiers_dir() / f"{data_digest}-{key}.safetensors"
 
 

@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..hashing import file_sha256
 from .nets import BatchRunner, check_images
-from .weights import WeightsError, file_sha256, load_state_dict_file, parse_spec, state_dict_hash
+from .weights import WeightsError, load_state_dict_file, parse_spec, state_dict_hash
 
 log = logging.getLogger(__name__)
 

@@ -33,6 +33,7 @@ from ..data.grid import N_VIEWS
 from ..data.reader import read_dataset
 from ..data.splits import TARGETS
 from ..data.validate import segmentation_problem
+from ..hashing import json_digest, sha256_hex
 from ..paths import tables_dir
 from ..table import SCHEMA_VERSION, ObservationTable, TableError
 from .decompose import decompose, view_seed
@@ -123,8 +124,7 @@ def build_components(perception: PerceptionSection, data_root: Path, classifier_
 
 
 def table_key(parts: Mapping[str, Any]) -> str:
-    blob = json.dumps(parts, sort_keys=True, separators=(",", ":"), default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+    return json_digest(parts, 20, compact=True)
 
 
 def ground_truth_categories(manifest, scene: str, recs: list) -> dict[int, str]:
@@ -321,7 +321,7 @@ def prepare_table(
                 log.warning("prepare: existing table %s is unusable (%s); rebuilding", final, exc)
         partial = out_dir / f"{key}.partial"
         partial.mkdir(parents=True, exist_ok=True)
-        probs_dir = out_dir / "probs" / hashlib.sha256(classifier.identity().encode()).hexdigest()[:16]
+        probs_dir = out_dir / "probs" / sha256_hex(classifier.identity(), 16)
         features_dir = _features_dir(out_dir, parts)
         (partial / "key.json").write_text(json.dumps(parts, indent=1, sort_keys=True), encoding="utf-8")
         k = len(TARGETS)

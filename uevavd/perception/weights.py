@@ -28,6 +28,7 @@ from pathlib import Path
 
 import torch
 
+from ..hashing import file_sha256
 from ..paths import torch_hub_dir
 
 log = logging.getLogger(__name__)
@@ -74,14 +75,6 @@ def imagenet_path(arch: str) -> Path:
         f"fetch {IMAGENET_URLS}{names[0]} on a machine with internet and copy it there "
         f"(or set TORCH_HOME), or pass weights='file:PATH', or weights='random'"
     )
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def check_name_hash(path: Path) -> None:

@@ -19,7 +19,6 @@ the same (seed, context, size) gives identical bytes.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from collections.abc import Callable, Iterator, Sequence
@@ -30,6 +29,7 @@ import cv2
 import numpy as np
 
 from ...atomic import atomic_write
+from ...hashing import sha256_hex
 from ...runtime import single_threaded_worker
 from .. import layout
 from ..grid import N_VIEWS, view_coords
@@ -51,14 +51,6 @@ from .world import (
 
 FORMAT = "uevavd-synthetic"
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    atomic_write(path, data)
-
-
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
 
 
 def _png(image: np.ndarray, path: Path) -> bytes:
@@ -118,7 +110,7 @@ def scene_complete(folder: Path, *, size: int, seed: int) -> bool:
         return False
     for rel, digest in meta["files"].items():
         try:
-            if _sha256((folder / rel).read_bytes()) != digest:
+            if sha256_hex((folder / rel).read_bytes()) != digest:
                 return False
         except OSError:
             return False
@@ -163,7 +155,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
                 (f"{layout.SEG_DIR}/{stem}{layout.IMAGE_EXT}", _png(shift[view.seg].astype(np.uint16), folder / stem)),
             ):
                 (folder / rel).write_bytes(data)  # in place: scene.json below is the commit record
-                files[rel] = _sha256(data)
+                files[rel] = sha256_hex(data)
             visible[stem] = round(float(view.visible), 6)
             order.append(((TARGETS.index(scene.target), int(v)), stem))
     visible = {stem: visible[stem] for _, stem in sorted(order)}  # targets' views in grid order
@@ -171,7 +163,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
     data = (json.dumps(cats, indent=1) + "\n").encode()
     rel = f"{layout.SEG_DIR}/{layout.CATEGORIES}"
     (folder / rel).write_bytes(data)
-    files[rel] = _sha256(data)
+    files[rel] = sha256_hex(data)
     unocc = name in (UNOCCLUDED_SCENE, CLASSIFIER_SCENE)
     meta = {
         "format": FORMAT,
@@ -194,7 +186,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
         "visible": visible,
         "files": files,
     }
-    _atomic_write(folder / layout.SCENE_META, (json.dumps(meta, indent=1) + "\n").encode())
+    atomic_write(folder / layout.SCENE_META, (json.dumps(meta, indent=1) + "\n").encode())
     return meta
 
 
@@ -277,14 +269,14 @@ def _write_card_and_manifest(root: Path, names, contexts, size, seed, include_un
         "box_format": "x1 y1 x2 y2, XYXY crop pixels, x2/y2 exclusive; 0 0 0 0 = fully occluded",
     }
     card_bytes = (json.dumps(card, indent=1) + "\n").encode()
-    _atomic_write(root / layout.DATASET_CARD, card_bytes)
-    files: dict[str, dict] = {layout.DATASET_CARD: {"sha256": _sha256(card_bytes), "size": len(card_bytes)}}
+    atomic_write(root / layout.DATASET_CARD, card_bytes)
+    files: dict[str, dict] = {layout.DATASET_CARD: {"sha256": sha256_hex(card_bytes), "size": len(card_bytes)}}
     for n in names:
         folder = root / n
         meta_bytes = (folder / layout.SCENE_META).read_bytes()
         meta = json.loads(meta_bytes)
         for rel, digest in meta["files"].items():
             files[f"{n}/{rel}"] = {"sha256": digest, "size": (folder / rel).stat().st_size}
-        files[f"{n}/{layout.SCENE_META}"] = {"sha256": _sha256(meta_bytes), "size": len(meta_bytes)}
+        files[f"{n}/{layout.SCENE_META}"] = {"sha256": sha256_hex(meta_bytes), "size": len(meta_bytes)}
     manifest = {"format": FORMAT, "version": VERSION, "files": dict(sorted(files.items()))}
-    _atomic_write(root / layout.MANIFEST, (json.dumps(manifest, indent=0) + "\n").encode())
+    atomic_write(root / layout.MANIFEST, (json.dumps(manifest, indent=0) + "\n").encode())

@@ -19,7 +19,6 @@ under the key ``"uevavd"``: ``model_type``, ``config`` (small models), ``kind`` 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 from collections.abc import Mapping
@@ -32,6 +31,7 @@ import torch
 from segment_anything.modeling import ImageEncoderViT, MaskDecoder, PromptEncoder, Sam, TwoWayTransformer
 
 from ...atomic import atomic_save
+from ...hashing import file_sha256
 from ...paths import cache_dir
 
 MODEL_TYPES = ("vit_b", "vit_l", "vit_h", "vit_t", "small")
@@ -181,14 +181,6 @@ def build_mobile_sam() -> torch.nn.Module:
 
 
 # -- reading checkpoints --------------------------------------------------------------------
-def file_sha256(path: str | os.PathLike[str], *, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
-
-
 def infer_model_type(state: dict[str, torch.Tensor]) -> str:
     """Model type from state-dict shapes: the encoder's width and block count tell
     vit_b / vit_l / vit_h apart; TinyViT keys mean vit_t."""

@@ -21,8 +21,9 @@ import torch
 from tqdm import tqdm
 
 from ....atomic import atomic_write
+from ....hashing import file_sha256
 from ....paths import cache_dir
-from ...sam.model import LoadedSam, file_sha256, load_sam, save_decoder
+from ...sam.model import LoadedSam, load_sam, save_decoder
 from ...sam.segmenter import SamSegmenter
 from .data import GTViews, view_selection
 from .evaluate import evaluate

@@ -18,7 +18,9 @@ import numpy as np
 import torch
 from segment_anything import SamPredictor
 
-from ...sam.model import LoadedSam, SmallConfig, build_model, default_small_path, file_sha256, save_full
+from ....atomic import atomic_write
+from ....hashing import file_sha256
+from ...sam.model import LoadedSam, SmallConfig, build_model, default_small_path, save_full
 from ...sam.segmenter import SamSegmenter, images_to_input
 from .data import GTViews, view_selection
 from .evaluate import evaluate
@@ -26,9 +28,7 @@ from .loop import TrainArgs, loss_summary, train_loop
 
 
 def write_json(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    atomic_write(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
 def train_small(
