@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..data.grid import N_VIEWS, STOP, transitions
+from ..data.grid import N_TYPES, N_VIEWS, STEP_M, STOP, transitions
 from ..table import ObservationTable
 from .aod_env import load_table, select_scenes
 from .config import EnvConfig, make_config
@@ -99,7 +99,7 @@ class EnvTensors:
         return {
             "features": self._features_flat.index_select(0, flat).float(),
             "box": self._boxes_flat.index_select(0, flat),
-            "mask": self._mask_flat.index_select(0, view).view(-1, 7, a),
+            "mask": self._mask_flat.index_select(0, view).view(-1, N_TYPES, a),
             "t": t,
             "scene": self.scenes.index_select(0, local_scene),
             "view": view,
@@ -243,7 +243,7 @@ class BatchedAODEnv:
             "final_recognized": out["recognized"],
             "final_correct": out["correct"],
             "final_return": self._return.clone(),
-            "final_distance_m": self._steps.double() * 10.0,
+            "final_distance_m": self._steps.double() * STEP_M,
             "final_steps": self._steps.clone(),
             "final_decisions": self._t.clone(),
             "final_stopped": out["stopped"],

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_write
-from ..data.grid import N_VIEWS
+from ..data.grid import N_VIEWS, STEP_M
 from ..table import ObservationTable
 from .aod_env import load_table
 from .batched import EnvTensors
@@ -200,7 +200,7 @@ def evaluate_policy(
         ret=np_(ret),
         recognized=np_(reco),
         correct=np_(acc),
-        metres=np_(steps).astype(np.float64) * 10.0,
+        metres=np_(steps).astype(np.float64) * STEP_M,
         steps=np_(steps),
         decisions=np_(t),
         stopped=np_(stopped),

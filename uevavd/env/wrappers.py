@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from ..data.grid import unflat_action
+from ..data.grid import N_TYPES, unflat_action
 from .vector import action_masks
 
 
@@ -26,13 +26,13 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
         gym.utils.RecordConstructorArgs.__init__(self)
         gym.Wrapper.__init__(self, env)
         nvec = np.asarray(env.action_space.nvec)
-        if nvec.shape != (2,) or int(nvec[0]) != 7:
+        if nvec.shape != (2,) or int(nvec[0]) != N_TYPES:
             raise ValueError(f"DiscreteActions wraps a MultiDiscrete([7, A]) env, got {env.action_space}")
         self._a = int(nvec[1])
-        self.action_space = spaces.Discrete(7 * self._a)
+        self.action_space = spaces.Discrete(N_TYPES * self._a)
         inner = env.observation_space
         self.observation_space = spaces.Dict(
-            {**inner.spaces, "action_mask": spaces.Box(0, 1, (7 * self._a,), np.int8)}
+            {**inner.spaces, "action_mask": spaces.Box(0, 1, (N_TYPES * self._a,), np.int8)}
         )
 
     def _flat_obs(self, obs: dict[str, Any]) -> dict[str, Any]:
@@ -49,9 +49,9 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
 
     def step(self, action: Any):
         if not self.action_space.contains(action) and not (
-            np.ndim(action) == 0 and float(action) == int(action) and 0 <= int(action) < 7 * self._a
+            np.ndim(action) == 0 and float(action) == int(action) and 0 <= int(action) < N_TYPES * self._a
         ):
-            raise ValueError(f"action {action!r} is outside Discrete({7 * self._a})")
+            raise ValueError(f"action {action!r} is outside Discrete({N_TYPES * self._a})")
         a_type, a_range = unflat_action(int(action), self._a)
         obs, reward, terminated, truncated, info = self.env.step(np.array([a_type, a_range], np.int64))
         return self._flat_obs(obs), reward, terminated, truncated, info

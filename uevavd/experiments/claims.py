@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
+from ..data.grid import STEP_M
 from .report_data import (
     SPLITS,
     baselines,
@@ -251,9 +252,9 @@ def diagnose(results: pd.DataFrame, claims: list[Claim]) -> list[str]:
 def _sanity(final: pd.DataFrame) -> list[str]:
     """Checks that hold by construction (DESIGN.md section 2); a failure points to a bug."""
     out = []
-    bad = final[(final["path_m"] - 10.0 * final["path_steps"]).abs() > 1e-6 * (1 + final["path_m"].abs())]
+    bad = final[(final["path_m"] - STEP_M * final["path_steps"]).abs() > 1e-6 * (1 + final["path_m"].abs())]
     if len(bad):
-        out.append(f"Possible bug: path_m != 10 x path_steps in {len(bad)} final row(s) (e.g. "
+        out.append(f"Possible bug: path_m != {STEP_M:g} x path_steps in {len(bad)} final row(s) (e.g. "
                    f"{bad.iloc[0]['method']} seed {bad.iloc[0]['seed']} {bad.iloc[0]['split']}).")
     # With 5 classes the argmax probability is >= 0.2, so a correct argmax is recognised at thre <= 0.2
     # (up to a uniform tie): recognition should not fall below accuracy there.
