@@ -147,7 +147,7 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from ..env.aod_env import load_table
     from ..env.baselines import reference_policies
-    from ..env.config import EnvConfig
+    from ..env.config import make_config
     from ..env.evaluate import evaluate_policy
     from .acting import load_policy
     from .rundir import read_settings
@@ -171,7 +171,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     problem = split_problem(table, args.split, f"table {table_path}")
     if problem:
         return _error("evaluate", problem)
-    cfg = EnvConfig().replace(**settings["env"])
+    cfg = make_config(settings["env"])
     policies = {settings["method"]: load_policy(args.run_dir, device=args.device), **reference_policies(table, cfg)}
     results = {name: evaluate_policy(table, args.split, pol, cfg, device=args.device)
                for name, pol in policies.items()}
