@@ -49,12 +49,14 @@ def os_fault(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.errno in OS_FAULTS
 
 
-def error(command: str, exc: BaseException) -> int:
-    """Bad input as one line on stderr and exit status 2; ``UEVAVD_DEBUG=1`` re-raises."""
+def error(command: str, exc: BaseException | str) -> int:
+    """Bad input (an exception, or a problem already in words) as one line on stderr, exit
+    status 2; ``UEVAVD_DEBUG=1`` re-raises. Every command reports through this one helper."""
     if os.environ.get("UEVAVD_DEBUG"):
-        raise exc
-    print(f"uevavd {command}: error: {exc} ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)",
-          file=sys.stderr)
+        raise exc if isinstance(exc, BaseException) else ValueError(exc)
+    text = " ".join(str(exc).split())  # one line, whatever the message's own line breaks
+    hint = f" ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)" if isinstance(exc, BaseException) else ""
+    print(f"uevavd {command}: error: {text}{hint}", file=sys.stderr)
     return 2
 
 

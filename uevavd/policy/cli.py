@@ -4,24 +4,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
+from ..cli import error as _error
 from .rundir import RunDir
 
 #: What bad input raises (ConfigError, TableError, RunDirError, CheckpointError are ValueErrors).
 BAD_INPUT = (ValueError, FileNotFoundError, NotADirectoryError)
-
-
-def _error(command: str, exc: BaseException | str) -> int:
-    """Bad input as one line on stderr and exit 2; ``UEVAVD_DEBUG=1`` re-raises an exception."""
-    if os.environ.get("UEVAVD_DEBUG"):
-        raise exc if isinstance(exc, BaseException) else ValueError(exc)
-    text = " ".join(str(exc).split())
-    hint = f" ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)" if isinstance(exc, BaseException) else ""
-    print(f"uevavd {command}: error: {text}{hint}", file=sys.stderr)
-    return 2
 
 
 def split_problem(table: Any, split: str, where: str) -> str | None:
