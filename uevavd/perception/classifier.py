@@ -56,18 +56,23 @@ def data_hash(records) -> str:
     return h.hexdigest()[:16]
 
 
-def classifier_cache_path(data_digest: str, settings: Any) -> Path:
-    """Where a recognizer trained with ``settings`` (a ClassifierRecipe) on the ``train_605``
-    crops of digest ``data_digest`` is cached: ``<cache>/classifiers/<data>-<settings>.safetensors``,
-    so a regenerated world or other settings never reuse an old recognizer."""
-    key = json_digest(settings.__dict__, 12)
-    return classifiers_dir() / f"{data_digest}-{key}.safetensors"
+def classifier_cache_path(data_digest: str, settings: Any = None) -> Path:
+    """The one naming rule of recognizer files in the cache, for the ``train_605`` crops of
+    digest ``data_digest``: with ``settings`` (a ClassifierRecipe), where a recognizer of that
+    recipe is cached, ``<cache>/classifiers/<data>-<recipe>.safetensors`` (what ``uevavd
+    ablate`` and :func:`uevavd.api.train_recognizer` reuse, so a regenerated world or another
+    recipe never reuses an old recognizer); without, the dataset's default recognizer,
+    ``<cache>/classifiers/<data>.safetensors`` (what ``uevavd train-classifier`` writes when
+    given no ``--out``, and ``uevavd prepare`` reads when given no ``--classifier``)."""
+    if settings is None:
+        return classifiers_dir() / f"{data_digest}.safetensors"
+    return classifiers_dir() / f"{data_digest}-{json_digest(settings.__dict__, 12)}.safetensors"
 
 
 def default_classifier_path(data: str | os.PathLike[str]) -> Path:
     """Where ``uevavd train-classifier`` puts, and the pipeline looks for, the classifier of
     dataset ``data`` (a root folder): ``<cache>/classifiers/<data_hash>.safetensors``."""
-    return classifiers_dir() / f"{data_hash(train_records(read_dataset(data)))}.safetensors"
+    return classifier_cache_path(data_hash(train_records(read_dataset(data))))
 
 
 def write_classifier_file(path: str | os.PathLike[str], state_dict: Mapping[str, torch.Tensor],

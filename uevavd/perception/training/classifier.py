@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from ...data.reader import read_dataset
 from ...data.splits import TARGETS
-from ..classifier import classifiers_dir, data_hash, train_records, write_classifier_file
+from ..classifier import classifier_cache_path, data_hash, train_records, write_classifier_file
 from ..efficientnet import LITE0_FILE, LITE_MEAN, LITE_STD, check_size, imagenet_backbone, make_lite0
 from ..images import Decoder
 from ..nets import IMAGENET_MEAN, IMAGENET_STD, resolve_device
@@ -262,7 +262,7 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
     manifest = read_dataset(data)
     recs = train_records(manifest)
     digest = data_hash(recs)
-    out = Path(out) if out is not None else classifiers_dir() / f"{digest}.safetensors"
+    out = Path(out) if out is not None else classifier_cache_path(digest)
     if out.suffix != ".safetensors":
         raise ValueError(f"--out {out}: the classifier is written as safetensors; name it *.safetensors")
     used = set(sample_views(np.unique([r.view for r in recs]), settings).tolist())
