@@ -63,8 +63,8 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
     digest = data_hash(train_records(read_dataset(data)))
     out = {}
     for r in plan.recognizers:
-        settings = ClassifierRecipe(**{**plan.preset.get("classifier", {}), "seed": r})
-        path = classifier_cache_path(digest, settings)
+        recipe = ClassifierRecipe(**{**plan.preset.get("classifier", {}), "seed": r})
+        path = classifier_cache_path(digest, recipe)
         shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
         if path.is_file():
             log(f"  reusing classifier {path}")
@@ -73,7 +73,7 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
             log(f"  recognizer {r}: the model zoo's ({shipped}, sha256 checked), trained by this preset's recipe on "
                 "these train_605 images (--no-zoo trains it here)")
         else:
-            train_classifier(data, path, settings=settings, workers=plan.workers, progress=True, device=plan.device)
+            train_classifier(data, path, settings=recipe, workers=plan.workers, progress=True, device=plan.device)
         out[r] = path
     return out
 

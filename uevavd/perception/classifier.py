@@ -56,17 +56,17 @@ def data_hash(records) -> str:
     return h.hexdigest()[:16]
 
 
-def classifier_cache_path(data_digest: str, settings: Any = None) -> Path:
+def classifier_cache_path(data_digest: str, recipe: Any = None) -> Path:
     """The one naming rule of recognizer files in the cache, for the ``train_605`` crops of
-    digest ``data_digest``: with ``settings`` (a ClassifierRecipe), where a recognizer of that
+    digest ``data_digest``: with ``recipe`` (a ClassifierRecipe), where a recognizer of that
     recipe is cached, ``<cache>/classifiers/<data>-<recipe>.safetensors`` (what ``uevavd
-    ablate`` and :func:`uevavd.api.train_recognizer` reuse, so a regenerated world or another
+    ablate`` and :func:`uevavd.api.train_classifier` reuse, so a regenerated world or another
     recipe never reuses an old recognizer); without, the dataset's default recognizer,
     ``<cache>/classifiers/<data>.safetensors`` (what ``uevavd train-classifier`` writes when
     given no ``--out``, and ``uevavd prepare`` reads when given no ``--classifier``)."""
-    if settings is None:
+    if recipe is None:
         return classifiers_dir() / f"{data_digest}.safetensors"
-    return classifiers_dir() / f"{data_digest}-{json_digest(settings.__dict__, 12)}.safetensors"
+    return classifiers_dir() / f"{data_digest}-{json_digest(recipe.__dict__, 12)}.safetensors"
 
 
 def default_classifier_path(data: str | os.PathLike[str]) -> Path:
