@@ -76,13 +76,13 @@ def add_finetune(p: argparse.ArgumentParser):
         import torch
 
         from .data import split_heldout
-        from .finetune import finetune
+        from .finetune import finetune_model
 
         torch.set_num_threads(a.threads)
         train, held = split_heldout(a.data, per_context=a.per_context, heldout_per_context=a.heldout_per_context,
                                     seed=a.seed)
-        report = finetune(a.checkpoint, train, held, out=a.out, model_type=a.model_type, device=a.device,
-                          args=_args(a), fresh=a.fresh)
+        report, _ = finetune_model(a.checkpoint, train, held, out=a.out, model_type=a.model_type,
+                                   device=a.device, args=_args(a), fresh=a.fresh)
         _print_report(report, a.out)
         return 0
 

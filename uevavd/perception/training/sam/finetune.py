@@ -59,25 +59,6 @@ def cached_embeddings(seg: SamSegmenter, views: GTViews, base_sha: str, *, cache
     return emb
 
 
-def finetune(
-    checkpoint: str | os.PathLike[str],
-    train: GTViews,
-    heldout: GTViews | None,
-    *,
-    out: str | os.PathLike[str],
-    model_type: str = "auto",
-    device: str = "auto",
-    args: TrainArgs = TrainArgs(lr=1e-4, steps=500, points_per_view=0),
-    fresh: bool = False,
-    embedding_cache: Path | None = None,
-) -> dict:
-    """Fine-tune the mask decoder of ``checkpoint``; write ``out`` (decoder weights +
-    metadata naming the base and the training views) and ``<out>.report.json`` (held-out
-    mIoU before and after). Returns the report."""
-    return finetune_model(checkpoint, train, heldout, out=out, model_type=model_type, device=device, args=args,
-                          fresh=fresh, embedding_cache=embedding_cache)[0]
-
-
 def finetune_model(
     checkpoint: str | os.PathLike[str],
     train: GTViews,
@@ -90,7 +71,9 @@ def finetune_model(
     fresh: bool = False,
     embedding_cache: Path | None = None,
 ) -> tuple[dict, SamSegmenter]:
-    """Like :func:`finetune`, returning ``(report, segmenter over the fine-tuned model in
+    """Fine-tune the mask decoder of ``checkpoint``; write ``out`` (decoder weights +
+    metadata naming the base and the training views) and ``<out>.report.json`` (held-out
+    mIoU before and after). Returns ``(report, segmenter over the fine-tuned model in
     memory)``; the segmenter has the default prompting settings."""
     out_path = Path(out).expanduser()
     out_path.parent.mkdir(parents=True, exist_ok=True)
