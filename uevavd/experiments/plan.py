@@ -166,7 +166,6 @@ def make_plan(
     sb3: str | None = None,
     use_zoo: bool = True,
 ) -> Plan:
-
     try:
         cfg = load_preset(preset)
     except (ValueError, OSError) as exc:  # unknown name (lists the known ones), missing or bad TOML

@@ -92,7 +92,6 @@ def stage_tables(plan: Plan, data: Path, classifiers: dict[int, Path], log) -> d
 
 
 def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
-
     tables: dict[str, Path] = {}
     by_perception: dict[str, Path] = {}
     for m in plan.methods:

@@ -138,7 +138,6 @@ class GreedyPolicy:
 
     @torch.no_grad()
     def act(self, obs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-
         boxes = torch.as_tensor(obs["box"], device=self.device, dtype=torch.float32)
         full_mask = torch.as_tensor(obs["mask"], device=self.device).bool()
         n = boxes.shape[0]
