@@ -96,11 +96,22 @@ def test_a_full_disk_while_checkpointing_is_one_line(table, tmp_path, capsys, mo
     monkeypatch.setattr(torch, "save", full)
     path = table.save(tmp_path / "table")
     out = tmp_path / "run"
+    writers = _tensorboard_writer_threads()
     rc = main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(out),
                "--no-progress", "--device", "cpu", *_sets()])
     assert rc == 2
     _one_line(capsys, "[Errno 28]", "disk full", "checkpoint.pt")
     assert not list(out.glob(".checkpoint.pt.*"))
+    # the failed run closed its TensorBoard writer: no thread is left writing into the run folder
+    assert _tensorboard_writer_threads() <= writers
+
+
+def _tensorboard_writer_threads() -> set:
+    import threading
+
+    from tensorboard.summary.writer.event_file_writer import _AsyncWriterThread
+
+    return {t for t in threading.enumerate() if isinstance(t, _AsyncWriterThread) and t.is_alive()}
 
 
 def test_range_checks_live_in_the_config(table):

@@ -226,83 +226,84 @@ def train(
     loss_val = float("nan")
 
     # -- the loop -------------------------------------------------------------------------------
-    while loop["episodes"] < cfg.episodes:
-        # act: epsilon-greedy over allowed actions; the GRU memory restarts at t = 0
-        t = obs["t"]
-        with torch.no_grad():
-            hidden = hidden * (t != 0)[:, None].to(hidden.dtype)
-            q, hidden = net.step(obs["features"], obs["box"], hidden)
-            a_type, a_range = net.head.greedy(q, obs["mask"])
-            eps = cfg.epsilon(loop["episodes"])
-            a_type, a_range = epsilon_greedy(a_type, a_range, obs["mask"], eps, act_gen)
-        ep_views[ar, t] = obs["view"]
-        ep_type[ar, t] = a_type
-        ep_range[ar, t] = a_range
-        scene = obs["scene"]
-        obs, reward, done, info = env.step(a_type, a_range)
-        ep_reward[ar, t] = reward
-        loop["env_steps"] += n
+    try:  # the writer's thread and the bar end with the loop, also when a checkpoint fails
+        while loop["episodes"] < cfg.episodes:
+            # act: epsilon-greedy over allowed actions; the GRU memory restarts at t = 0
+            t = obs["t"]
+            with torch.no_grad():
+                hidden = hidden * (t != 0)[:, None].to(hidden.dtype)
+                q, hidden = net.step(obs["features"], obs["box"], hidden)
+                a_type, a_range = net.head.greedy(q, obs["mask"])
+                eps = cfg.epsilon(loop["episodes"])
+                a_type, a_range = epsilon_greedy(a_type, a_range, obs["mask"], eps, act_gen)
+            ep_views[ar, t] = obs["view"]
+            ep_type[ar, t] = a_type
+            ep_range[ar, t] = a_range
+            scene = obs["scene"]
+            obs, reward, done, info = env.step(a_type, a_range)
+            ep_reward[ar, t] = reward
+            loop["env_steps"] += n
 
-        # store finished episodes whole (at most T_max decisions, T_max + 1 views)
-        if bool(done.any()):
-            idx = done.nonzero()[:, 0]
-            ep_views[idx, t[idx] + 1] = info["final_view"][idx]
-            replay.add(scene[idx], ep_views[idx], ep_type[idx], ep_range[idx], ep_reward[idx], t[idx] + 1)
-            ep_reward[idx] = 0.0
-            k = int(idx.numel())
-            loop["episodes"] += k
-            recent.extend(info["final_return"][idx].tolist())
-            bar.update(k)
-            if progress and (loop["env_steps"] // n) % 50 == 0:
-                bar.set_postfix(ret=f"{np.mean(recent):.3f}", eps=f"{cfg.epsilon(loop['episodes']):.2f}",
-                                loss=f"{loss_val:.4f}", refresh=False)
+            # store finished episodes whole (at most T_max decisions, T_max + 1 views)
+            if bool(done.any()):
+                idx = done.nonzero()[:, 0]
+                ep_views[idx, t[idx] + 1] = info["final_view"][idx]
+                replay.add(scene[idx], ep_views[idx], ep_type[idx], ep_range[idx], ep_reward[idx], t[idx] + 1)
+                ep_reward[idx] = 0.0
+                k = int(idx.numel())
+                loop["episodes"] += k
+                recent.extend(info["final_return"][idx].tolist())
+                bar.update(k)
+                if progress and (loop["env_steps"] // n) % 50 == 0:
+                    bar.set_postfix(ret=f"{np.mean(recent):.3f}", eps=f"{cfg.epsilon(loop['episodes']):.2f}",
+                                    loss=f"{loss_val:.4f}", refresh=False)
 
-        # learn
-        if len(replay) >= cfg.learning_starts:
-            loop["credit"] += cfg.updates_per_step
-            while loop["credit"] >= 1.0:
-                loop["credit"] -= 1.0
-                batch = replay.sample(cfg.batch_size, cfg.beta(loop["episodes"]))
-                loss_val, td = learner.update(batch, lookup)
-                replay.update_priorities(batch.index, td)
-                if learner.updates % cfg.target_update == 0:
-                    learner.sync_target()
-                if learner.updates % TB_EVERY_UPDATES == 0:
-                    _log_update(writer, learner, loss_val, cfg.epsilon(loop["episodes"]),
-                                loop["episodes"] / max(time.perf_counter() - t0, 1e-9))
+            # learn
+            if len(replay) >= cfg.learning_starts:
+                loop["credit"] += cfg.updates_per_step
+                while loop["credit"] >= 1.0:
+                    loop["credit"] -= 1.0
+                    batch = replay.sample(cfg.batch_size, cfg.beta(loop["episodes"]))
+                    loss_val, td = learner.update(batch, lookup)
+                    replay.update_priorities(batch.index, td)
+                    if learner.updates % cfg.target_update == 0:
+                        learner.sync_target()
+                    if learner.updates % TB_EVERY_UPDATES == 0:
+                        _log_update(writer, learner, loss_val, cfg.epsilon(loop["episodes"]),
+                                    loop["episodes"] / max(time.perf_counter() - t0, 1e-9))
 
-        # epoch end: evaluate, log, checkpoint
-        if loop["episodes"] >= (loop["epoch"] + 1) * cfg.epoch_episodes or loop["episodes"] >= cfg.episodes:
-            loop["epoch"] += 1
-            epochs_this_call += 1
-            loop["wall"] = time.perf_counter() - t0
-            paused = time.perf_counter()  # evaluation, logging and checkpoints are not training time
-            ret = float(np.mean(recent)) if recent else float("nan")
-            writer.add_scalar("train/recent_return", ret, loop["episodes"])
-            writer.add_scalar("train/epsilon", eps, loop["episodes"])
-            writer.add_scalar("train/loss", loss_val, loop["episodes"])
-            writer.add_scalar("train/episodes_per_s", loop["episodes"] / max(loop["wall"], 1e-9), loop["episodes"])
-            if cfg.eval_splits:
-                for split, summary in evaluator(net).items():
-                    row = {("eval_episodes" if k == "episodes" else k): v for k, v in summary.items()}
-                    evals.append({"epoch": loop["epoch"], "episodes": loop["episodes"], "wall_s": loop["wall"],
-                                  "split": split, **row})
-                    for key, value in summary.items():
-                        if isinstance(value, int | float):
-                            writer.add_scalar(f"eval_{split}/{key}", value, loop["episodes"])
-                _write_json(RunDir(out).evals, "".join(json.dumps(r, default=str) + "\n" for r in evals))
-            # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
-            stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
-            if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
-                checkpoint()
-            writer.flush()
-            bar.set_postfix(ret=f"{ret:.3f}", eps=f"{eps:.2f}", loss=f"{loss_val:.4f}")
-            t0 += time.perf_counter() - paused
-            if stop:
-                break
-
-    bar.close()
-    writer.close()
+            # epoch end: evaluate, log, checkpoint
+            if loop["episodes"] >= (loop["epoch"] + 1) * cfg.epoch_episodes or loop["episodes"] >= cfg.episodes:
+                loop["epoch"] += 1
+                epochs_this_call += 1
+                loop["wall"] = time.perf_counter() - t0
+                paused = time.perf_counter()  # evaluation, logging and checkpoints are not training time
+                ret = float(np.mean(recent)) if recent else float("nan")
+                writer.add_scalar("train/recent_return", ret, loop["episodes"])
+                writer.add_scalar("train/epsilon", eps, loop["episodes"])
+                writer.add_scalar("train/loss", loss_val, loop["episodes"])
+                writer.add_scalar("train/episodes_per_s", loop["episodes"] / max(loop["wall"], 1e-9), loop["episodes"])
+                if cfg.eval_splits:
+                    for split, summary in evaluator(net).items():
+                        row = {("eval_episodes" if k == "episodes" else k): v for k, v in summary.items()}
+                        evals.append({"epoch": loop["epoch"], "episodes": loop["episodes"], "wall_s": loop["wall"],
+                                      "split": split, **row})
+                        for key, value in summary.items():
+                            if isinstance(value, int | float):
+                                writer.add_scalar(f"eval_{split}/{key}", value, loop["episodes"])
+                    _write_json(RunDir(out).evals, "".join(json.dumps(r, default=str) + "\n" for r in evals))
+                # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
+                stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
+                if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
+                    checkpoint()
+                writer.flush()
+                bar.set_postfix(ret=f"{ret:.3f}", eps=f"{eps:.2f}", loss=f"{loss_val:.4f}")
+                t0 += time.perf_counter() - paused
+                if stop:
+                    break
+    finally:
+        bar.close()
+        writer.close()
     if loop["episodes"] >= cfg.episodes:
         # the shareable policy (the network alone), then the mark that the run is finished
         save_policy_file(RunDir(out).policy, net.state_dict(), RunDir(out).method.read_text(encoding="utf-8"),
