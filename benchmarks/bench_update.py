@@ -1,6 +1,6 @@
 """Cost of one DQN update at the paper's sizes, against the update path before 2026-11-23.
 
-    python benchmarks/bench_update.py [--threads 2] [--methods ibe_map,map] [--repeats 4]
+    python benchmarks/bench_update.py [--threads 2] [--methods ibe_map,map] [--repeats 7]
 
 One double-DQN update (online forward and backward, target forward, Adam) over a batch of
 64 replayed episodes on a stand-in table with the paper's sizes (2048-d features; g_t 544,
@@ -16,12 +16,19 @@ them alike (median of ``--repeats`` rounds of 30 updates each):
 
 All three compute the same loss (tests/policy/test_learner.py, tests/state/test_packed_gru.py).
 
-Beside each time it prints the floor: the matrix products of one update of that path (their
-shapes and layouts recorded by a torch dispatch mode, forward and backward) run bare, back
-to back, in the same process, and the share of the floor the update reaches (floor / time;
-the rest is element-wise work, gathers, Adam and Python), and the share of the rate of one
-large square product (2048^3) the update reaches (its FLOPs at that rate / its time): the
-update's products are small, so the same-shape floor is the one it can reach.
+Beside each time it prints the floor: the matrix products of the timed updates (their
+shapes and layouts recorded by a torch dispatch mode, forward and backward, on a second
+pass over the same batches with the sampler rewound) run bare, back to back, on fresh
+tensors of the same shapes and strides, right after the updates they come from, so a
+change in the machine's speed (this VM's moves by a fifth from minute to minute) hits both
+alike. The share of the floor an update reaches is floor / update within a round; the
+median over rounds is printed with its range. (Before 2026-11-24 the floor came from one
+batch's products, timed after all rounds, and its best round was set against the updates'
+median: a batch's size and the machine's noise both moved the share, by up to a tenth.)
+Last, the share of the rate of one large square product (2048^3) the update reaches (its
+FLOPs at that rate / its time): the update's products are small, so the same-shape floor
+is the one it can reach. The rest of an update is element-wise work, gathers, Adam and
+Python.
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--methods", default="ibe_map,map")
-    ap.add_argument("--repeats", type=int, default=4)
+    ap.add_argument("--repeats", type=int, default=7, help="rounds (each: the updates, then their floor)")
     ap.add_argument("--updates", type=int, default=30, help="updates per timed round")
     ap.add_argument("--batch", type=int, default=64)
     args = ap.parse_args()
@@ -66,7 +73,7 @@ def main() -> None:
     }
     peak = _square_gemm_rate()
     print(f"torch threads {torch.get_num_threads()}; batch {args.batch} episodes; median of {args.repeats} "
-          f"rounds x {args.updates} updates; square 2048 GEMM {peak:.0f} GFLOP/s")
+          f"rounds x {args.updates} updates, each followed by its floor; square 2048 GEMM {peak:.0f} GFLOP/s")
     try:
         for method in args.methods.split(","):
             torch.manual_seed(0)
@@ -75,25 +82,35 @@ def main() -> None:
             learner = learning.Learner(net, lr=1e-4, gamma=cfg.gamma, grad_clip=10.0)
             replay = _replay(tensors, cfg.t_max)
             times: dict[str, list[float]] = {name: [] for name in paths}
+            shares: dict[str, list[float]] = {name: [] for name in paths}
+            floor_ms: dict[str, list[float]] = {name: [] for name in paths}
+            gflops: dict[str, list[float]] = {name: [] for name in paths}
             for _ in range(args.repeats):
                 for name, (needed, supports) in paths.items():
                     learning.needed_observations, packed.supports_packed = needed, supports
                     for _ in range(3):  # warm-up
                         learner.update(replay.sample(args.batch, 0.4), lookup)
+                    rng = replay.generator.get_state()
                     t0 = time.perf_counter()
                     for _ in range(args.updates):
                         learner.update(replay.sample(args.batch, 0.4), lookup)
-                    times[name].append(1000 * (time.perf_counter() - t0) / args.updates)
+                    ms = 1000 * (time.perf_counter() - t0) / args.updates
+                    # the same batches again (the sampler rewound), their products recorded
+                    replay.generator.set_state(rng)
+                    gemms = [_record_gemms(lambda lr=learner, rp=replay: lr.update(rp.sample(args.batch, 0.4), lookup))
+                             for _ in range(args.updates)]
+                    bare = _time_calls(_gemm_calls(gemms), 1) / args.updates
+                    times[name].append(ms)
+                    floor_ms[name].append(bare)
+                    shares[name].append(bare / ms)
+                    gflops[name].append(sum(_gflop(g) for g in gemms) / args.updates)
             base = statistics.median(times[next(iter(paths))])
             for name, ts in times.items():
-                learning.needed_observations, packed.supports_packed = paths[name]
-                gemms = _record_gemms(lambda lr=learner, rp=replay: lr.update(rp.sample(args.batch, 0.4), lookup))
-                floor_ms, gflop = _floor(gemms, args.repeats)
-                ms = statistics.median(ts)
+                gflop, ms, share = statistics.median(gflops[name]), statistics.median(ts), shares[name]
                 print(f"{method:>9}  {name:36s} {ms:7.1f} ms per update   x{base / ms:4.2f}   "
-                      f"{gflop:5.2f} GFLOP in {len(gemms)} GEMMs, floor {floor_ms:5.1f} ms "
-                      f"({1000 * gflop / floor_ms:4.0f} GFLOP/s bare), "
-                      f"at {100 * floor_ms / ms:3.0f} % of the floor, "
+                      f"{gflop:5.2f} GFLOP, floor {statistics.median(floor_ms[name]):5.1f} ms, "
+                      f"at {100 * statistics.median(share):3.0f} % of the floor "
+                      f"(rounds {100 * min(share):.0f}-{100 * max(share):.0f} %), "
                       f"{100 * 1000 * gflop / peak / ms:3.0f} % of the square-GEMM rate")
     finally:
         learning.needed_observations, packed.supports_packed = current_needed, current_supports
@@ -133,29 +150,41 @@ def _timed(fn) -> float:
     return time.perf_counter() - t0
 
 
-def _floor(gemms, repeats: int) -> tuple[float, float]:
-    """(ms, GFLOP): the recorded products on fresh tensors of the same shapes and strides,
-    best of ``repeats`` rounds of 30."""
-    def operand(shape, stride):
-        size = 1 + sum((n - 1) * s for n, s in zip(shape, stride, strict=True))
-        return torch.randn(size).as_strided(shape, stride)
+def _gemm_calls(updates: list[list]) -> list:
+    """The products recorded in each update, as calls on fresh tensors of the same shapes and
+    strides. The k-th product of every update reads the same weights, so its operands are
+    shared between updates where their shapes agree (as the update reuses its parameters);
+    different products never share (the online and the target network's weights are apart)."""
+    made: dict[tuple, torch.Tensor] = {}
+
+    def operand(key, shape, stride):
+        if key not in made:
+            size = 1 + sum((n - 1) * s for n, s in zip(shape, stride, strict=True))
+            made[key] = torch.randn(size).as_strided(shape, stride)
+        return made[key]
 
     ops = {"mm": torch.mm, "addmm": torch.addmm, "bmm": torch.bmm, "baddbmm": torch.baddbmm}
-    calls = [(ops[op], [operand(sh, st) for sh, st in zip(shapes, strides, strict=True)]) for op, shapes, strides in gemms]
+    return [(ops[op], [operand((k, j, sh, st), sh, st) for j, (sh, st) in enumerate(zip(shapes, strides, strict=True))])
+            for gemms in updates for k, (op, shapes, strides) in enumerate(gemms)]
+
+
+def _gflop(gemms) -> float:
     flop = 0
     for op, shapes, _ in gemms:
         a, b = shapes[-2], shapes[-1]
         flop += 2 * (a[0] if op.startswith("b") else 1) * a[-2] * a[-1] * b[-1]
-    best = float("inf")
-    for _ in range(repeats):
-        for f, xs in calls:  # warm-up
+    return flop / 1e9
+
+
+def _time_calls(calls, n: int) -> float:
+    """ms per pass over ``calls`` (one warm-up pass, then ``n`` timed)."""
+    for f, xs in calls:
+        f(*xs)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        for f, xs in calls:
             f(*xs)
-        t0 = time.perf_counter()
-        for _ in range(30):
-            for f, xs in calls:
-                f(*xs)
-        best = min(best, (time.perf_counter() - t0) / 30)
-    return 1000 * best, flop / 1e9
+    return 1000 * (time.perf_counter() - t0) / n
 
 
 def _replay(tensors, t_max: int, n: int = 5000):
