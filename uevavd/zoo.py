@@ -172,7 +172,6 @@ class Zoo:
 
 def recognizer_settings(preset: Mapping[str, Any], seed: int) -> dict[str, Any]:
     """The recognizer's training settings under a preset (``ClassifierRecipe`` as a dict)."""
-
     return json.loads(json.dumps(ClassifierRecipe(**{**preset.get("classifier", {}), "seed": seed}).__dict__))
 
 

@@ -125,7 +125,6 @@ class EvalResult:
         """Summary and breakdowns as JSON; written atomically to ``path`` when given."""
         text = json.dumps(self.to_dict(), indent=1)
         if path is not None:
-
             atomic_write(path, text)
         return text
 

@@ -369,7 +369,6 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     audit = _read_json(ablation_dir / "recognizer_audit.json", notes) if (
         ablation_dir / "recognizer_audit.json").is_file() else None
     if audit:
-
         lines += audit_markdown(audit)
     lines += _results_section(final, setting)
     lines += _gengap_section(final, setting)

@@ -154,7 +154,6 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
         atomic_write_text(plan.out / "trajectories.json", json.dumps(traj, indent=1))
     write_meta(plan, data, "reporting")
     with _Stage(plan, "report", log):
-
         write_meta(plan, data, "done")
         report = write_report(plan.out)
         log(f"  report: {report}")

@@ -41,7 +41,6 @@ class _Stage:
 def stage_world(plan: Plan, log) -> Path:
     """The dataset root: ``--data`` as given, else the preset's synthetic world (cached)."""
     if plan.data is not None:
-
         read_dataset(plan.data)  # fails early, naming the files it cannot parse
         return plan.data
 

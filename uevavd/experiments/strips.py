@@ -84,7 +84,6 @@ class CropLookup:
         else:
             self.source = f"`{self.root}` by canonical file name"
             try:
-
                 manifest = read_dataset(self.root, check=False)
                 for rec in manifest:
                     if rec.scene in scenes or str(rec.context) in scenes:

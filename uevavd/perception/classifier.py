@@ -122,7 +122,6 @@ class ResNetClassifier:
         self.meta = dict(meta or {})
         lite = arch == "efficientnet_lite0"
         if lite:  # torch.fx cannot fold its batch norms: fold them here
-
             model = fold_lite0(model)
         self.runner = BatchRunner(model, device=device, batch_size=batch_size, mean=tuple(mean), std=tuple(std),
                                   post=lambda y: torch.softmax(y, dim=1), fold=not lite)
@@ -130,7 +129,6 @@ class ResNetClassifier:
     def predict_proba(self, images: np.ndarray) -> np.ndarray:
         images = check_images(images, f"{self.arch} classifier")
         if self.arch == "efficientnet_lite0":
-
             check_size(images, f"{self.arch} classifier")
         if len(images) == 0:
             return np.zeros((0, len(self.classes)), np.float32)
@@ -169,7 +167,6 @@ def make_recognizer(arch: str, *, num_classes: int, seed: int = 0, empty: bool =
     """An untrained recognizer network of a supported architecture (a torchvision ResNet or
     EfficientNet-Lite0), ``num_classes`` outputs."""
     if arch == "efficientnet_lite0":
-
         return make_lite0(num_classes=num_classes, seed=seed)
     return make_resnet(arch, num_classes=num_classes, seed=seed, empty=empty)
 

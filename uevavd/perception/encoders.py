@@ -64,7 +64,6 @@ def load_backbone(arch: str, weights: str, *, seed: int = 0, classifier: str | N
         model = make_resnet(arch, seed=seed)
         return model, f"random:{seed}", state_dict_hash(model.state_dict())
     if kind == "classifier":
-
         path = classifier or (default_classifier_path(data) if data else None)
         if path is None:
             raise WeightsError(

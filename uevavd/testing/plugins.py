@@ -21,7 +21,6 @@ def check_registry_entry(entry: Entry) -> None:
     assert entry.kind in KINDS, f"{entry.name}: unknown kind {entry.kind!r}"
     target = entry.load()
     if entry.kind == "method":
-
         spec = load_method(target)
         assert spec.name, f"method {entry.name}: no name"
         return

@@ -96,7 +96,6 @@ def sample_views(views: np.ndarray, settings: ClassifierRecipe) -> np.ndarray:
 def input_norm(arch: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The (mean, std) an architecture's ImageNet weights expect, on [0, 1] RGB."""
     if arch == "efficientnet_lite0":
-
         return LITE_MEAN, LITE_STD
     return IMAGENET_MEAN, IMAGENET_STD
 
@@ -106,7 +105,6 @@ def initial_model(imagenet: str | None, n_classes: int, seed: int, *, arch: str 
     """A recognizer with a fresh ``n_classes`` head; backbone from ImageNet when asked and
     available (ResNet18: ``imagenet`` file or torch's cache; Lite0: its package)."""
     if arch == "efficientnet_lite0":
-
         if init == "random":
             return make_lite0(num_classes=n_classes, seed=seed), f"random:{seed}"
         return imagenet_backbone(num_classes=n_classes, seed=seed), f"imagenet:{LITE0_FILE}"
@@ -197,7 +195,6 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cl
     settings.check()
     images, labels, views = np.asarray(images), np.asarray(labels, np.int64), np.asarray(views, np.int64)
     if settings.arch == "efficientnet_lite0":
-
         check_size(images, "train-classifier")
     all_views = sample_views(np.unique(views), settings)
     val_views = all_views[split_views(len(all_views), settings.val_fraction, settings.seed)]
