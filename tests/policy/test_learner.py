@@ -192,3 +192,54 @@ def test_gru_packed_unroll_equals_padded_forward():
     seen = torch.arange(6)[None] <= torch.tensor([0, 5, 2, 3, 1])[:, None]
     with torch.no_grad():
         assert torch.allclose(est.forward_packed(f[seen], b[seen], seen), est(f, b)[seen], atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [0.5, 0.999999, 1.0, 1.0005, 1.001, 1.002, 2.0])
+def test_clipping_equals_clip_grad_norm_bit_for_bit(table, scale):
+    """The update's clipping (which skips the multiply where its factor is exactly 1) leaves
+    every parameter as torch's clip_grad_norm_ followed by Adam's step does, bit for bit,
+    for a clip threshold below, at and just above the gradient's norm."""
+    torch.manual_seed(0)
+    spec = _spec("map", "dueling_branch")
+    net = build_network(spec.state, spec.head, table.feature_dim)
+    tables = EnvTensors(table, "train", EnvConfig())
+    lookup = FeatureLookup(tables)
+    replay = EpisodeReplay(64, 5, seed=0)
+    replay.add(*_episodes(tables))
+    batch = replay.sample(16, 0.5)
+    probe = Learner(copy.deepcopy(net), lr=1e-3, gamma=0.9, grad_clip=1e9)
+    probe.update(batch, lookup)
+    clip = (probe.stats["grad_norm"] + 1e-6) * scale
+    mine = Learner(copy.deepcopy(net), lr=1e-3, gamma=0.9, grad_clip=clip)
+    ref = Learner(copy.deepcopy(net), lr=1e-3, gamma=0.9, grad_clip=0.0)
+    step = ref.optimizer.step
+
+    def clipped_step():
+        torch.nn.utils.clip_grad_norm_(ref.net.parameters(), clip)
+        step()
+
+    ref.optimizer.step = clipped_step
+    for _ in range(3):
+        mine.update(batch, lookup)
+        ref.update(batch, lookup)
+    for (k, a), b in zip(mine.net.state_dict().items(), ref.net.state_dict().values(), strict=True):
+        assert torch.equal(a, b), k
+
+
+def test_needed_observations_on_every_episode_shape():
+    """o_t is encoded exactly for t <= L, less o_L when the last decision ended the episode,
+    for every length 0..T and every pattern of done flags (padding's included)."""
+    import itertools
+
+    from uevavd.policy.learner import needed_observations
+    from uevavd.policy.replay import EpisodeBatch
+
+    t_max = 4
+    rows = [(n, bits) for n in range(t_max + 1) for bits in itertools.product([False, True], repeat=t_max)]
+    valid = torch.tensor([[t < n for t in range(t_max)] for n, _ in rows])
+    done = torch.tensor([bits for _, bits in rows])
+    none = torch.zeros(len(rows), dtype=torch.long)
+    batch = EpisodeBatch(scene=none, views=torch.zeros(len(rows), t_max + 1, dtype=torch.long), a_type=None,
+                         a_range=None, reward=None, valid=valid, done=done, index=none, weight=None)
+    want = torch.tensor([[t <= n - (n > 0 and bits[n - 1]) for t in range(t_max + 1)] for n, bits in rows])
+    assert torch.equal(needed_observations(batch), want)

@@ -28,9 +28,8 @@ def masked_argmax(q: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     Rows where nothing is allowed fall back to the unmasked argmax."""
     if mask is None:
         return q.argmax(dim=-1)
-    any_ok = mask.any(dim=-1, keepdim=True)
-    mask = mask | ~any_ok
-    return q.masked_fill(~mask, NEG).argmax(dim=-1)
+    blocked = ~mask & mask.any(dim=-1, keepdim=True)
+    return q.masked_fill(blocked, NEG).argmax(dim=-1)
 
 
 def type_mask(mask: torch.Tensor) -> torch.Tensor:
