@@ -98,7 +98,8 @@ class Learner:
         if self.grad_clip > 0:  # clip_grad_norm_, in its two public halves
             # get_total_norm's own sum (per-tensor norms, then the norm of those) without its
             # grouping by device and dtype, which one device and dtype make a no-op
-            norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm([p.grad for p in params if p.grad is not None])))
+            grads = [p.grad for p in params if p.grad is not None]
+            norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
             # its multiply by min(1, clip / (norm + 1e-6)), computed in float32, changes no bit
             # when that factor is 1: skipped where reading the norm costs no device sync (CPU)
             # and the factor is at least 1.001 (far from float32 rounding); a NaN norm skips
