@@ -95,7 +95,7 @@ class Learner:
             p.grad = None
         loss.backward()
         norm = None
-        if self.grad_clip > 0:  # clip_grad_norm_, in its two public halves
+        if self.grad_clip > 0:  # clip_grad_norm_, in its two halves
             # get_total_norm's own sum (per-tensor norms, then the norm of those) without its
             # grouping by device and dtype, which one device and dtype make a no-op
             grads = [p.grad for p in params if p.grad is not None]
