@@ -1,6 +1,7 @@
 """The double-DQN update on replayed episodes, against a plain padded reference."""
 
 import copy
+import itertools
 
 import pytest
 import torch
@@ -10,9 +11,9 @@ from uevavd.config import load_method
 from uevavd.env.batched import EnvTensors
 from uevavd.env.config import EnvConfig
 from uevavd.policy import targets as T
-from uevavd.policy.learner import FeatureLookup, Learner
+from uevavd.policy.learner import FeatureLookup, Learner, needed_observations
 from uevavd.policy.network import build_network
-from uevavd.policy.replay import EpisodeReplay
+from uevavd.policy.replay import EpisodeBatch, EpisodeReplay
 
 from .conftest import small
 
@@ -97,6 +98,15 @@ def _episodes(tables, seed=1):
             torch.randint(0, 4, (n, 5), generator=g), 0.1 * torch.randn(n, 5, generator=g), length)
 
 
+def _replayed_batch(table):
+    """The feature lookup of the table's training split and 16 episodes sampled from a
+    replay of :func:`_episodes`."""
+    tables = EnvTensors(table, "train", EnvConfig())
+    replay = EpisodeReplay(64, 5, seed=0)
+    replay.add(*_episodes(tables))
+    return FeatureLookup(tables), replay.sample(16, 0.5)
+
+
 #: The heads and TD-target forms, each checked on multi-step episodes.
 HEADS = {
     "dueling_branch": {"head.name": "dueling_branch", "head.td_target": "mean"},
@@ -120,11 +130,7 @@ def test_update_matches_padded_reference_and_ignores_padding(table, method, head
     with torch.no_grad():  # a target network that differs from the online one
         for p in learner.target.parameters():
             p.add_(0.1 * torch.randn_like(p))
-    tables = EnvTensors(table, "train", EnvConfig())
-    lookup = FeatureLookup(tables)
-    replay = EpisodeReplay(64, 5, seed=0)
-    replay.add(*_episodes(tables))
-    batch = replay.sample(16, 0.5)
+    lookup, batch = _replayed_batch(table)
     assert bool((batch.valid & ~batch.done).any())  # non-terminal steps: targets bootstrap
 
     ref_net = copy.deepcopy(net)
@@ -202,11 +208,7 @@ def test_clipping_equals_clip_grad_norm_bit_for_bit(table, scale):
     torch.manual_seed(0)
     spec = _spec("map", "dueling_branch")
     net = build_network(spec.state, spec.head, table.feature_dim)
-    tables = EnvTensors(table, "train", EnvConfig())
-    lookup = FeatureLookup(tables)
-    replay = EpisodeReplay(64, 5, seed=0)
-    replay.add(*_episodes(tables))
-    batch = replay.sample(16, 0.5)
+    lookup, batch = _replayed_batch(table)
     probe = Learner(copy.deepcopy(net), lr=1e-3, gamma=0.9, grad_clip=1e9)
     probe.update(batch, lookup)
     clip = (probe.stats["grad_norm"] + 1e-6) * scale
@@ -229,11 +231,6 @@ def test_clipping_equals_clip_grad_norm_bit_for_bit(table, scale):
 def test_needed_observations_on_every_episode_shape():
     """o_t is encoded exactly for t <= L, less o_L when the last decision ended the episode,
     for every length 0..T and every pattern of done flags (padding's included)."""
-    import itertools
-
-    from uevavd.policy.learner import needed_observations
-    from uevavd.policy.replay import EpisodeBatch
-
     t_max = 4
     rows = [(n, bits) for n in range(t_max + 1) for bits in itertools.product([False, True], repeat=t_max)]
     valid = torch.tensor([[t < n for t in range(t_max)] for n, _ in rows])
