@@ -68,3 +68,123 @@ def test_single_threaded_worker_limits_blas_in_pool_workers():
     if (os.cpu_count() or 1) > 1:  # what the limit changes: a plain worker takes every core
         with ProcessPoolExecutor(1) as pool:
             assert max(pool.submit(_blas_threads).result()) > 1
+
+
+# -- WorkerPool: a process pool that stops when its block fails ------------------------------
+
+
+def _marked_job(folder: str, i: int, seconds: float, ignore_interrupts: bool = False) -> int:
+    """Marks that it started, works ``seconds``, marks in ``finally`` that its clean-up ran
+    (``ignore_interrupts``: deaf to SIGINT, as a job stuck in native code)."""
+    import signal
+    import time
+    from pathlib import Path
+
+    if ignore_interrupts:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        Path(folder, f"started-{i}").touch()
+        time.sleep(seconds)
+        if i == 0 and seconds == 0:
+            raise ValueError("job 0 fails")
+        return i
+    finally:
+        Path(folder, f"cleaned-{i}").touch()
+
+
+def _markers(folder, kind: str) -> set[int]:
+    return {int(p.name.split("-")[1]) for p in folder.glob(f"{kind}-*")}
+
+
+def _wait_for(condition, seconds: float = 60.0) -> None:
+    import time
+
+    end = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < end, "the workers never started"
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize("context", ["fork", "spawn"])
+def test_worker_pool_interrupted_stops_jobs_and_runs_their_cleanup(tmp_path, context):
+    """Ctrl-C in the parent: the 2 running jobs of 8 are interrupted (their finally blocks
+    run, so atomic writes clean up), the 6 queued never start, and no worker is left. The
+    standard executor's with-block ran all 8 to their end before the interrupt got out."""
+    import multiprocessing as mp
+    from concurrent.futures import CancelledError
+
+    from uevavd.runtime import WorkerPool
+
+    futures = []
+    with pytest.raises(KeyboardInterrupt):
+        with WorkerPool(2, mp_context=mp.get_context(context)) as pool:
+            futures = [pool.submit(_marked_job, str(tmp_path), i, 3.0) for i in range(8)]
+            _wait_for(lambda: len(_markers(tmp_path, "started")) == 2)
+            raise KeyboardInterrupt
+    started = _markers(tmp_path, "started")
+    assert len(started) == 2 and _markers(tmp_path, "cleaned") == started
+    # (exception(), not result(): a KeyboardInterrupt raised here would end the test session)
+    assert [type(f.exception(timeout=0)) for f in futures] == [
+        KeyboardInterrupt if i in started else CancelledError for i in range(8)]
+    assert not mp.active_children()
+
+
+def test_worker_pool_failed_job_stops_the_others(tmp_path):
+    """A job's error ends the pool at once: the job running beside it is interrupted and
+    most of the queue never starts (before: all 8 jobs ran before the error surfaced)."""
+    import multiprocessing as mp
+    from concurrent.futures import as_completed
+
+    from uevavd.runtime import WorkerPool
+
+    with pytest.raises(ValueError, match="job 0 fails"):
+        with WorkerPool(2) as pool:
+            futures = [pool.submit(_marked_job, str(tmp_path), i, 0.0 if i == 0 else 3.0) for i in range(8)]
+            for fut in as_completed(futures):
+                fut.result()
+    started, entered = _markers(tmp_path, "started"), _markers(tmp_path, "cleaned")
+    assert 0 in started and started <= entered and len(entered) < 8  # (an interrupt may come before the mark)
+    assert not mp.active_children()
+
+
+def test_worker_pool_terminates_a_worker_that_ignores_the_interrupt(tmp_path):
+    """A job that swallows KeyboardInterrupt is terminated after the grace period."""
+    import multiprocessing as mp
+    from concurrent.futures.process import BrokenProcessPool
+
+    from uevavd.runtime import WorkerPool
+
+    with pytest.raises(KeyboardInterrupt):
+        with WorkerPool(1, grace=0.5) as pool:
+            fut = pool.submit(_marked_job, str(tmp_path), 0, 30.0, True)
+            _wait_for(lambda: _markers(tmp_path, "started") == {0})
+            raise KeyboardInterrupt
+    assert isinstance(fut.exception(timeout=0), BrokenProcessPool)
+    assert _markers(tmp_path, "cleaned") == set() and not mp.active_children()
+
+
+def _killed_job(i: int) -> int:
+    import signal
+    import time
+
+    if i == 0:
+        time.sleep(0.2)
+        os.kill(os.getpid(), signal.SIGKILL)  # as the kernel's OOM killer would
+    time.sleep(3)
+    return i
+
+
+def test_worker_pool_killed_worker_surfaces_as_broken_pool():
+    """A worker killed from outside is the executor's BrokenProcessPool (which the ablation
+    backend turns into a message naming the run), not an error of the pool's own stopping."""
+    import multiprocessing as mp
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
+
+    from uevavd.runtime import WorkerPool
+
+    with pytest.raises(BrokenProcessPool):
+        with WorkerPool(2, mp_context=mp.get_context("spawn")) as pool:
+            for fut in as_completed([pool.submit(_killed_job, i) for i in range(4)]):
+                fut.result()
+    assert not mp.active_children()

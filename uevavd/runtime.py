@@ -11,6 +11,10 @@ on 1,275 crops took 20 s instead of 22.5-28.8 s (`uevavd train-classifier --epoc
 --max-views 300`, 2026-11-23), with 5x fewer page faults. The price is that a process
 keeps up to ``trim`` bytes of freed memory mapped. The library never calls this on
 import: a user's own process keeps its allocator as it was.
+
+:func:`single_threaded_worker` limits a pool worker's BLAS to one thread, and
+:class:`WorkerPool` is the process pool of the renderer and the local ablation backend, which
+stops at once on Ctrl-C or a failed job.
 """
 
 from __future__ import annotations
@@ -18,8 +22,13 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import multiprocessing
 import os
+import signal
 import sys
+from collections.abc import Callable
+from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, wait
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -62,3 +71,104 @@ def single_threaded_worker() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
+
+
+# -- process pools that stop when asked ------------------------------------------------------
+# In a worker of a WorkerPool: the pool's stop event, and whether a job is running.
+_stop_event: Any = None
+_job_running = False
+
+
+class WorkerPool:
+    """A :class:`~concurrent.futures.ProcessPoolExecutor` that stops at once when the block
+    it serves ends with an exception: Ctrl-C, a ``SIGINT`` from ``timeout``, or a failed
+    job. The standard executor's ``with`` block runs every queued job to its end before
+    the exception leaves it (Python 3.14 adds ``terminate_workers``): an interrupted
+    ablation went on training all its runs, an interrupted world rendered all its scenes.
+    Here the jobs not started end without running (``CancelledError``), the running ones
+    get one ``KeyboardInterrupt`` in their worker (their ``finally`` blocks run: atomic
+    writes remove their temporary files) and a worker still busy after ``grace`` seconds
+    is terminated. Every caller's jobs resume from what they wrote.
+
+    A worker ignores ``SIGINT`` between jobs and takes only the first during a job, so
+    the terminal's Ctrl-C (sent to the whole process group) and the pool's own do not
+    cut a job's clean-up short. (joblib's loky executor would kill its workers outright,
+    with no clean-up, and sets their thread counts, on which results depend.)
+
+        with WorkerPool(2, initializer=single_threaded_worker) as pool:
+            futures = [pool.submit(render, name) for name in names]
+            for fut in as_completed(futures): ...
+    """
+
+    def __init__(self, workers: int, *, mp_context: Any = None, initializer: Callable[..., None] | None = None,
+                 initargs: tuple = (), grace: float = 10.0) -> None:
+        ctx = mp_context or multiprocessing.get_context()
+        self.grace = grace
+        self._stop = ctx.Event()
+        self._futures: list[Future] = []
+        self._before = set(multiprocessing.active_children())
+        self.executor = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                            initargs=(self._stop, initializer, initargs))
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
+        fut = self.executor.submit(_worker_run, fn, *args, **kwargs)
+        self._futures.append(fut)
+        return fut
+
+    def stop(self) -> None:
+        """End the jobs not started, interrupt the running ones, end the workers."""
+        # Jobs not started are not cancelled here but end at once in their worker (the stop
+        # event): a future cancelled while the executor still holds it makes the executor's
+        # thread fail if the pool then breaks (Python 3.11), as terminate() below does.
+        self._stop.set()
+        workers = [p for p in multiprocessing.active_children() if p not in self._before]
+        try:
+            for p in workers:
+                if p.pid is not None and p.is_alive():
+                    try:
+                        os.kill(p.pid, signal.SIGINT)
+                    except ProcessLookupError:  # it ended in the meantime (a broken pool ends them all)
+                        pass
+            wait(self._futures, timeout=self.grace)
+        except KeyboardInterrupt:  # a second Ctrl-C: wait no longer
+            pass
+        finally:
+            for p in workers:
+                if p.is_alive() and not all(f.done() for f in self._futures):
+                    p.terminate()
+            self.executor.shutdown(wait=True)
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is None:
+            self.executor.shutdown(wait=True)
+        else:
+            self.stop()
+
+
+def _worker_init(stop: Any, initializer: Callable[..., None] | None, initargs: tuple) -> None:
+    global _stop_event
+    _stop_event = stop
+    signal.signal(signal.SIGINT, _worker_interrupt)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def _worker_interrupt(signum: int, frame: Any) -> None:
+    global _job_running
+    if _job_running:  # the first SIGINT of a job interrupts it; between jobs, and after, none does
+        _job_running = False
+        raise KeyboardInterrupt
+
+
+def _worker_run(fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
+    global _job_running
+    _job_running = True
+    try:
+        if _stop_event.is_set():  # queued in the worker before the pool was stopped
+            raise CancelledError("the pool was stopped before this job started")
+        return fn(*args, **kwargs)
+    finally:
+        _job_running = False

@@ -13,6 +13,7 @@ import errno
 import os
 from collections.abc import Callable, Sequence
 
+from ..runtime import WorkerPool
 from .jobs import Job, run_job
 
 
@@ -46,10 +47,11 @@ def run_local(jobs: Sequence[Job], *, workers: int, log: Callable) -> list[str]:
                 bar.update()
             return done
         import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures import as_completed
 
-        # spawn: a fresh interpreter per worker (torch and forked thread pools do not mix)
-        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        # spawn: a fresh interpreter per worker (torch and forked thread pools do not mix);
+        # Ctrl-C or a failed run stops the others at once (they resume from their checkpoints)
+        with WorkerPool(workers, mp_context=mp.get_context("spawn")) as pool:
             futures = {pool.submit(run_job, job): job for job in jobs}
             for fut in as_completed(futures):
                 done.append(job_result(fut, futures[fut]))

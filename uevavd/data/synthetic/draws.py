@@ -12,10 +12,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-from concurrent.futures import ProcessPoolExecutor
 
 from ...atomic import atomic_write
-from ...runtime import single_threaded_worker
+from ...runtime import WorkerPool, single_threaded_worker
 from ..splits import N_CONTEXTS
 from .world import DRAWS_FILE, draws_record, search_draw
 
@@ -27,9 +26,9 @@ def _search(args: tuple[int, int]) -> tuple[int, int]:
 
 def record_draws(seeds: list[int], *, workers: int) -> dict:
     draws = {}
-    with ProcessPoolExecutor(max_workers=workers, initializer=single_threaded_worker) as pool:
+    with WorkerPool(workers, initializer=single_threaded_worker) as pool:
         for seed in seeds:
-            found = dict(pool.map(_search, [(c, seed) for c in range(1, N_CONTEXTS + 1)]))
+            found = dict(f.result() for f in [pool.submit(_search, (c, seed)) for c in range(1, N_CONTEXTS + 1)])
             draws[str(seed)] = {str(c): found[c] for c in sorted(found)}
     data = {**draws_record(), "draws": draws}
     atomic_write(DRAWS_FILE, json.dumps(data, indent=1) + "\n")

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import cv2
@@ -30,7 +30,7 @@ import numpy as np
 
 from ...atomic import atomic_write
 from ...hashing import sha256_hex
-from ...runtime import single_threaded_worker
+from ...runtime import WorkerPool, single_threaded_worker
 from .. import layout
 from ..grid import N_VIEWS, view_coords
 from ..splits import CLASSIFIER_SCENE, TARGETS, UNOCCLUDED_SCENE, check_context, scene_name
@@ -245,7 +245,7 @@ def write_world(
         for n in todo:
             bar.update(_job(str(root), n, size, seed)[1])
     else:
-        with ProcessPoolExecutor(max_workers=workers, initializer=single_threaded_worker) as pool:
+        with WorkerPool(workers, initializer=single_threaded_worker) as pool:
             futures = [pool.submit(_job, str(root), n, size, seed) for n in todo]
             for fut in as_completed(futures):
                 bar.update(fut.result()[1])
