@@ -519,3 +519,29 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
                                                     "first_range_up"]
     finally:
         manager.unregister_plugin("baseline-test")
+
+
+def test_the_training_bar_counts_episodes_from_the_runs_files(ablation, tmp_path):
+    """The bar over the runs' episodes reads each run's evals.jsonl: a run's last whole
+    record (a half-written last line is skipped), 0 for a run not started, all its episodes
+    for a finished one; the description counts the finished runs."""
+    import dataclasses
+    import shutil
+
+    from uevavd.config import load_method
+    from uevavd.experiments.backends import RunsProgress, episodes_trained
+
+    job = ablation["jobs"][0]
+    asked = load_method(job.spec_path).train_config().episodes
+    recorded = json.loads(RunDir(job.out).evals.read_text().splitlines()[-1])["episodes"]
+    assert episodes_trained(job) == recorded > 0
+    partial = dataclasses.replace(job, out=str(tmp_path / "partial"), seed=101)  # (keys name runs)
+    shutil.copytree(job.out, partial.out)
+    with RunDir(partial.out).evals.open("a") as fh:
+        fh.write('{"epoch": 99, "episodes": 999')  # a line being appended
+    fresh = dataclasses.replace(job, out=str(tmp_path / "fresh"), seed=102)
+    assert episodes_trained(partial) == recorded and episodes_trained(fresh) == 0
+    with RunsProgress([partial, fresh], every=3600) as progress:
+        assert (progress.bar.total, progress.bar.n) == (2 * asked, min(asked, recorded))
+        progress.finished(fresh)
+        assert progress.bar.n == min(asked, recorded) + asked and progress.bar.desc.startswith("runs 1/2")

@@ -10,9 +10,15 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import json
 import os
+import threading
 from collections.abc import Callable, Sequence
 
+from tqdm import tqdm
+
+from ..config import load_method
+from ..policy.rundir import RunDir
 from ..runtime import WorkerPool
 from .jobs import Job, run_job
 
@@ -36,15 +42,12 @@ def run_jobs(jobs: Sequence[Job], *, backend: str = "local", workers: int = 1, l
 
 
 def run_local(jobs: Sequence[Job], *, workers: int, log: Callable) -> list[str]:
-    from tqdm import tqdm
-
     done: list[str] = []
-    bar = tqdm(total=len(jobs), desc="runs", unit="run")
-    try:
+    with RunsProgress(jobs) as bar:
         if workers == 1:
             for job in jobs:
                 done.append(run_job(job))
-                bar.update()
+                bar.finished(job)
             return done
         import multiprocessing as mp
         from concurrent.futures import as_completed
@@ -55,10 +58,74 @@ def run_local(jobs: Sequence[Job], *, workers: int, log: Callable) -> list[str]:
             futures = {pool.submit(run_job, job): job for job in jobs}
             for fut in as_completed(futures):
                 done.append(job_result(fut, futures[fut]))
-                bar.update()
+                bar.finished(futures[fut])
         return done
-    finally:
-        bar.close()
+
+
+class RunsProgress:
+    """One progress bar over the episodes of the runs to do, as each run's ``evals.jsonl``
+    records them (every ``train.epoch_episodes``), read every ``every`` seconds in a
+    thread: the runs train in other processes, or here without a bar of their own, and a
+    paper-sized run takes minutes to hours, so a bar of finished runs alone would stand
+    still that long. The description counts the finished runs."""
+
+    def __init__(self, jobs: Sequence[Job], *, every: float = 2.0, desc: str = "runs") -> None:
+        self.jobs, self.desc, self.every = list(jobs), desc, every
+        self.episodes = {j.key: _episodes_asked(j) for j in self.jobs}
+        self.ended: set[str] = set()
+        self.bar = tqdm(total=sum(self.episodes.values()), unit="ep", unit_scale=True,
+                        desc=self._desc(), dynamic_ncols=True)
+        self._lock = threading.Lock()  # the polling thread and finished() both refresh
+        self.refresh()  # resumed runs show what they have already trained
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, name="uevavd-runs-progress", daemon=True)
+        self._thread.start()
+
+    def _desc(self) -> str:
+        return f"{self.desc} {len(self.ended)}/{len(self.jobs)}"
+
+    def _poll(self) -> None:
+        while not self._stop.wait(self.every):
+            self.refresh()
+
+    def refresh(self) -> None:
+        n = sum(self.episodes[j.key] if j.key in self.ended else min(self.episodes[j.key], episodes_trained(j))
+                for j in self.jobs)
+        with self._lock:
+            self.bar.n = n
+            self.bar.set_description(self._desc(), refresh=False)
+            self.bar.refresh()
+
+    def finished(self, job: Job) -> None:
+        self.ended.add(job.key)
+        self.refresh()
+
+    def __enter__(self) -> RunsProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.bar.close()
+
+
+def _episodes_asked(job: Job) -> int:
+    return int(load_method(job.spec_path).train_config().episodes)
+
+
+def episodes_trained(job: Job) -> int:
+    """Episodes a run has trained as its last per-epoch evaluation records them (0 before
+    its first; a line still being appended is skipped)."""
+    try:
+        lines = RunDir(job.out).evals.read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return 0
+    for line in reversed(lines):
+        try:
+            return int(json.loads(line)["episodes"])
+        except (ValueError, KeyError, TypeError):
+            continue
+    return 0
 
 
 def job_result(fut, job: Job) -> str:
@@ -93,15 +160,13 @@ def run_ray(jobs: Sequence[Job], *, workers: int, log: Callable, address: str | 
         task = ray.remote(num_cpus=1, num_gpus=gpus_per_job, max_retries=max_retries,
                           retry_exceptions=True)(run_job)
         refs = [task.remote(job) for job in jobs]
-        from tqdm import tqdm
-
         done: list[str] = []
-        with tqdm(total=len(refs), desc="runs (ray)", unit="run") as bar:
-            pending = list(refs)
+        with RunsProgress(jobs, desc="runs (ray)") as bar:
+            pending = dict(zip(refs, jobs, strict=True))
             while pending:
-                ready, pending = ray.wait(pending, num_returns=1)
+                ready, _ = ray.wait(list(pending), num_returns=1)
                 done.append(ray.get(ready[0]))
-                bar.update()
+                bar.finished(pending.pop(ready[0]))
         return done
     finally:
         if started:
