@@ -31,6 +31,7 @@ class Job:
     def key(self) -> str:
         return f"{self.method}/{self.setting}/rec{self.recognizer}/seed{self.seed}"
 
+
 def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
     jobs = []
     for m in plan.methods:
@@ -51,7 +52,6 @@ def run_job(job: Job) -> str:
     """Train (or resume, or skip a finished) run, then evaluate its final policy on every
     context (:func:`final_eval`). Runs in a worker process or Ray task."""
     import torch
-
 
     tune_malloc()  # a spawned worker: reuse freed memory as the CLI's process does
     torch.set_num_threads(max(1, job.threads))
