@@ -110,7 +110,6 @@ class TrainConfig:
             return self
         if self.gamma == DEFAULT_GAMMA:
             return self.replace(gamma=float(env_gamma))
-
         raise ConfigError(
             f"train.gamma = {self.gamma} and env.gamma = {env_gamma} differ, but a run has one discount "
             "(the TD target's, the reported return's and the oracle's): set only env.gamma "
