@@ -204,3 +204,31 @@ def test_a_killed_saves_temp_file_is_removed_on_resume(table, tmp_path):
     stale.write_bytes(b"\0" * 4096)  # what a kill during torch.save leaves
     train(spec, table, out=run, device="cpu", progress=False)
     assert not stale.exists() and (run / "done.json").is_file()
+
+
+def test_a_run_another_process_is_training_is_refused_in_one_line(table, tmp_path, capsys, monkeypatch):
+    """`uevavd train` into a run directory another process holds (the same command started
+    twice, two ablations with one --out): one line, exit 2, nothing of the run written; it
+    used to interleave both processes' checkpoints and evaluations. Once the other process
+    ends (however it ends: the OS drops its lock), the run trains."""
+    import subprocess
+    import sys
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    run = tmp_path / "run"
+    holder = subprocess.Popen(  # the lock a trainer holds: .NAME.lock beside the run directory
+        [sys.executable, "-c", "import sys; from filelock import FileLock\n"
+         "with FileLock(sys.argv[1]):\n    print('held', flush=True); sys.stdin.read()",
+         str(tmp_path / ".run.lock")], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    args = ["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(run),
+            "--no-progress", "--device", "cpu", *_sets()]
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main(args) == 2
+        _one_line(capsys, f"{run} is being trained by another process")
+        assert not run.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(args) == 0 and (run / "done.json").is_file()

@@ -11,15 +11,21 @@
 ``final_eval.json``         an ablation's exhaustive evaluation of the final policy (a cache)
 ``tb/``                     TensorBoard scalars
 ==========================  =====================================================================
+
+Beside the directory, ``.NAME.lock`` is held while a process trains into it (:func:`run_lock`).
 """
 
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from filelock import FileLock, Timeout
 
 from ..config import MethodSpec, load_method
 
@@ -75,7 +81,30 @@ RUN_KEYS = ("method", "spec_hash", "table_key", "seed", "train", "env", "feature
 
 
 class RunDirError(ValueError):
-    """A run directory holds another configuration, or is not a run directory."""
+    """A run directory holds another configuration, is not a run directory, or is being
+    trained by another process."""
+
+
+@contextmanager
+def run_lock(run_dir: str | os.PathLike[str]) -> Iterator[Path]:
+    """Hold a run directory for one trainer. A second process training into it (the same
+    ``uevavd train`` started twice, two ablations with one ``--out``) is refused with a
+    :class:`RunDirError` instead of interleaving its checkpoints and evaluations with the
+    first's. The lock is a file beside the directory (``.NAME.lock``), so that the run
+    directory holds the run's files only, and the OS releases it when its process ends,
+    however it ends. Yields the lock file's path."""
+    out = Path(run_dir).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lock = FileLock(str(out.parent / f".{out.name}.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        raise RunDirError(f"{run_dir} is being trained by another process (it holds {lock.lock_file}); "
+                          "wait for that run to finish, or train into another --out") from None
+    try:
+        yield Path(lock.lock_file)
+    finally:
+        lock.release()
 
 
 def read_settings(run_dir: str | Path) -> dict[str, Any]:

@@ -41,7 +41,7 @@ from .config import TrainConfig
 from .learner import FeatureLookup, Learner
 from .network import build_network
 from .replay import EpisodeReplay
-from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_spec
+from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_lock, run_spec
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
@@ -128,9 +128,17 @@ def train(
     """Train ``spec`` on an observation table (or its folder) into run directory ``out``.
 
     Resumes an unfinished run of the same spec, table and settings; refuses a directory
-    holding another configuration (naming what differs); returns at once for a finished
+    holding another configuration (naming what differs), or one another process is
+    training into (:func:`~uevavd.policy.rundir.run_lock`); returns at once for a finished
     run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
     """
+    with run_lock(out):
+        return _train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress,
+                      overrides=overrides, max_epochs=max_epochs)
+
+
+def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, seed: int, device: str,
+           progress: bool, overrides: dict | None, max_epochs: int | None) -> Path:
     # -- settings -----------------------------------------------------------------------------
     spec = spec.with_overrides(overrides)
     table = load_table(table)
