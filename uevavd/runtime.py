@@ -133,9 +133,10 @@ class WorkerPool:
         except KeyboardInterrupt:  # a second Ctrl-C: wait no longer
             pass
         finally:
-            for p in workers:
-                if p.is_alive() and not all(f.done() for f in self._futures):
-                    p.terminate()
+            if not all(f.done() for f in self._futures):  # a job deaf to the interrupt
+                for p in workers:
+                    if p.is_alive():
+                        p.terminate()
             self.executor.shutdown(wait=True)
 
     def __enter__(self) -> WorkerPool:
