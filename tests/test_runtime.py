@@ -188,3 +188,52 @@ def test_worker_pool_killed_worker_surfaces_as_broken_pool():
             for fut in as_completed([pool.submit(_killed_job, i) for i in range(4)]):
                 fut.result()
     assert not mp.active_children()
+
+
+TWICE_SCRIPT = """
+import multiprocessing as mp, os, signal, sys, threading, time
+from pathlib import Path
+from uevavd.runtime import WorkerPool
+
+def job(folder, i, cleanup_s):
+    try:
+        Path(folder, f"started-{i}").touch()
+        time.sleep(60)
+    finally:
+        time.sleep(cleanup_s)  # a clean-up that takes a while (a checkpoint's atomic write)
+        Path(folder, f"cleaned-{i}").touch()
+
+if __name__ == "__main__":
+    folder, second_after, cleanup_s = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+    try:
+        with WorkerPool(2, mp_context=mp.get_context("spawn"), grace=30) as pool:
+            futures = [pool.submit(job, folder, i, cleanup_s) for i in range(4)]
+            while len(list(Path(folder).glob("started-*"))) < 2:
+                time.sleep(0.01)
+            # as `timeout -s INT` does: the signal to this process, then to its whole process
+            # group (this process again, and the workers), the second copy `second_after` later
+            threading.Timer(second_after, os.killpg, (os.getpgid(0), signal.SIGINT)).start()
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(60)
+    except KeyboardInterrupt:
+        print("interrupted")
+"""
+
+
+@pytest.mark.parametrize(("second_after", "cleaned"), [(0.1, True), (2.0, False)])
+def test_worker_pool_takes_a_repeated_interrupt_as_one(tmp_path, second_after, cleaned):
+    """`timeout -s INT` signals the process and then its whole group, so the parent may get
+    SIGINT twice: a copy within a second of the first is the same interrupt, and the jobs'
+    clean-up runs to its end (before, the copy cut the wait short and the workers were
+    terminated mid clean-up). A second Ctrl-C later than that still stops the waiting."""
+    script = tmp_path / "twice.py"
+    script.write_text(TWICE_SCRIPT)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    out = subprocess.run([sys.executable, str(script), str(marks), str(second_after), "4"], capture_output=True,
+                         text=True, timeout=120, start_new_session=True)
+    assert out.stdout.strip() == "interrupted", out.stderr
+    started = _markers(marks, "started")
+    assert len(started) == 2
+    assert _markers(marks, "cleaned") == (started if cleaned else set())
+    assert "leaked" not in out.stderr

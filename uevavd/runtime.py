@@ -26,6 +26,8 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, wait
 from typing import Any
@@ -74,6 +76,9 @@ def single_threaded_worker() -> None:
 
 
 # -- process pools that stop when asked ------------------------------------------------------
+#: Seconds after a Ctrl-C in which a second SIGINT to a WorkerPool's parent is taken as a copy
+#: of the first (``timeout`` sends two), not as the second Ctrl-C that stops the waiting.
+REPEAT_S = 1.0
 # In a worker of a WorkerPool: the pool's stop event, and whether a job is running.
 _stop_event: Any = None
 _job_running = False
@@ -92,8 +97,12 @@ class WorkerPool:
 
     A worker ignores ``SIGINT`` between jobs and takes only the first during a job, so
     the terminal's Ctrl-C (sent to the whole process group) and the pool's own do not
-    cut a job's clean-up short. (joblib's loky executor would kill its workers outright,
-    with no clean-up, and sets their thread counts, on which results depend.)
+    cut a job's clean-up short. The parent, while the pool is open, takes a ``SIGINT``
+    that comes within :data:`REPEAT_S` of the first as the same interrupt: ``timeout -s
+    INT`` signals the process and then its whole group, so the parent may get it twice,
+    and the copy would otherwise count as the second Ctrl-C, the one that stops waiting
+    for the clean-up. (joblib's loky executor would kill its workers outright, with no
+    clean-up, and sets their thread counts, on which results depend.)
 
         with WorkerPool(2, initializer=single_threaded_worker) as pool:
             futures = [pool.submit(render, name) for name in names]
@@ -107,8 +116,17 @@ class WorkerPool:
         self._stop = ctx.Event()
         self._futures: list[Future] = []
         self._before = set(multiprocessing.active_children())
+        self._interrupted_at: float | None = None
+        self._sigint: Any = None  # the handler this pool replaced, while it is open
         self.executor = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
                                             initargs=(self._stop, initializer, initargs))
+
+    def _on_sigint(self, signum: int, frame: Any) -> None:
+        now = time.monotonic()
+        if self._interrupted_at is not None and now - self._interrupted_at < REPEAT_S:
+            return  # the same interrupt delivered twice
+        self._interrupted_at = now
+        raise KeyboardInterrupt
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
         fut = self.executor.submit(_worker_run, fn, *args, **kwargs)
@@ -140,13 +158,22 @@ class WorkerPool:
             self.executor.shutdown(wait=True)
 
     def __enter__(self) -> WorkerPool:
+        # replaces the default Ctrl-C handler only, in the main thread only (where signal
+        # handlers run); a pool opened inside another keeps the outer one's
+        if threading.current_thread() is threading.main_thread() \
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._sigint = signal.signal(signal.SIGINT, self._on_sigint)
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
-        if exc_type is None:
-            self.executor.shutdown(wait=True)
-        else:
-            self.stop()
+        try:
+            if exc_type is None:
+                self.executor.shutdown(wait=True)
+            else:
+                self.stop()
+        finally:
+            if self._sigint is not None:
+                signal.signal(signal.SIGINT, self._sigint)
 
 
 def _worker_init(stop: Any, initializer: Callable[..., None] | None, initargs: tuple) -> None:
