@@ -10,12 +10,16 @@
 #   prepare  table building at the paper's encoder size (ResNet50 at 256 px, ResNet18
 #            recognizer) on a stand-in dataset: bare forward and `prepare`, images/s
 #   train    one 300,000-episode IBE-MAP run at the paper's sizes on CUDA (stand-in table)
+#   runs     the paper preset's 15 training runs (3 methods x 5 seeds, 300,000 episodes each, all
+#            side by side) on a stand-in table (bench_ablation.py): the ablation's training part
+#            without its world and tables; resumes when run again
 #   ablate   the paper preset's ablation (3 methods x 5 seeds, one recognizer, no sweeps):
 #            world, recognizer, tables and the 15 runs; resumes when run again in the same place
 #
 # Wheels in .whl/ (packages the machine lacks) are installed into /tmp/site first. Caches and
-# results go to runs/gpu/ (ignored by git). ABLATE_SECONDS bounds the ablate step (default 540);
-# a bounded ablation stops with SIGINT and resumes from its checkpoints when run again.
+# results go to runs/gpu/ (ignored by git). ABLATE_SECONDS and RUNS_SECONDS bound the ablate and
+# runs steps (default 540 each; RUNS_WORKERS, default 15, sets how many runs train side by side);
+# a bounded step stops with SIGINT and resumes from its checkpoints when run again.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
@@ -50,6 +54,11 @@ except Exception as e: print("ImageNet ResNet50: absent:", str(e)[:100])'
     train)
       python3 benchmarks/bench_train.py --device cuda --methods ibe_map --episodes 300000 \
         --epoch-episodes 25000 --threads 1 --sb3-seconds 20 --progress
+      ;;
+    runs)
+      timeout -k 20 -s INT "${RUNS_SECONDS:-540}" python3 benchmarks/bench_ablation.py --device cuda \
+        --workers "${RUNS_WORKERS:-15}" --out runs/gpu/bench_ablation
+      echo "runs exit $?"
       ;;
     ablate)
       preset=paper

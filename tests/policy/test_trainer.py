@@ -164,3 +164,16 @@ def test_policy_file_of_another_method_or_action_space_is_refused_naming_it(tabl
                               {**settings, "env": {**settings["env"], "max_range": 3}})
     with pytest.raises(CheckpointError, match=r"forged.safetensors: its network does not match the method it names \(shapes \(file vs network\): head"):
         uevavd.load_policy_file(forged)
+
+
+def test_stand_in_table_with_simple_contexts_is_evaluated_on_them(tmp_path):
+    """The stand-in of `benchmarks/bench_ablation.py` has the paper's three splits, and a run
+    on it evaluates on all three as the paper preset asks."""
+    from uevavd.testing.policy import SMALL_RUN, toy_table
+
+    three = toy_table(4, 2, 8, n_simple=2)
+    assert list(three.splits) == ["train"] * 4 + ["hard"] * 2 + ["simple"] * 2
+    run = train(load_method("map"), three, out=tmp_path / "r", episodes=200, seed=0, progress=False, device="cpu",
+                overrides={**SMALL_RUN, "train.eval_splits": ["train", "simple", "hard"]})
+    rows = [json.loads(line) for line in (run / "evals.jsonl").read_text().splitlines()]
+    assert {r["split"] for r in rows} == {"train", "simple", "hard"}

@@ -71,13 +71,15 @@ def check_head(head: Any, *, state_dim: int | None = None, n_types: int = 7, n_r
     assert s.grad is not None and torch.isfinite(s.grad).all(), "no finite gradient reaches the state"
 
 
-def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed: int = 0) -> Any:
+def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed: int = 0, n_simple: int = 0) -> Any:
     """An :class:`~uevavd.table.ObservationTable` where recognisability is
     learnable: each scene has a random "good" region of views (near a random viewpoint)
     whose probabilities favour the true class, and the features encode the view's
-    position and a noisy recognisability signal. For tests and development only."""
+    position and a noisy recognisability signal. For tests and development only.
+    Scenes are listed train, hard, then ``n_simple`` simple ones (the paper's third split;
+    none by default, which leaves the tables of earlier versions unchanged)."""
     rng = np.random.default_rng(seed)
-    s = n_train + n_hard
+    s = n_train + n_hard + n_simple
     xyz = view_coords(np.arange(N_VIEWS)) / 50.0  # (605, 3)
     targets = rng.integers(0, 5, s)
     feats = np.zeros((s, N_VIEWS, feature_dim), np.float32)
@@ -99,7 +101,7 @@ def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed:
         feats[i, :, 4:] = 0.3 * rng.standard_normal((N_VIEWS, feature_dim - 4))
         w = 0.1 + 0.2 * good
         boxes[i] = np.stack([0.5 - w / 2, 0.5 - w / 2, 0.5 + w / 2, 0.5 + w / 2], axis=1)
-    splits = ["train"] * n_train + ["hard"] * n_hard
+    splits = ["train"] * n_train + ["hard"] * n_hard + ["simple"] * n_simple
     return ObservationTable.from_arrays(
         feats, probs, boxes, scenes=[f"toy{i:03d}" for i in range(s)], targets=targets.tolist(),
         splits=splits, contexts=list(range(1, s + 1)), config={"toy": seed, "feature_dim": feature_dim},
