@@ -220,8 +220,8 @@ if __name__ == "__main__":
 """
 
 
-@pytest.mark.parametrize(("second_after", "cleaned"), [(0.1, True), (2.0, False)])
-def test_worker_pool_takes_a_repeated_interrupt_as_one(tmp_path, second_after, cleaned):
+@pytest.mark.parametrize(("second_after", "cleanup_s", "cleaned"), [(0.1, 1.0, True), (1.5, 5.0, False)])
+def test_worker_pool_takes_a_repeated_interrupt_as_one(tmp_path, second_after, cleanup_s, cleaned):
     """`timeout -s INT` signals the process and then its whole group, so the parent may get
     SIGINT twice: a copy within a second of the first is the same interrupt, and the jobs'
     clean-up runs to its end (before, the copy cut the wait short and the workers were
@@ -230,7 +230,7 @@ def test_worker_pool_takes_a_repeated_interrupt_as_one(tmp_path, second_after, c
     script.write_text(TWICE_SCRIPT)
     marks = tmp_path / "marks"
     marks.mkdir()
-    out = subprocess.run([sys.executable, str(script), str(marks), str(second_after), "4"], capture_output=True,
+    out = subprocess.run([sys.executable, str(script), str(marks), str(second_after), str(cleanup_s)], capture_output=True,
                          text=True, timeout=120, start_new_session=True)
     assert out.stdout.strip() == "interrupted", out.stderr
     started = _markers(marks, "started")
