@@ -231,6 +231,19 @@ def test_scene_mismatch_and_unknown_folder(tmp_path, write_scene_fn):
         read_dataset(tmp_path / "nowhere")
 
 
+def test_a_root_whose_scene_named_folders_hold_no_views_says_no_scenes(tmp_path):
+    """A folder that is not a dataset but holds a folder named like a scene (``/etc`` has
+    ``postgresql/15``): the report says no scene holds a view, naming the folder it took for
+    one, not just that a subfolder was not read."""
+    (tmp_path / "postgresql" / "15" / "main").mkdir(parents=True)
+    (tmp_path / "hosts").write_text("127.0.0.1 localhost\n")
+    manifest, problems = scan(tmp_path)
+    assert len(manifest.records) == 0
+    no_scenes = [p for p in problems if p.kind == "no_scenes"]
+    assert len(no_scenes) == 1 and no_scenes[0].path == tmp_path
+    assert str(tmp_path / "postgresql" / "15") in no_scenes[0].message
+
+
 def test_files_the_reader_cannot_use_are_named(tmp_path, write_scene_fn, encoded, caplog):
     files = write_scene_fn(tmp_path / "001", target="sedan", token="001")
     d = tmp_path / "001"

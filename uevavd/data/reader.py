@@ -163,6 +163,11 @@ def scan(root: str | Path, *, check: bool = True) -> tuple[Manifest, list[Proble
         scene_dirs[sid.name] = scene_dir
         if size is not None:
             sizes[size].append(scene_dir)
+    if scene_dirs and not records:  # e.g. /etc, whose postgresql/15 is named like scene 15 (named first: the cause)
+        named = ", ".join(str(d) for d in list(scene_dirs.values())[:3]) + (", ..." if len(scene_dirs) > 3 else "")
+        problems.insert(0, Problem("no_scenes", root, f"no scene holds a view (the folders named like scenes: {named}); "
+                                "expected ROOT/001 .. ROOT/150, ROOT/00, ROOT/train_605 (or nested one level) "
+                                "holding images and annotations"))
     for name, where in listed_scenes(root).items():
         if name not in scene_dirs:
             problems.append(Problem("missing_scene", root / name, f"scene {name} is listed in {where} but its "
