@@ -94,12 +94,13 @@ def main() -> int:
         from uevavd.atomic import atomic_write
 
         atomic_write(timing_path, json.dumps(timing, indent=1).encode())
-    _summary(jobs, timing, is_done)
+    _summary(jobs, timing)
     return 130 if interrupted else 0
 
 
-def _summary(jobs, timing, is_done) -> None:
+def _summary(jobs, timing) -> None:
     from uevavd.experiments.backends import episodes_trained
+    from uevavd.experiments.results import is_done
     from uevavd.policy.rundir import RunDir
 
     per_method: dict[str, list[float]] = {}
