@@ -52,6 +52,17 @@ def main() -> int:
     over = dict(load_preset(args.preset).get("overrides", {}))
     if args.episodes is not None:
         over["train.episodes"] = args.episodes
+    workers = args.workers or args.seeds * len(args.methods.split(","))
+    # the timings of one configuration only: a call with another would add up unlike times
+    # (and retrain runs whose settings changed)
+    config = {"preset": args.preset, "episodes": over.get("train.episodes"), "methods": args.methods,
+              "seeds": args.seeds, "device": args.device, "workers": workers}
+    timing_path = args.out / "timing.json"
+    timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {"config": config, "calls": []}
+    if timing.get("config") != config:
+        print(f"bench_ablation: {args.out} holds the timings of {timing.get('config')}, not of {config}; "
+              "use another --out", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     table = args.out / "table"
     if not table.is_dir():
@@ -75,9 +86,6 @@ def main() -> int:
         jobs += [Job(method, "default", seed, str(spec_path), str(table), str(args.out / "runs" / method / f"seed{seed}"),
                      device=args.device) for seed in range(args.seeds)]
     todo = [j for j in jobs if not is_done(j)]
-    workers = args.workers or len(jobs)
-    timing_path = args.out / "timing.json"
-    timing = json.loads(timing_path.read_text()) if timing_path.is_file() else {"calls": []}
     print(f"{len(jobs)} runs ({over.get('train.episodes', 'the method default')} episodes each, preset "
           f"{args.preset}), {len(jobs) - len(todo)} finished already; {workers} side by side on {args.device}",
           flush=True)
@@ -89,8 +97,7 @@ def main() -> int:
         interrupted = True
     wall = time.perf_counter() - t0
     if todo:  # a call with nothing left to run adds no time
-        timing["calls"].append({"wall_s": round(wall, 1), "runs": len(todo), "workers": workers,
-                                "device": args.device, "interrupted": interrupted})
+        timing["calls"].append({"wall_s": round(wall, 1), "runs": len(todo), "interrupted": interrupted})
         from uevavd.atomic import atomic_write
 
         atomic_write(timing_path, json.dumps(timing, indent=1).encode())
