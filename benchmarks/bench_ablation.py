@@ -42,7 +42,7 @@ def main() -> int:
 
     from uevavd.config import load_method
     from uevavd.experiments.backends import run_jobs
-    from uevavd.experiments.jobs import Job
+    from uevavd.experiments.jobs import Job, save_spec
     from uevavd.experiments.results import is_done
     from uevavd.presets import load_preset
     from uevavd.runtime import tune_malloc
@@ -80,9 +80,7 @@ def main() -> int:
         except ValueError as e:  # ConfigError, an unknown method
             print(f"bench_ablation: {method}: {e}", file=sys.stderr)
             return 2
-        spec_path = args.out / "specs" / f"{method}.toml"
-        if not spec_path.is_file() or load_method(spec_path).hash != spec.hash:
-            spec.save(spec_path)
+        spec_path = save_spec(spec, args.out / "specs" / f"{method}.toml")
         jobs += [Job(method, "default", seed, str(spec_path), str(table), str(args.out / "runs" / method / f"seed{seed}"),
                      device=args.device) for seed in range(args.seeds)]
     todo = [j for j in jobs if not is_done(j)]
@@ -106,18 +104,16 @@ def main() -> int:
 
 
 def _summary(jobs, timing) -> None:
-    from uevavd.experiments.backends import episodes_trained
+    from uevavd.experiments.backends import last_evaluation
     from uevavd.experiments.results import is_done
-    from uevavd.policy.rundir import RunDir
 
     per_method: dict[str, list[float]] = {}
     for job in jobs:
-        evals = RunDir(job.out).evals  # written whole at each epoch (atomically)
-        lines = evals.read_text(encoding="utf-8").splitlines() if evals.is_file() else []
-        train_s = float(json.loads(lines[-1])["wall_s"]) if lines else 0.0
+        last = last_evaluation(job)
+        train_s = float(last.get("wall_s", 0.0))
         if is_done(job):
             per_method.setdefault(job.method, []).append(train_s)
-        print(f"  {job.method:>9} seed {job.seed}: {episodes_trained(job):>7} episodes, training {train_s:6.0f} s"
+        print(f"  {job.method:>9} seed {job.seed}: {int(last.get('episodes', 0)):>7} episodes, training {train_s:6.0f} s"
               f"{'' if is_done(job) else ' (not finished)'}")
     for method, secs in per_method.items():
         print(f"  {method:>9}: {len(secs)} runs finished, training {statistics.median(secs):.0f} s per run (median)")

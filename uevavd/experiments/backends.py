@@ -113,19 +113,26 @@ def _episodes_asked(job: Job) -> int:
     return int(load_method(job.spec_path).train_config().episodes)
 
 
-def episodes_trained(job: Job) -> int:
-    """Episodes a run has trained as its last per-epoch evaluation records them (0 before
-    its first; a line still being appended is skipped)."""
+def last_evaluation(job: Job) -> dict:
+    """A run's last per-epoch evaluation row of ``evals.jsonl`` (its ``episodes``, its
+    training ``wall_s``, ...), or {} before its first (a line that does not parse is skipped)."""
     try:
         lines = RunDir(job.out).evals.read_text(encoding="utf-8").splitlines()
     except OSError:
-        return 0
+        return {}
     for line in reversed(lines):
         try:
-            return int(json.loads(line)["episodes"])
-        except (ValueError, KeyError, TypeError):
+            row = json.loads(line)
+        except ValueError:
             continue
-    return 0
+        if isinstance(row, dict) and "episodes" in row:
+            return row
+    return {}
+
+
+def episodes_trained(job: Job) -> int:
+    """Episodes a run has trained as its last per-epoch evaluation records them (0 before its first)."""
+    return int(last_evaluation(job).get("episodes", 0))
 
 
 def job_result(fut, job: Job) -> str:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..config import load_method
+from ..config import MethodSpec, load_method
 from ..policy.trainer import train
 from ..runtime import tune_malloc
 from .plan import Plan, method_overrides
@@ -32,14 +32,20 @@ class Job:
         return f"{self.method}/{self.setting}/rec{self.recognizer}/seed{self.seed}"
 
 
+def save_spec(spec: MethodSpec, path: Path) -> Path:
+    """Write a run's resolved method spec for its workers, unless ``path`` already holds it
+    (a resumed ablation leaves the file, and its time, as they were). Returns ``path``."""
+    if not path.is_file() or load_method(path).hash != spec.hash:
+        spec.save(path)
+    return path
+
+
 def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
     jobs = []
     for m in plan.methods:
         for setting_name, setting in plan.settings(m):
             spec = load_method(m, overrides=method_overrides(plan, m, setting))
-            spec_path = plan.out / "specs" / f"{m}-{setting_name}.toml"
-            if not spec_path.is_file() or load_method(spec_path).hash != spec.hash:
-                spec.save(spec_path)
+            spec_path = save_spec(spec, plan.out / "specs" / f"{m}-{setting_name}.toml")
             for r in plan.recognizers:
                 for seed in plan.seeds:
                     out = plan.out / "runs" / m / setting_name / f"rec{r}" / f"seed{seed}"
