@@ -354,3 +354,29 @@ def test_vit_t_needs_the_sam_interface(monkeypatch):
         build_model("vit_t")
     monkeypatch.setitem(sys.modules, "mobile_sam", fake_mobile_sam([]))
     assert isinstance(build_model("vit_t"), Sam)
+
+
+def test_the_builders_options_are_the_segmenters_and_the_config_checks_them(tiny_ckpt):
+    """The ``sam`` builder's options, defaults and types are SamSegmenter's (one place), and
+    a method file's segmenter keys are checked against them before any model loads."""
+    import inspect
+
+    from uevavd.config import ConfigError, load_method
+    from uevavd.perception.sam import SamSegmenter
+
+    built = inspect.signature(build_sam_segmenter).parameters
+    for name, p in inspect.signature(SamSegmenter).parameters.items():
+        if name != "loaded":
+            assert built[name].default == p.default and built[name].annotation == p.annotation
+    seg = build_sam_segmenter(checkpoint=str(tiny_ckpt))
+    assert (seg.ring_points, seg.iou_merge, seg.batch_size) == (16, 0.7, 8)
+    with pytest.raises(TypeError, match="ring_point"):  # refused before the (missing) file is read
+        build_sam_segmenter(checkpoint="/nonexistent/sam.pth", ring_point=3)
+
+    ok = load_method("ibe_map", overrides={"perception.segmenter.name": "sam",
+                                           "perception.segmenter.ring_points": 8})
+    assert ok["perception.segmenter.ring_points"] == 8
+    with pytest.raises(ConfigError, match="did you mean 'ring_points'"):
+        load_method("ibe_map", overrides={"perception.segmenter.name": "sam", "perception.segmenter.ring_point": 8})
+    with pytest.raises(ConfigError, match="expected int"):
+        load_method("ibe_map", overrides={"perception.segmenter.name": "sam", "perception.segmenter.ring_points": "x"})

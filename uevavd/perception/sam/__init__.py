@@ -9,7 +9,10 @@ in :mod:`uevavd.perception.training.sam`.
 
 from __future__ import annotations
 
+import inspect
 import os
+from collections.abc import Callable
+from typing import Any
 
 from .model import CheckpointError, SmallConfig, default_small_path, load_sam
 from .segmenter import SamSegmenter, SamView
@@ -17,21 +20,7 @@ from .segmenter import SamSegmenter, SamView
 __all__ = ["CheckpointError", "SamSegmenter", "SamView", "SmallConfig", "build_sam_segmenter", "load_sam"]
 
 
-def build_sam_segmenter(
-    *,
-    checkpoint: str | None = None,
-    model_type: str = "auto",
-    device: str = "auto",
-    ring_points: int = 16,
-    ring_margin: float = 0.1,
-    ring_margin_min: float = 2.0,
-    iou_merge: float = 0.7,
-    min_area: float = 0.001,
-    pred_iou_min: float = 0.0,
-    multimask: bool = True,
-    batch_size: int = 8,
-    precision: str = "fp32",
-) -> SamSegmenter:
+def build_sam_segmenter(*, checkpoint: str | None = None, model_type: str = "auto", **options: Any) -> SamSegmenter:
     """The ``sam`` segmenter.
 
     * ``checkpoint``: a local SAM file: an official ``.pth`` (vit_b / vit_l / vit_h), a
@@ -48,9 +37,13 @@ def build_sam_segmenter(
     * ``pred_iou_min``: ring masks whose predicted IoU is below this are dropped.
     * ``multimask``: ask SAM for three masks per point and keep the best-scored one.
     * ``batch_size``: images per image-encoder batch; ``precision``: "fp32" or "bf16" (autocast).
+
+    The options after ``model_type`` are :class:`SamSegmenter`'s, with its defaults and types
+    (this function's signature is built from its constructor's, below).
     """
     from .model import load_sam as _load
 
+    inspect.signature(build_sam_segmenter).bind(**options)  # a misspelt option: TypeError before loading
     if checkpoint is None:
         path = default_small_path()
         if not path.is_file():
@@ -61,8 +54,18 @@ def build_sam_segmenter(
     else:
         path = os.path.expanduser(checkpoint)
     loaded = _load(path, model_type)
-    return SamSegmenter(
-        loaded, device=device, ring_points=ring_points, ring_margin=ring_margin, ring_margin_min=ring_margin_min,
-        iou_merge=iou_merge, min_area=min_area, pred_iou_min=pred_iou_min, multimask=multimask,
-        batch_size=batch_size, precision=precision,
-    )
+    return SamSegmenter(loaded, **options)
+
+
+def _with_segmenter_options(builder: Callable[..., SamSegmenter]) -> None:
+    """Give ``builder`` a signature and annotations listing SamSegmenter's keyword options
+    after its own: the config's validation reads a builder's signature (an unknown key or a
+    wrong type is refused before a model loads), and the defaults stay in one place."""
+    own = [p for p in inspect.signature(builder).parameters.values() if p.kind is p.KEYWORD_ONLY]
+    options = [p for p in inspect.signature(SamSegmenter).parameters.values() if p.name != "loaded"]
+    builder.__signature__ = inspect.Signature(own + options, return_annotation=SamSegmenter)  # type: ignore[attr-defined]
+    hints = {k: v for k, v in SamSegmenter.__init__.__annotations__.items() if k not in ("loaded", "return")}
+    builder.__annotations__ = {**{k: v for k, v in builder.__annotations__.items() if k != "options"}, **hints}
+
+
+_with_segmenter_options(build_sam_segmenter)
