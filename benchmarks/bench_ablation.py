@@ -44,10 +44,16 @@ def main() -> int:
     from uevavd.experiments.backends import run_jobs
     from uevavd.experiments.jobs import Job, save_spec
     from uevavd.experiments.results import is_done
+    from uevavd.perception.nets import resolve_device
     from uevavd.presets import load_preset
     from uevavd.runtime import tune_malloc
     from uevavd.table import ObservationTable
 
+    try:  # before any work: a CUDA device that is not there would otherwise fail in every worker
+        resolve_device(args.device)
+    except ValueError as e:
+        print(f"bench_ablation: --device: {e}", file=sys.stderr)
+        return 2
     tune_malloc()
     over = dict(load_preset(args.preset).get("overrides", {}))
     if args.episodes is not None:

@@ -19,7 +19,11 @@
 # Wheels in .whl/ (packages the machine lacks) are installed into /tmp/site first. Caches and
 # results go to runs/gpu/ (ignored by git). ABLATE_SECONDS and RUNS_SECONDS bound the ablate and
 # runs steps (default 540 each; RUNS_WORKERS, default 15, sets how many runs train side by side);
-# a bounded step stops with SIGINT and resumes from its checkpoints when run again.
+# a bounded step stops with SIGINT and resumes from its checkpoints when run again. A lent
+# machine kills a command outright after its limit (600 s), which would lose the step's record
+# of its time: CALL_SECONDS (default 570) bounds the whole invocation, so a bounded step gets
+# at most what is left of it (less 30 s to stop and write), and is skipped, saying so, when
+# under a minute is left.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD:/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
@@ -31,6 +35,18 @@ if compgen -G ".whl/*.whl" >/dev/null && [ ! -f /tmp/site/.done ]; then
 fi
 uevavd() { python3 -c 'import sys; from uevavd.cli import main; sys.exit(main())' "$@"; }
 stamp() { echo "=== $1: $(( $(date +%s) - T0 )) s"; }
+START=$(date +%s)
+# bound STEP SECONDS: the seconds a bounded step may run, SECONDS or what is left of this call
+bound() {
+  local left=$(( ${CALL_SECONDS:-570} - ($(date +%s) - START) - 30 ))
+  local want=$2
+  (( left < want )) && want=$left
+  if (( want < 60 )); then
+    echo "gpu_session: $1 skipped: ${left} s left of this call's ${CALL_SECONDS:-570} s; run it again in a new call" >&2
+    return 1
+  fi
+  echo "$want"
+}
 
 for step in "$@"; do
   T0=$(date +%s)
@@ -56,7 +72,8 @@ except Exception as e: print("ImageNet ResNet50: absent:", str(e)[:100])'
         --epoch-episodes 25000 --threads 1 --sb3-seconds 20 --progress
       ;;
     runs)
-      timeout -k 20 -s INT "${RUNS_SECONDS:-540}" python3 benchmarks/bench_ablation.py --device cuda \
+      secs=$(bound runs "${RUNS_SECONDS:-540}") || continue
+      timeout -k 20 -s INT "$secs" python3 benchmarks/bench_ablation.py --device cuda \
         --workers "${RUNS_WORKERS:-15}" --out runs/gpu/bench_ablation
       echo "runs exit $?"
       ;;
@@ -76,7 +93,8 @@ open(sys.argv[1], "wb").write(tomli_w.dumps(p).encode())
 EOF
         echo "no ImageNet ResNet50 here: timing with $preset (random encoder weights)"
       fi
-      timeout -k 20 -s INT "${ABLATE_SECONDS:-540}" \
+      secs=$(bound ablate "${ABLATE_SECONDS:-540}") || continue
+      timeout -k 20 -s INT "$secs" \
         python3 -c 'import sys; from uevavd.cli import main; sys.exit(main())' ablate --preset "$preset" \
         --seeds 5 --recognizers 1 --device cuda --workers 16 --out runs/gpu/ablation
       echo "ablate exit $?"
