@@ -40,6 +40,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/bench_ablation"))
     args = ap.parse_args()
 
+    from uevavd.atomic import atomic_write
     from uevavd.config import load_method
     from uevavd.experiments.backends import run_jobs
     from uevavd.experiments.jobs import Job, save_spec
@@ -102,8 +103,6 @@ def main() -> int:
     wall = time.perf_counter() - t0
     if todo:  # a call with nothing left to run adds no time
         timing["calls"].append({"wall_s": round(wall, 1), "runs": len(todo), "interrupted": interrupted})
-        from uevavd.atomic import atomic_write
-
         atomic_write(timing_path, json.dumps(timing, indent=1).encode())
     _summary(jobs, timing)
     return 130 if interrupted else 0

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import inspect
 import os
-from collections.abc import Callable
 from typing import Any
 
 from .model import CheckpointError, SmallConfig, default_small_path, load_sam
@@ -57,15 +56,11 @@ def build_sam_segmenter(*, checkpoint: str | None = None, model_type: str = "aut
     return SamSegmenter(loaded, **options)
 
 
-def _with_segmenter_options(builder: Callable[..., SamSegmenter]) -> None:
-    """Give ``builder`` a signature and annotations listing SamSegmenter's keyword options
-    after its own: the config's validation reads a builder's signature (an unknown key or a
-    wrong type is refused before a model loads), and the defaults stay in one place."""
-    own = [p for p in inspect.signature(builder).parameters.values() if p.kind is p.KEYWORD_ONLY]
-    options = [p for p in inspect.signature(SamSegmenter).parameters.values() if p.name != "loaded"]
-    builder.__signature__ = inspect.Signature(own + options, return_annotation=SamSegmenter)  # type: ignore[attr-defined]
-    hints = {k: v for k, v in SamSegmenter.__init__.__annotations__.items() if k not in ("loaded", "return")}
-    builder.__annotations__ = {**{k: v for k, v in builder.__annotations__.items() if k != "options"}, **hints}
-
-
-_with_segmenter_options(build_sam_segmenter)
+# The options after ``model_type`` are SamSegmenter's: the builder's signature, which the
+# config's validation reads (an unknown key or a wrong type is refused before a model loads),
+# is built from its constructor's, so their defaults and types exist once.
+_params = [p for p in inspect.signature(build_sam_segmenter).parameters.values() if p.kind is p.KEYWORD_ONLY]
+_params += [p for p in inspect.signature(SamSegmenter).parameters.values() if p.name != "loaded"]
+build_sam_segmenter.__signature__ = inspect.Signature(_params, return_annotation=SamSegmenter)  # type: ignore[attr-defined]
+build_sam_segmenter.__annotations__ = {p.name: p.annotation for p in _params}
+del _params
