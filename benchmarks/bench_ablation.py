@@ -113,16 +113,17 @@ def _summary(jobs, timing) -> None:
     from uevavd.experiments.results import is_done
 
     per_method: dict[str, list[float]] = {}
+    done = 0
     for job in jobs:
-        last = last_evaluation(job)
+        last, finished = last_evaluation(job), is_done(job)
         train_s = float(last.get("wall_s", 0.0))
-        if is_done(job):
+        if finished:
             per_method.setdefault(job.method, []).append(train_s)
+            done += 1
         print(f"  {job.method:>9} seed {job.seed}: {int(last.get('episodes', 0)):>7} episodes, training {train_s:6.0f} s"
-              f"{'' if is_done(job) else ' (not finished)'}")
+              f"{'' if finished else ' (not finished)'}")
     for method, secs in per_method.items():
         print(f"  {method:>9}: {len(secs)} runs finished, training {statistics.median(secs):.0f} s per run (median)")
-    done = sum(is_done(j) for j in jobs)
     total = sum(c["wall_s"] for c in timing["calls"])
     print(f"{done}/{len(jobs)} runs finished; wall time over {len(timing['calls'])} call(s): {total:.0f} s "
           f"({total / 60:.1f} min)")
