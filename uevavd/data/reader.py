@@ -42,6 +42,9 @@ from .naming import (
 from .records import UNUSED_FILE_KINDS, Manifest, Problem, ViewRecord
 from .scene_scan import image_size, scan_scene
 
+# the scene folders a UEVAVD root holds, as the reader's messages name them
+_LAYOUT = "ROOT/001 .. ROOT/150, ROOT/00, ROOT/train_605"
+
 __all__ = [
     "DatasetError",
     "Manifest",
@@ -116,8 +119,7 @@ def find_scenes(root: Path, problems: list[Problem]) -> list[tuple[SceneId, Path
                                     "expected one folder per scene (the others are skipped)"))
         out.append((sid, path))
     if not out:
-        problems.append(Problem("no_scenes", root, "no scene folders found; expected ROOT/001 .. ROOT/150, "
-                                "ROOT/00, ROOT/train_605 (or nested one level)"))
+        problems.append(Problem("no_scenes", root, f"no scene folders found; expected {_LAYOUT} (or nested one level)"))
     return out
 
 
@@ -152,8 +154,7 @@ def scan(root: str | Path, *, check: bool = True) -> tuple[Manifest, list[Proble
     root = Path(root).expanduser()
     problems: list[Problem] = []
     if not root.is_dir():
-        raise FileNotFoundError(f"dataset root {root} is not a folder; expected a UEVAVD-layout root "
-                                "(ROOT/001 .. ROOT/150, ROOT/00, ROOT/train_605)")
+        raise FileNotFoundError(f"dataset root {root} is not a folder; expected a UEVAVD-layout root ({_LAYOUT})")
     records: list[ViewRecord] = []
     sizes: dict[tuple[int, int], list[Path]] = defaultdict(list)
     scene_dirs: dict[str, Path] = {}
@@ -166,8 +167,7 @@ def scan(root: str | Path, *, check: bool = True) -> tuple[Manifest, list[Proble
     if scene_dirs and not records:  # e.g. /etc, whose postgresql/15 is named like scene 15 (named first: the cause)
         named = ", ".join(str(d) for d in list(scene_dirs.values())[:3]) + (", ..." if len(scene_dirs) > 3 else "")
         problems.insert(0, Problem("no_scenes", root, f"no scene holds a view (the folders named like scenes: {named}); "
-                                "expected ROOT/001 .. ROOT/150, ROOT/00, ROOT/train_605 (or nested one level) "
-                                "holding images and annotations"))
+                                f"expected {_LAYOUT} (or nested one level) holding images and annotations"))
     for name, where in listed_scenes(root).items():
         if name not in scene_dirs:
             problems.append(Problem("missing_scene", root / name, f"scene {name} is listed in {where} but its "
