@@ -462,6 +462,24 @@ def test_decomposed_table_reuses_the_raw_views_probabilities(built, tiny_world, 
     np.testing.assert_array_equal(ObservationTable.load(second).probs, ObservationTable.load(path).probs)
 
 
+def test_each_scene_is_keyed_by_its_own_files(built, tiny_world, tiny_classifier):
+    """The raw views' probabilities are cached per scene under that scene's own fingerprint,
+    so rewriting one image invalidates its scene's cache entry and no other."""
+    method, path = built
+    p = prep.plan_table(tiny_world, method, classifier_path=tiny_classifier)
+    assert p.scene_fingerprints == {s: prep.dataset_fingerprint(p.manifest, [(s, r)]) for s, r in p.scenes}
+    cached = {f.name for f in (path.parent / "probs").glob("*/*.npy")}
+    assert cached == {f"{s}-{fp}.npy" for s, fp in p.scene_fingerprints.items()}
+    img = next((tiny_world / "031").glob("*.png"))
+    st = img.stat()
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    try:
+        changed = prep.plan_table(tiny_world, method, classifier_path=tiny_classifier).scene_fingerprints
+    finally:
+        os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert [s for s in changed if changed[s] != p.scene_fingerprints[s]] == ["031"]
+
+
 METHOD_OWN = """
 name = "own"
 [perception]

@@ -73,20 +73,37 @@ def context_scenes(manifest) -> list[tuple[str, list]]:
     return out
 
 
+def _scene_fingerprint_bytes(manifest, scene: str, recs: list) -> bytes:
+    """What :func:`dataset_fingerprint` hashes of one scene: its categories, then per view
+    the target, view, box and visibility, and name, size and modification time of the image
+    and segmentation files."""
+    chunks = [f"{scene}:{json.dumps(manifest.categories(scene), sort_keys=True)}".encode()]
+    for r in recs:
+        parts = [r.target, r.view, r.box, r.visible]
+        for f in (r.image, r.seg):
+            if f is not None:
+                st = os.stat(f)
+                parts += [os.path.basename(f), st.st_size, st.st_mtime_ns]
+        chunks.append(repr(parts).encode())
+    return b"".join(chunks)
+
+
+def _fingerprints(manifest, scenes: list[tuple[str, list]]) -> tuple[str, dict[str, str]]:
+    """``(dataset_fingerprint(manifest, scenes), {scene: dataset_fingerprint of that scene
+    alone})``, every file stat'ed once."""
+    whole = hashlib.sha256()
+    per_scene = {}
+    for scene, recs in scenes:
+        data = _scene_fingerprint_bytes(manifest, scene, recs)
+        whole.update(data)
+        per_scene[scene] = hashlib.sha256(data).hexdigest()[:16]
+    return whole.hexdigest()[:16], per_scene
+
+
 def dataset_fingerprint(manifest, scenes: list[tuple[str, list]]) -> str:
     """16-hex hash of the files and annotations the table reads: names, sizes and
     modification times of images and segmentations, boxes, visibility, categories."""
-    h = hashlib.sha256()
-    for scene, recs in scenes:
-        h.update(f"{scene}:{json.dumps(manifest.categories(scene), sort_keys=True)}".encode())
-        for r in recs:
-            parts = [r.target, r.view, r.box, r.visible]
-            for p in (r.image, r.seg):
-                if p is not None:
-                    st = os.stat(p)
-                    parts += [Path(p).name, st.st_size, st.st_mtime_ns]
-            h.update(repr(parts).encode())
-    return h.hexdigest()[:16]
+    return _fingerprints(manifest, scenes)[0]
 
 
 def build_components(perception: PerceptionSection, data_root: Path, classifier_path: str | None, *,
@@ -160,13 +177,14 @@ def _load_scene(decoder: Decoder, manifest, scene: str, recs: list, segmenter, g
     return images, decomposed, maps, cats
 
 
-def _probs_path(probs_dir: Path | None, manifest, scene: str, recs: list) -> Path | None:
+def _probs_path(probs_dir: Path | None, scene: str, fingerprint: str) -> Path | None:
     """Where the classifier's probabilities on a scene's raw views are cached: keyed by the
-    classifier's identity (``probs_dir``) and the scene's own files, so tables that differ
-    only in segmenter or encoder (MAP's and IBE-MAP's) classify each raw view once."""
+    classifier's identity (``probs_dir``) and the scene's own files (``fingerprint``, its
+    :func:`dataset_fingerprint` alone), so tables that differ only in segmenter or encoder
+    (MAP's and IBE-MAP's) classify each raw view once."""
     if probs_dir is None:
         return None
-    return probs_dir / f"{scene}-{dataset_fingerprint(manifest, [(scene, recs)])}.npy"
+    return probs_dir / f"{scene}-{fingerprint}.npy"
 
 
 def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw,
@@ -232,6 +250,7 @@ class TablePlan:
     gray_seed: int
     parts: dict[str, Any]
     key: str
+    scene_fingerprints: dict[str, str]  # scene -> dataset_fingerprint of that scene alone
 
 
 def plan_table(
@@ -264,9 +283,10 @@ def plan_table(
         for scene, recs in scenes:  # fail before any image is decoded
             ground_truth_categories(manifest, scene, recs)
     gray_seed = perception.gray_seed
+    fingerprint, scene_fingerprints = _fingerprints(manifest, scenes)
     parts = {
         "schema_version": SCHEMA_VERSION,
-        "dataset": dataset_fingerprint(manifest, scenes),
+        "dataset": fingerprint,
         "segmenter": segmenter.identity() if decomposing else None,
         "decompose": decomposing,
         "gray_seed": gray_seed if decomposing else None,
@@ -274,7 +294,7 @@ def plan_table(
         "classifier": classifier.identity(),
     }
     return TablePlan(perception, {"method": spec.name, "method_hash": spec.hash}, data_root, manifest, scenes,
-                     segmenter, encoder, classifier, gray_seed, parts, table_key(parts))
+                     segmenter, encoder, classifier, gray_seed, parts, table_key(parts), scene_fingerprints)
 
 
 def prepare_table(
@@ -343,8 +363,8 @@ def prepare_table(
                 nxt = dec.submit(_load_scene, dec, manifest, *todo[i + 1], segmenter, gray_seed) if i + 1 < len(todo) else None
                 arrays = _compute_scene(scene, recs, loaded, segmenter=segmenter, encoder=encoder,
                                         classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size,
-                                        probs_path=_probs_path(probs_dir, manifest, scene, recs),
-                                        features_path=_probs_path(features_dir, manifest, scene, recs))
+                                        probs_path=_probs_path(probs_dir, scene, p.scene_fingerprints[scene]),
+                                        features_path=_probs_path(features_dir, scene, p.scene_fingerprints[scene]))
                 _write_shard(partial / f"{scene}.npz", arrays)
                 shards[scene] = arrays
                 bar.update(N_VIEWS)
