@@ -16,7 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "report": ("uevavd.experiments.cli:add_report", "(re)write DIR/report/report.md, figures and claims from an ablation's files"),
     "synth": ("uevavd.data.synthetic.cli:add_synth", "generate the synthetic UEVAVD world (resumable)"),
     "validate": ("uevavd.data.validate:add_validate", "check a dataset root: names, annotations, views, images; exit 1 on problems"),
-    "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the ResNet18 recognizer on train_605"),
+    "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the recognizer (the paper's ResNet18, or a preset's recipe) on train_605"),
     "prepare": ("uevavd.perception.cli:add_prepare", "build the observation table of a dataset for a method"),
     "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map) on an observation table"),
     "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run, or a model zoo policy (--pretrained), beside the baselines"),

@@ -10,6 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from .config_rules import parse_override
 from .data.splits import resolve_split, split_of, subset
 from .hashing import json_digest
 from .paths import cache_dir
@@ -41,6 +42,25 @@ def load_preset(name_or_path: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"preset file {p} does not exist")
     with p.open("rb") as f:
         return tomllib.load(f)
+
+
+def preset_overrides(preset: Mapping[str, Any]) -> dict[str, Any]:
+    """A preset's method overrides: its ``[overrides]`` table of dotted method keys, which
+    every method of the preset's runs, tables and models is loaded with."""
+    return dict(preset.get("overrides", {}))
+
+
+#: The ``--preset`` option's help, for every command that loads methods.
+PRESET_HELP = ("a preset (quick, paper) or its TOML path: the method is loaded with its [overrides] (encoder, "
+               "recognizer, network sizes, schedule), as `uevavd ablate --preset` does; --set wins over it")
+
+
+def cli_overrides(preset: str | None, sets: list[str]) -> dict[str, Any]:
+    """The method overrides of a command's ``--preset`` (none when None) and its ``--set
+    KEY=VALUE`` options, which win."""
+    over = preset_overrides(load_preset(preset)) if preset else {}
+    over.update(parse_override(s) for s in sets)
+    return over
 
 
 def world_root(preset: Mapping[str, Any]) -> Path:

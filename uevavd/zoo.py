@@ -41,7 +41,7 @@ from .hashing import file_sha256, json_digest
 from .perception.prepare import prepare_table
 from .perception.training.classifier import ClassifierRecipe
 from .policy.checkpoint import read_policy_file
-from .presets import ZOO, load_preset, world_contexts, world_root
+from .presets import ZOO, load_preset, preset_overrides, world_contexts, world_root
 from .table import ObservationTable
 
 FORMAT = "uevavd-zoo/1"
@@ -157,7 +157,7 @@ class Zoo:
         if self.manifest["recognizer"]["settings"] != recognizer_settings(preset, 0):
             out.append("the preset's [classifier] recipe changed since the recognizer was trained")
         for m, rec in self.manifest["policies"].items():
-            spec = load_method(m, overrides=dict(preset.get("overrides", {})))
+            spec = load_method(m, overrides=preset_overrides(preset))
             if spec.hash != rec["spec_hash"]:
                 out.append(f"method {m!r} with the preset's overrides now hashes to {spec.hash}, the shipped "
                            f"policy was trained as {rec['spec_hash']}")
@@ -172,7 +172,7 @@ class Zoo:
 
 def recognizer_settings(preset: Mapping[str, Any], seed: int) -> dict[str, Any]:
     """The recognizer's training settings under a preset (``ClassifierRecipe`` as a dict)."""
-    return json.loads(json.dumps(ClassifierRecipe(**{**preset.get("classifier", {}), "seed": seed}).__dict__))
+    return json.loads(json.dumps(ClassifierRecipe.from_preset(preset, seed=seed).__dict__))
 
 
 def _world_of(preset: Mapping[str, Any], contexts: Sequence[int], label: str, *, workers: int,

@@ -67,3 +67,23 @@ def test_cli_prepare(tiny_world, tiny_classifier, tmp_path, method_toml, capsys)
     printed = capsys.readouterr().out.strip().splitlines()[-1]
     assert rc == 0 and (tmp_path / "tables" / printed.rsplit("/", 1)[-1] / "meta.json").is_file()
     assert "seed=2" not in printed and printed.startswith(str(tmp_path / "tables"))
+
+
+def test_a_preset_gives_the_recipe_and_options_win(world_605, tmp_path, capsys, monkeypatch):
+    """``train-classifier --preset`` trains by the preset's [classifier] recipe, as `ablate`
+    does; an option given on the command line wins over the preset's value."""
+    preset = tmp_path / "mine.toml"
+    preset.write_text('name = "mine"\n[classifier]\narch = "resnet18"\ninit = "random"\nepochs = 3\n'
+                      'max_views = 10\nbatch_size = 16\nlr = 2e-3\n')
+    out = tmp_path / "c.safetensors"
+    assert main(["train-classifier", str(world_605), "--preset", str(preset), "--epochs", "1", "--out", str(out),
+                 "--threads", "1"]) == 0
+    settings = read_classifier_file(out)[1]["train"]["settings"]
+    assert (settings["init"], settings["max_views"], settings["batch_size"], settings["lr"]) == ("random", 10, 16, 2e-3)
+    assert settings["epochs"] == 1  # the option, not the preset's 3
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    capsys.readouterr()
+    preset.write_text('name = "mine"\n[classifier]\nepoch = 3\n')
+    assert main(["train-classifier", str(world_605), "--preset", str(preset), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "preset 'mine' [classifier]: no key 'epoch'; did you mean 'epochs'?" in err, err

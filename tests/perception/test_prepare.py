@@ -480,6 +480,24 @@ def test_each_scene_is_keyed_by_its_own_files(built, tiny_world, tiny_classifier
     assert [s for s in changed if changed[s] != p.scene_fingerprints[s]] == ["031"]
 
 
+def test_prepare_with_a_preset(built, tiny_world, tiny_classifier, tmp_path, capsys):
+    """``prepare --preset`` builds the table of the method loaded with the preset's
+    [overrides]: the table ``plan_table`` keys with those overrides."""
+    from uevavd.cli import main
+
+    method, path = built
+    preset = tmp_path / "mine.toml"
+    preset.write_text('name = "mine"\n[overrides]\n"perception.gray_seed" = 7\n')
+    capsys.readouterr()
+    assert main(["prepare", str(tiny_world), "--method", str(method), "--preset", str(preset), "--classifier",
+                 str(tiny_classifier), "--out", str(path.parent)]) == 0
+    printed = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    want = prep.plan_table(tiny_world, method, classifier_path=tiny_classifier,
+                           overrides={"perception.gray_seed": 7}).key
+    assert printed.name == want != path.name
+    assert ObservationTable.load(printed).meta["config"]["key_parts"]["gray_seed"] == 7
+
+
 METHOD_OWN = """
 name = "own"
 [perception]

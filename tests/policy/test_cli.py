@@ -96,3 +96,30 @@ def test_train_bad_input_is_one_line_and_exit_2(table, tmp_path, capsys, monkeyp
     monkeypatch.setenv("UEVAVD_DEBUG", "1")
     with pytest.raises(TableError, match="split 'train'"):
         main([*base, "--table", str(hard_path), *_sets()])
+
+
+def test_train_with_a_preset_and_the_preset_a_table_fits(table, tmp_path, capsys, monkeypatch):
+    """``train --preset quick`` loads the method with the quick preset's overrides, as the
+    demo's runs are (``--set`` wins); trained without it, a table built for the quick
+    preset's perception is refused in one line that names the preset."""
+    from uevavd.config import load_method
+    from uevavd.presets import load_preset, preset_overrides
+    from uevavd.table import ObservationTable
+
+    quick = load_method("map", preset_overrides(load_preset("quick"))).perception.as_dict()
+    path = ObservationTable.from_arrays(table.features, table.probs, table.boxes, scenes=table.scenes,
+                                        targets=table.targets, splits=table.splits,
+                                        config={"perception": quick}).save(tmp_path / "table")
+    argv = ["train", "--method", "map", "--table", str(path), "--episodes", "100", "--no-progress",
+            "--device", "cpu", *_sets(), "--set", 'train.eval_splits=["train", "hard"]']
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main([*argv, "--out", str(tmp_path / "plain")]) == 2
+    _one_line_error(capsys, "built for another perception config", "the preset 'quick' fits this table: "
+                    "pass --preset quick")
+    assert not (tmp_path / "plain" / "done.json").exists()
+    assert main([*argv, "--preset", "nosuch", "--out", str(tmp_path / "x")]) == 2
+    _one_line_error(capsys, "unknown preset 'nosuch'")
+    assert main([*argv, "--preset", "quick", "--set", "train.lr=0.002", "--out", str(tmp_path / "run")]) == 0
+    settings = json.loads((tmp_path / "run" / "settings.json").read_text())["train"]
+    assert settings["eps_fraction"] == 0.15 and settings["episodes"] == 100  # the preset's; --episodes
+    assert settings["lr"] == 0.002 and settings["learning_starts"] == 40  # --set over the preset's 1e-3, 500

@@ -14,7 +14,7 @@ from ..config import ConfigError, known_methods, load_method, parse_override
 from ..env.config import EnvConfig
 from ..perception.nets import resolve_device
 from ..perception.training.classifier import ClassifierRecipe
-from ..presets import load_preset
+from ..presets import load_preset, preset_overrides
 
 #: The paper's default reward settings; sweeps vary one of them.
 DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
@@ -86,7 +86,7 @@ class Plan:
         sweeps (one key varied at a time from the default)."""
         out = [("default", dict(DEFAULT_SETTING))]
         if method in self.sweep_methods:
-            spec = load_method(method, overrides=dict(self.preset.get("overrides", {}))) if self.extra_sweeps else None
+            spec = load_method(method, overrides=preset_overrides(self.preset)) if self.extra_sweeps else None
             for key, values in self.sweeps.items():
                 for v in values:
                     s = dict(DEFAULT_SETTING, **{key: v})
@@ -202,7 +202,7 @@ def make_plan(
         for m in methods:
             for v in values:
                 try:
-                    load_method(m, overrides={**dict(cfg.get("overrides", {})), key: v})
+                    load_method(m, overrides={**preset_overrides(cfg), key: v})
                 except ConfigError as exc:
                     raise AblationError(f"--sweep {key}={v!r} for method {m!r}: {exc}") from None
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
@@ -225,13 +225,12 @@ def make_plan(
         raise AblationError(f"--device: {exc}") from None
 
     try:
-        ClassifierRecipe(**cfg.get("classifier", {})).check()
-    except (TypeError, ValueError) as exc:
-        raise AblationError(f"preset {preset!r} [classifier]: {exc} (accepted keys: "
-                            f"{sorted(ClassifierRecipe.__dataclass_fields__)})") from None
+        ClassifierRecipe.from_preset(cfg)
+    except ValueError as exc:
+        raise AblationError(str(exc)) from None
     for m in methods:
         try:
-            load_method(m, overrides=dict(cfg.get("overrides", {})))
+            load_method(m, overrides=preset_overrides(cfg))
         except ConfigError as exc:
             raise AblationError(f"preset {preset!r} [overrides] for method {m!r}: {exc}") from None
     return Plan(
@@ -261,7 +260,7 @@ def default_workers() -> int:
 # -- stages ---------------------------------------------------------------------------------
 
 def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
-    over = dict(plan.preset.get("overrides", {}))
+    over = preset_overrides(plan.preset)
     over.update({SWEEPABLE.get(k, k): v for k, v in setting.items()})
     if plan.episodes is not None:
         over["train.episodes"] = int(plan.episodes)

@@ -62,7 +62,7 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
     digest = data_hash(train_records(read_dataset(data)))
     out = {}
     for r in plan.recognizers:
-        recipe = ClassifierRecipe(**{**plan.preset.get("classifier", {}), "seed": r})
+        recipe = ClassifierRecipe.from_preset(plan.preset, seed=r)
         path = classifier_cache_path(digest, recipe)
         shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
         if path.is_file():

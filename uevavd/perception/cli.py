@@ -5,9 +5,15 @@ from __future__ import annotations
 import argparse
 import logging
 
+from ..presets import PRESET_HELP, cli_overrides
+
 
 def _logging() -> None:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+
+
+#: The recipe fields ``train-classifier`` takes as options (a --preset's [classifier] gives the rest).
+RECIPE_OPTIONS = ("arch", "init", "epochs", "batch_size", "lr", "val_fraction", "seed", "max_views")
 
 
 def add_train_classifier(p: argparse.ArgumentParser):
@@ -15,40 +21,46 @@ def add_train_classifier(p: argparse.ArgumentParser):
 
     d = ClassifierRecipe()
     p.add_argument("data", help="dataset root (UEVAVD layout) holding the train_605 scene")
+    p.add_argument("--preset", default=None,
+                   help="a preset (quick, paper) or its TOML path: its [classifier] recipe gives the defaults of "
+                        "the options below (arch, init, epochs, ...), as `uevavd ablate --preset` trains it")
     p.add_argument("--out", default=None,
                    help="output .safetensors (default: <cache>/classifiers/<data hash>.safetensors, "
                         "where `uevavd prepare` looks)")
-    p.add_argument("--arch", default=d.arch, choices=["resnet18", "efficientnet_lite0"],
-                   help="recognizer network (the paper's is resnet18)")
-    p.add_argument("--init", default=d.init, choices=["imagenet", "random"],
+    p.add_argument("--arch", default=None, choices=["resnet18", "efficientnet_lite0"],
+                   help=f"recognizer network (the paper's is resnet18; default: the preset's, else {d.arch})")
+    p.add_argument("--init", default=None, choices=["imagenet", "random"],
                    help="initial weights: ImageNet (resnet18: torch's cache or --imagenet, else random with a "
-                        "warning; efficientnet_lite0: its installed package) or random")
-    p.add_argument("--epochs", type=int, default=d.epochs)
-    p.add_argument("--batch-size", type=int, default=d.batch_size)
-    p.add_argument("--lr", type=float, default=d.lr)
-    p.add_argument("--val-fraction", type=float, default=d.val_fraction,
-                   help="share of the 605 viewpoints held out for validation")
+                        "warning; efficientnet_lite0: its installed package) or random "
+                        f"(default: the preset's, else {d.init})")
+    p.add_argument("--epochs", type=int, default=None, help=f"(default: the preset's, else {d.epochs})")
+    p.add_argument("--batch-size", type=int, default=None, help=f"(default: the preset's, else {d.batch_size})")
+    p.add_argument("--lr", type=float, default=None, help=f"(default: the preset's, else {d.lr})")
+    p.add_argument("--val-fraction", type=float, default=None,
+                   help=f"share of the 605 viewpoints held out for validation (default: the preset's, else "
+                        f"{d.val_fraction})")
     p.add_argument("--imagenet", default=None,
                    help="ImageNet ResNet18 weights file to start from (default: torch's cache, else random)")
-    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--seed", type=int, default=None, help=f"(default: the preset's, else {d.seed})")
     p.add_argument("--max-views", type=int, default=None,
-                   help="train on a seeded sample of this many viewpoints (default: all 605)")
+                   help="train on a seeded sample of this many viewpoints (default: the preset's, else all 605)")
     p.add_argument("--workers", type=int, default=2, help="image decoding threads")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--device", default="auto", help="where the network trains: auto (CUDA when present), cpu, cuda")
 
     def run(args) -> int:
+        from ..presets import load_preset
         from .nets import resolve_device
         from .training.classifier import ClassifierRecipe, train_classifier
 
+        given = {k: getattr(args, k) for k in RECIPE_OPTIONS if getattr(args, k) is not None}
+        s = ClassifierRecipe.from_preset(load_preset(args.preset) if args.preset else {}, **given)  # before any work
         _logging()
         if args.threads:
             import torch
 
             torch.set_num_threads(args.threads)
         resolve_device(args.device)  # a bad or absent device is refused before any work
-        s = ClassifierRecipe(arch=args.arch, init=args.init, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
-                          val_fraction=args.val_fraction, seed=args.seed, max_views=args.max_views)
         path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers,
                                 device=args.device)
         print(path)
@@ -61,6 +73,7 @@ def add_train_classifier(p: argparse.ArgumentParser):
 def add_prepare(p: argparse.ArgumentParser):
     p.add_argument("data", help="dataset root (UEVAVD layout)")
     p.add_argument("--method", required=True, help="registered method name or a method TOML path")
+    p.add_argument("--preset", default=None, help=PRESET_HELP)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a method key, e.g. --set perception.encoder.weights=random (repeatable)")
     p.add_argument("--classifier", default=None, help="classifier .safetensors (default: the dataset's default)")
@@ -74,8 +87,7 @@ def add_prepare(p: argparse.ArgumentParser):
                    help="Ray tasks to split the scenes into (default: the cluster's CPUs)")
 
     def run(args) -> int:
-        from ..config import parse_override
-
+        overrides = cli_overrides(args.preset, args.overrides)  # bad input before any work
         if args.threads:
             import torch
 
@@ -83,7 +95,6 @@ def add_prepare(p: argparse.ArgumentParser):
         from .prepare import prepare_table
 
         _logging()
-        overrides = dict(parse_override(s) for s in args.overrides)
         if args.backend == "ray":
             from .prepare_ray import prepare_table_ray
 

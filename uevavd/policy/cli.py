@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from ..cli import error as _error
+from ..presets import PRESET_HELP, cli_overrides, known_presets
 from .rundir import RunDir
 
 #: What bad input raises (ConfigError, TableError, RunDirError, CheckpointError are ValueErrors).
@@ -39,8 +40,35 @@ def _table_problem(path: Path) -> str | None:
     return None
 
 
+def _with_preset_hint(args: argparse.Namespace, exc: BaseException) -> BaseException:
+    """``exc``; for a table built for another perception config than the method's, with the
+    name of a preset whose overrides (with the command's --set) make the method fit it."""
+    from ..config import load_method
+    from ..table import ObservationTable
+    from .trainer import PerceptionMismatch, check_table_perception
+
+    if not isinstance(exc, PerceptionMismatch):
+        return exc
+    try:
+        table = ObservationTable.load(args.table)
+        fits = []
+        for name in known_presets():
+            if name == args.preset:
+                continue
+            try:
+                spec = load_method(args.method, cli_overrides(name, args.set))
+                check_table_perception(spec.perception, table, args.method)
+            except (PerceptionMismatch, ValueError):
+                continue
+            fits.append(name)
+    except (OSError, ValueError):
+        return exc
+    return PerceptionMismatch(f"{exc}; the preset {fits[0]!r} fits this table: pass --preset {fits[0]}") if fits else exc
+
+
 def add_train(p: argparse.ArgumentParser):
     p.add_argument("--method", required=True, help="registered method (map, memo_map, ibe_map) or a TOML path")
+    p.add_argument("--preset", default=None, help=PRESET_HELP)
     p.add_argument("--table", required=True, type=Path, help="observation table folder (from `uevavd prepare`)")
     p.add_argument("--out", required=True, type=Path, help="run directory (resumed when it holds this run)")
     p.add_argument("--episodes", type=int, default=None, help="training episodes (default: the method's)")
@@ -52,14 +80,14 @@ def add_train(p: argparse.ArgumentParser):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     def run(args: argparse.Namespace) -> int:
-        from ..config import ConfigError, load_method, parse_override
+        from ..config import ConfigError, load_method
         from .rundir import RunDirError
         from .trainer import train
 
         try:
-            overrides = dict(parse_override(s) for s in args.set)
+            overrides = cli_overrides(args.preset, args.set)
             spec = load_method(args.method, overrides)
-        except ConfigError as exc:
+        except (ConfigError, *BAD_INPUT) as exc:
             return _error("train", exc)
         was_done = RunDir(args.out).finished  # the same run again: nothing to do, not an error
         problem = _table_problem(args.table)
@@ -69,7 +97,7 @@ def add_train(p: argparse.ArgumentParser):
             out = train(spec, args.table, out=args.out, episodes=args.episodes, seed=args.seed,
                         device=args.device, progress=not args.no_progress, max_epochs=args.max_epochs)
         except (RunDirError, *BAD_INPUT) as exc:
-            return _error("train", exc)
+            return _error("train", _with_preset_hint(args, exc))
         if was_done:
             print(f"run already finished: {out} (evaluate it with `uevavd evaluate {out}`; another --out trains anew)")
             return 0

@@ -58,6 +58,10 @@ def _versions() -> dict[str, str]:
             "python": platform.python_version()}
 
 
+class PerceptionMismatch(RunDirError):
+    """A table built for another perception config than the method trained on it."""
+
+
 #: The perception keys a table's recorded config must share with the method trained on it.
 TABLE_PERCEPTION_KEYS = ("segmenter.name", "decompose", "gray_seed", "encoder.name", "encoder.weights", "classifier.name")
 
@@ -82,9 +86,9 @@ def check_table_perception(perception: PerceptionSection, table: Any, method: st
     diffs = [f"perception.{k}: table {get(recorded, k)!r}, method {get(want, k)!r}"
              for k in TABLE_PERCEPTION_KEYS if get(recorded, k) != get(want, k)]
     if diffs:
-        raise RunDirError(f"table {table.path or table.key} was built for another perception config than method "
-                          f"{method!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA --method "
-                          f"{method}` (with the same --set overrides) and pass that one")
+        raise PerceptionMismatch(f"table {table.path or table.key} was built for another perception config than "
+                                 f"method {method!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA "
+                                 f"--method {method}` (with the same --preset and --set) and pass that one")
 
 
 class _Evaluator:
@@ -344,4 +348,4 @@ def _log_settings(writer: Any, settings: dict[str, Any]) -> None:
         writer._get_file_writer().add_summary(summary)  # in this run's event file (add_hparams opens another)
 
 
-__all__ = ["train", "TrainConfig", "RunDirError", "CheckpointError", "RUN_KEYS", "read_settings", "run_spec"]
+__all__ = ["train", "TrainConfig", "RunDirError", "PerceptionMismatch", "CheckpointError", "RUN_KEYS", "read_settings", "run_spec"]

@@ -12,11 +12,14 @@ installed package), or random.
 
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -63,6 +66,29 @@ class ClassifierRecipe:
     #: brightness factor range (the measured quick-world classifier used (0.7, 1.25), jitter 0.15)
     brightness: tuple[float, float] = (0.45, 1.25)
     max_views: int | None = None  #: use only this many viewpoints (seeded sample) for train + val
+
+    @classmethod
+    def from_preset(cls, preset: Mapping[str, Any], **fields: Any) -> ClassifierRecipe:
+        """The recipe of a preset's ``[classifier]`` table (``{}``: the defaults), ``fields``
+        (e.g. the recognizer ``seed``) replacing its values, checked: a key the recipe does
+        not have, or a value it refuses, is a ``ValueError`` naming the preset."""
+        values = {**preset.get("classifier", {}), **fields}
+        where = f"preset {preset.get('name', '?')!r} [classifier]" if preset else "the recognizer's recipe"
+        known = sorted(cls.__dataclass_fields__)
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            near = difflib.get_close_matches(unknown[0], known, n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise ValueError(f"{where}: no key {unknown[0]!r}{hint} (accepted keys: {known})")
+        recipe = cls(**values)
+        try:
+            recipe.check()
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        except TypeError:  # e.g. epochs = "8"
+            raise ValueError(f"{where} {values}: expected numbers where the recipe has numbers "
+                             f"(defaults: {cls().__dict__})") from None
+        return recipe
 
     def check(self) -> None:
         if self.arch not in ARCHS:
