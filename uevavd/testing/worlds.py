@@ -13,6 +13,7 @@ Tests of the whole pipeline (reader -> classifier -> table -> training -> ablati
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -51,7 +52,10 @@ def draw_view(cls: int, view: int, occlude: bool, rng) -> tuple[np.ndarray, np.n
     return img, seg, box, visible
 
 
-def write_tiny_world(root: Path, contexts=(1, 31), train605: bool = True, seed: int = 0) -> Path:
+def write_tiny_world(root: str | os.PathLike[str], contexts=(1, 31), train605: bool = True, seed: int = 0) -> Path:
+    """A tiny UEVAVD-layout world in ``root`` (16 px views of ``contexts``, and ``train_605``
+    when asked); returns ``root`` as a Path."""
+    root = Path(root)
     rng = np.random.default_rng(seed)
     scenes = [(f"{c:03d}", [TARGETS[(c - 1) // 30]], True) for c in contexts]
     if train605:

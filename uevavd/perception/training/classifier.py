@@ -221,7 +221,7 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cl
     settings.check()
     images, labels, views = np.asarray(images), np.asarray(labels, np.int64), np.asarray(views, np.int64)
     if settings.arch == "efficientnet_lite0":
-        check_size(images, "train-classifier")
+        check_size(images, "training the efficientnet_lite0 recognizer")
     all_views = sample_views(np.unique(views), settings)
     val_views = all_views[split_views(len(all_views), settings.val_fraction, settings.seed)]
     is_val = np.isin(views, val_views)
