@@ -13,6 +13,9 @@ import sys
 import tempfile
 from pathlib import Path
 
+from uevavd.config import load_method
+from uevavd.presets import load_preset, preset_overrides
+from uevavd.table import ObservationTable
 from uevavd.testing.policy import toy_table
 from uevavd.testing.worlds import write_tiny_world
 
@@ -52,6 +55,10 @@ data = (run3 / "checkpoint.pt").read_bytes()
 (run3 / "checkpoint.pt").write_bytes(data[: len(data) // 2])
 (W / "empty").mkdir()
 (W / "clf.txt").write_text("not a classifier")
+toy = toy_table(n_train=2, n_hard=1, feature_dim=8)  # the same table, recorded as built for the quick preset
+quick = load_method("map", preset_overrides(load_preset("quick"))).perception.as_dict()
+quick_table = ObservationTable.from_arrays(toy.features, toy.probs, toy.boxes, scenes=toy.scenes, targets=toy.targets,
+                                           splits=toy.splits, config={"perception": quick}).save(W / "quick_table")
 cases = [
  ("a table folder that does not exist", ["train", "--method", "map", "--table", W / "nope", "--out", W / "r1"]),
  ("an unknown method", ["train", "--method", "mapp", "--table", table, "--out", W / "r2"]),
@@ -61,6 +68,7 @@ cases = [
  ("--out is an existing file", ["train", "--method", "map", "--table", table, "--out", W / "afile", "--episodes", 100, *SMALL]),
  ("training on a CUDA device that is not there", ["train", "--method", "map", "--table", table, "--out", W / "r6", "--device", "cuda", "--episodes", 100, *SMALL]),
  ("resuming from a half-written checkpoint", ["train", "--method", "map", "--table", table, "--out", run3, "--episodes", 100, "--no-progress", "--device", "cpu", *SMALL]),
+ ("a quick-preset table trained without --preset", ["train", "--method", "map", "--table", quick_table, "--out", W / "r7"]),
  ("evaluate on a folder that is not a run", ["evaluate", W / "empty", "--split", "hard"]),
  ("evaluate a run whose settings.json is corrupt", ["evaluate", run2, "--split", "hard"]),
  ("prepare on a file instead of a dataset root", ["prepare", W / "afile", "--method", "map"]),
