@@ -57,3 +57,10 @@ def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatc
     with pytest.raises(ValueError, match="does not fit .*decompose: policy True, table False"):
         uevavd.load_policy_file(tmp_path / "ibe_map.safetensors", table=other)
     assert np.isfinite(frame.to_numpy()).all()
+
+
+def test_a_misspelled_recipe_setting_is_named_before_any_work(tmp_path):
+    import uevavd
+
+    with pytest.raises(ValueError, match="no key 'epoch'; did you mean 'epochs'"):
+        uevavd.train_classifier(tmp_path / "no-data", epoch=3)

@@ -36,8 +36,7 @@ def train_classifier(data: str | os.PathLike[str], out: str | os.PathLike[str] |
     from .perception.training.classifier import ClassifierRecipe
     from .perception.training.classifier import train_classifier as _train
 
-    s = ClassifierRecipe(**settings)
-    s.check()
+    s = ClassifierRecipe.from_preset({}, **settings)  # checked: a misspelled key is a ValueError naming it
     if out is None:  # the cache `uevavd ablate` uses too
         out = classifier_cache_path(data_hash(train_records(read_dataset(data))), s)
         if out.is_file():
