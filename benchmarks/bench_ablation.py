@@ -46,7 +46,7 @@ def main() -> int:
     from uevavd.experiments.jobs import Job, save_spec
     from uevavd.experiments.results import is_done
     from uevavd.perception.nets import resolve_device
-    from uevavd.presets import load_preset
+    from uevavd.presets import load_preset, preset_overrides
     from uevavd.runtime import tune_malloc
     from uevavd.table import ObservationTable
 
@@ -56,7 +56,7 @@ def main() -> int:
         print(f"bench_ablation: --device: {e}", file=sys.stderr)
         return 2
     tune_malloc()
-    over = dict(load_preset(args.preset).get("overrides", {}))
+    over = preset_overrides(load_preset(args.preset))
     if args.episodes is not None:
         over["train.episodes"] = args.episodes
     workers = args.workers or args.seeds * len(args.methods.split(","))

@@ -73,9 +73,9 @@ def main() -> int:
     rows["oracle"] = score(base, OraclePolicy(base, cfg))
     over = {}
     if args.preset:
-        from uevavd.presets import load_preset
+        from uevavd.presets import load_preset, preset_overrides
 
-        over.update(load_preset(args.preset).get("overrides", {}))
+        over.update(preset_overrides(load_preset(args.preset)))
         print(f"preset {args.preset} overrides: {over}")
     over.update({"train.threads": args.threads, **dict(parse_override(s) for s in args.set)})
     for method in args.methods.split(","):

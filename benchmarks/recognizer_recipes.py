@@ -42,7 +42,7 @@ def main() -> None:
     from uevavd.runtime import tune_malloc
 
     tune_malloc()
-    base = dict(load_preset("quick").get("classifier", {}))
+    quick = load_preset("quick")
     manifest = read_dataset(args.world)
     recs = [r for r in manifest.records if r.split == "train" and r.visible is not None and r.visible >= 0.9]
     with Decoder(2) as dec:
@@ -53,8 +53,8 @@ def main() -> None:
     rows = []
     for recipe in args.recipes:
         arch, init, epochs, lr = recipe.split(":")
-        settings = ClassifierRecipe(**{**base, "arch": arch, "init": init, "epochs": int(epochs), "lr": float(lr),
-                                    "seed": args.seed})
+        settings = ClassifierRecipe.from_preset(quick, arch=arch, init=init, epochs=int(epochs), lr=float(lr),
+                                                seed=args.seed)
         path = args.out / f"{arch}-{init}-{epochs}-{lr}-seed{args.seed}.safetensors"
         t0 = time.perf_counter()
         train_classifier(args.world, path, settings=settings, workers=2, progress=False)

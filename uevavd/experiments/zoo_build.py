@@ -51,7 +51,7 @@ def build_zoo(out: str | os.PathLike[str] | None = None, *, preset: str = "quick
     cfg = plan.preset
     data = world_root(cfg)
     recognizer = classifier_cache_path(data_hash(train_records(read_dataset(data))),
-                                       ClassifierRecipe(**recognizer_settings(cfg, 0)))
+                                       ClassifierRecipe.from_preset(cfg, seed=0))
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, dict[str, Any]] = {}
 
