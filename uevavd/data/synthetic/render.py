@@ -82,8 +82,9 @@ class _Prep:
     """Per-scene precomputation: float32 copies of the primitives, bounding spheres (frustum
     culling), real plane counts, lookup tables for shading, ellipsoid corner boxes."""
 
-    def __init__(self, scene: Scene):
+    def __init__(self, scene: Scene, shared: SharedShadows | None = None):
         p = scene.prims
+        self._shared = shared
         self.p = dict(p)
         for key in ("h_planes", "h_rgb", "h_par", "e_rgb"):
             self.p[key] = p[key].astype(np.float32)
@@ -113,7 +114,12 @@ class _Prep:
         footprint at the nearest viewpoint, 60 m)."""
         key = (size, *np.round(sun, 9))
         if key not in self._shadow:
-            self._shadow[key] = _ShadowMap(self, sun, 0.8 * 60.0 / focal_px(size))
+            cell = 0.8 * 60.0 / focal_px(size)
+            if self._shared is None:
+                self._shadow[key] = _ShadowMap(self, sun, cell)
+            else:
+                self._shadow[key] = _ShadowMap(self, sun, cell, cast="target",
+                                               under=self._shared.others(self, key, sun, cell))
         return self._shadow[key]
 
     def rects(self, origin, basis, size: int, fpx: float, cull: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -131,6 +137,31 @@ class _Prep:
                 r[:] = (0, size, 0, size)
             out.append(r)
         return out[0], out[1]
+
+
+class SharedShadows:
+    """The shadow map of everything but the target, cast once for the scenes that differ only
+    in their target (the five of a ``train_605`` stage, :func:`world.with_target`): give it to
+    each one's ``_Prep``, whose own map then casts the target alone over its tiles. The maps
+    are the same bit for bit as each scene's own (see ``_ShadowMap._tile``); a scene whose
+    other primitives or sun differ from the first one's is refused."""
+
+    def __init__(self) -> None:
+        self._maps: dict[tuple, _ShadowMap] = {}
+        self._scene: list[np.ndarray] | None = None
+
+    def others(self, prep: _Prep, key: tuple, sun: np.ndarray, cell: float) -> _ShadowMap:
+        p = prep.p
+        h, e = p["h_inst"] != TARGET_ID, p["e_inst"] != TARGET_ID
+        scene = [np.asarray(sun), p["h_planes"][h], p["h_verts"][h], p["e_centre"][e], p["e_radii"][e]]
+        if self._scene is None:
+            self._scene = scene
+        elif not all(np.array_equal(a, b) for a, b in zip(self._scene, scene, strict=True)):
+            raise ValueError("SharedShadows: this scene's sun or primitives other than the target differ from "
+                             "those of the scenes sharing its shadows: give it a _Prep of its own")
+        if key not in self._maps:
+            self._maps[key] = _ShadowMap(prep, sun, cell, cast="others")
+        return self._maps[key]
 
 
 def _in_frustum(centre: np.ndarray, radius: np.ndarray, origin, basis, size: int, fpx: float) -> np.ndarray:

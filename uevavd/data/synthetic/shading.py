@@ -9,7 +9,7 @@ import numpy as np
 
 from .geometry import M_CABIN, M_CANOPY, M_FACADE
 from .raycast import _INF, _ellipsoid_t, _hull_t, _put_rows, _rows
-from .scenes import Scene
+from .scenes import TARGET_ID, Scene
 
 if TYPE_CHECKING:  # pragma: no cover
     from .render import _Prep
@@ -25,7 +25,13 @@ class _ShadowMap:
 
     TILE = 128
 
-    def __init__(self, prep: _Prep, sun: np.ndarray, cell: float):
+    def __init__(self, prep: _Prep, sun: np.ndarray, cell: float, *, cast: str = "all",
+                 under: _ShadowMap | None = None):
+        """``cast``: the primitives that cast shadows here, "all", "target" (the target's
+        alone, on top of the tiles of ``under``, the map of the others) or "others"."""
+        if cast not in ("all", "target", "others") or (under is None) == (cast == "target"):
+            raise ValueError(f"cast={cast!r} with under={under!r}: a map of the target alone needs "
+                             "the map of the others beneath it, and no other map has one")
         p = prep.p
         lit_u = np.cross(sun, [0.0, 0.0, 1.0] if abs(sun[2]) < 0.99 else [1.0, 0.0, 0.0])
         lit_u /= np.linalg.norm(lit_u)
@@ -39,12 +45,15 @@ class _ShadowMap:
         self.atlas = np.empty((0, 0), np.float32)
         self.done = np.zeros((0, 0), bool)
         self.tu0 = self.tv0 = 0
-        self.prims = []  # (kind, index, ulo, uhi, vlo, vhi)
-        for kind, corners in (("h", p["h_verts"]), ("e", prep.e_corners)):
+        self.under = under
+        self._tiles: dict[tuple[int, int], np.ndarray] = {}  # see tile()
+        self.prims = []  # (kind, primitive indices, ulo, uhi, vlo, vhi)
+        for kind, corners, inst in (("h", p["h_verts"], p["h_inst"]), ("e", prep.e_corners, p["e_inst"])):
             if len(corners):
                 proj = corners @ self.frame.T
                 lo, hi = proj.min(1), proj.max(1)
-                self.prims.append((kind, lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]))
+                index = np.arange(len(corners)) if cast == "all" else np.flatnonzero((inst == TARGET_ID) == (cast == "target"))
+                self.prims.append((kind, index, lo[index, 0], hi[index, 0], lo[index, 1], hi[index, 1]))
         self.p = p
 
     def _tile(self, tu: int, tv: int) -> np.ndarray:
@@ -53,15 +62,20 @@ class _ShadowMap:
         cu = u0 + (np.arange(self.TILE) + 0.5) * self.cell
         cv = v0 + (np.arange(self.TILE) + 0.5) * self.cell
         top = 200.0  # sun rays start above everything (a < 200 m for every primitive)
-        depth = np.full((self.TILE, self.TILE), -_INF, np.float32)
+        if self.under is None:
+            depth = np.full((self.TILE, self.TILE), -_INF, np.float32)
+        else:  # a cell holds the maximum over primitives, so casting the rest on top of the
+            # others' tile gives the depths of casting all, bit for bit (float32 rounding is monotonic)
+            depth = self.under.tile(tu, tv).copy()
         fu, fv, sun = self.frame[0], self.frame[1], self.sun
-        for kind, ulo, uhi, vlo, vhi in self.prims:
+        for kind, index, ulo, uhi, vlo, vhi in self.prims:
             hit = np.nonzero((ulo < u0 + span) & (uhi > u0) & (vlo < v0 + span) & (vhi > v0))[0]
-            for i in hit:
-                i0 = max(int((ulo[i] - u0) / self.cell), 0)
-                i1 = min(int((uhi[i] - u0) / self.cell) + 2, self.TILE)
-                j0 = max(int((vlo[i] - v0) / self.cell), 0)
-                j1 = min(int((vhi[i] - v0) / self.cell) + 2, self.TILE)
+            for k in hit:
+                i = index[k]
+                i0 = max(int((ulo[k] - u0) / self.cell), 0)
+                i1 = min(int((uhi[k] - u0) / self.cell) + 2, self.TILE)
+                j0 = max(int((vlo[k] - v0) / self.cell), 0)
+                j1 = min(int((vhi[k] - v0) / self.cell) + 2, self.TILE)
                 o = (cu[None, i0:i1, None] * fu + cv[j0:j1, None, None] * fv + top * sun).reshape(-1, 3)
                 if kind == "h":
                     pl = self.p["h_planes"][i].astype(np.float64)
@@ -71,6 +85,13 @@ class _ShadowMap:
                 sub = depth[j0:j1, i0:i1]
                 np.maximum(sub, (top - t).reshape(sub.shape), out=sub)
         return depth
+
+    def tile(self, tu: int, tv: int) -> np.ndarray:
+        """Tile (tu, tv), computed once and kept (read-only): the tiles a map beneath others
+        gives them (``under``)."""
+        if (tu, tv) not in self._tiles:
+            self._tiles[tu, tv] = self._tile(tu, tv)
+        return self._tiles[tu, tv]
 
     def _cover(self, u_lo: int, u_hi: int, v_lo: int, v_hi: int) -> None:
         """Make sure tiles u_lo..u_hi x v_lo..v_hi are computed and in the atlas."""

@@ -34,7 +34,7 @@ from ...runtime import WorkerPool, single_threaded_worker
 from .. import layout
 from ..grid import N_VIEWS, view_coords
 from ..splits import CLASSIFIER_SCENE, TARGETS, UNOCCLUDED_SCENE, check_context, scene_name
-from .render import _Prep, focal_px, render_unoccluded_view, render_view
+from .render import SharedShadows, _Prep, focal_px, render_unoccluded_view, render_view
 from .world import (
     BLOCK_TARGETS,
     TARGET_ID,
@@ -130,13 +130,14 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
     stages: list[dict] = []
     order: list[tuple[tuple[int, int], str]] = []
     first = None
-    offset, current, shift = 0, None, None
+    offset, current, shift, shared = 0, None, None, None
     for stage, scene, views, render in _jobs_of(name, seed):
         first = first or scene
-        prep = _Prep(scene)
         if stage != current:
             # train_605's stages are separate scenes: their object ids are shifted into one id space
             current = stage
+            # and a stage's five scenes differ only in their target: its shadows are cast once
+            shared = SharedShadows() if name == CLASSIFIER_SCENE else None
             shift = _id_shift(scene.categories, offset)
             categories.update({int(shift[i]): c for i, c in scene.categories.items()})
             offset = max(categories)
@@ -145,6 +146,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
             if name == CLASSIFIER_SCENE:
                 stages.append({"terrain": scene.terrain,
                                "sun_direction": [round(float(c), 6) for c in scene.sun_dir]})
+        prep = _Prep(scene, shared)
         for v in views:
             x, y, z = view_coords(int(v))
             stem = layout.view_stem(x, y, z, scene.target, name)
