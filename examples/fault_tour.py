@@ -79,6 +79,7 @@ cases = [
  ("synth with a crop size below 16 px", ["synth", "--out", W / "s1", "--size", 8, "--contexts", 1]),
  ("synth with context ids out of range", ["synth", "--out", W / "s2", "--contexts", "0-3"]),
  ("ablate with an unknown preset", ["ablate", "--preset", "quik", "--out", W / "a1"]),
+ ("synth into a path that is a file", ["synth", "--out", W / "afile", "--contexts", "1", "--size", 16]),
  ("ablate sweeping a key that is not sweepable", ["ablate", "--sweep", "gamma=0.5", "--out", W / "a2"]),
  ("ablate with zero seeds", ["ablate", "--seeds", 0, "--out", W / "a3"]),
  ("ablate with zero recognizers", ["ablate", "--recognizers", 0, "--out", W / "a4"]),

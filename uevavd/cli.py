@@ -44,6 +44,19 @@ OS_FAULTS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, er
                        errno.ENOTDIR, errno.EEXIST, errno.ECHILD})  # ECHILD: a worker process died
 
 
+_FILE_FOR_FOLDER = "a file stands where a folder is expected: choose another path, or move the file"
+_FULL = "free space on that disk, or write elsewhere (--out, UEVAVD_CACHE)"
+_FORBIDDEN = "choose a path you may write to, or change its permissions"
+#: What to do about each OS fault, said after it on its one line.
+OS_FAULT_ADVICE = {
+    errno.ENOSPC: _FULL, errno.EDQUOT: _FULL, errno.EACCES: _FORBIDDEN, errno.EPERM: _FORBIDDEN,
+    errno.EROFS: "the file system is read-only: choose a writable path",
+    errno.EISDIR: "a folder stands where a file is expected: pass a file's path",
+    errno.ENOTDIR: _FILE_FOR_FOLDER, errno.EEXIST: _FILE_FOR_FOLDER,  # mkdir over a file (nothing creates exclusively)
+    errno.ECHILD: "a worker process died (out of memory?): run the command again; finished work is kept",
+}
+
+
 def os_fault(exc: BaseException) -> bool:
     """True for an :data:`OS_FAULTS` ``OSError``: reported in one line like bad input."""
     return isinstance(exc, OSError) and exc.errno in OS_FAULTS
@@ -55,6 +68,8 @@ def error(command: str, exc: BaseException | str) -> int:
     if os.environ.get("UEVAVD_DEBUG"):
         raise exc if isinstance(exc, BaseException) else ValueError(exc)
     text = " ".join(str(exc).split())  # one line, whatever the message's own line breaks
+    if os_fault(exc) and OS_FAULT_ADVICE[exc.errno] not in text:
+        text += f"; {OS_FAULT_ADVICE[exc.errno]}"
     hint = f" ({type(exc).__name__}; UEVAVD_DEBUG=1 shows the traceback)" if isinstance(exc, BaseException) else ""
     print(f"uevavd {command}: error: {text}{hint}", file=sys.stderr)
     return 2

@@ -135,6 +135,19 @@ def test_cli_reports_bad_input(tmp_path, capsys):
     assert not (tmp_path / "w").exists()
 
 
+@pytest.mark.parametrize("command", [["synth", "--contexts", "1", "--size", "16", "--quiet"], ["demo"]])
+def test_an_output_folder_that_is_a_file_is_one_line_saying_what_to_do(tmp_path, capsys, monkeypatch, command):
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    afile = tmp_path / "afile"
+    afile.write_text("keep me")
+    assert main([command[0], "--out", str(afile), *command[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(afile) in err
+    assert "; a file stands where a folder is expected: choose another path, or move the file (" in err, err
+    assert afile.read_text() == "keep me"
+
+
 def _written_train_605(folder: Path):
     meta = json.loads((folder / layout.SCENE_META).read_text())
     cats = {int(k): v for k, v in json.loads((folder / layout.SEG_DIR / layout.CATEGORIES).read_text()).items()}

@@ -85,6 +85,11 @@ def test_train_bad_input_is_one_line_and_exit_2(table, tmp_path, capsys, monkeyp
     _one_line_error(capsys, "train.gamma = 0.95 and env.gamma = 0.99")
     assert main([*base, "--table", str(tmp_path / "missing"), *_sets()]) == 2
     _one_line_error(capsys, "table folder", "does not exist")
+    afile = tmp_path / "afile"
+    afile.write_text("keep me")
+    assert main([*base[:3], "--out", str(afile), *base[5:], "--table", str(path), *_sets()]) == 2
+    _one_line_error(capsys, f"--out {afile} is a file, not a run directory: choose a new --out")
+    assert afile.read_text() == "keep me"
     # a table without the train split
     hard = type(table).from_arrays(table.features, table.probs, table.boxes, scenes=list(table.scenes),
                                    targets=table.targets.tolist(), contexts=table.contexts.tolist(),

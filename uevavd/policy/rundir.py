@@ -132,6 +132,9 @@ def run_spec(run_dir: str | Path) -> MethodSpec:
 
 def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
     path = RunDir(out).settings
+    if out.exists() and not out.is_dir():
+        raise RunDirError(f"--out {out} is a file, not a run directory: choose a new --out (or a run's folder, "
+                          "to resume it)")
     if not path.is_file():
         if out.exists() and any(p != RunDir(out).tensorboard for p in out.iterdir()):
             raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
