@@ -37,13 +37,6 @@ def bad_input_types() -> tuple[type[BaseException], ...]:
     return (ValueError, FileNotFoundError, UnknownComponentError)
 
 
-#: OS faults that are the machine's state, not a bug: a full disk, a read-only or forbidden
-#: folder, a path that is a file where a folder is needed (and the reverse), a worker process
-#: that was killed.
-OS_FAULTS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.EISDIR,
-                       errno.ENOTDIR, errno.EEXIST, errno.ECHILD})  # ECHILD: a worker process died
-
-
 _FILE_FOR_FOLDER = "a file stands where a folder is expected: choose another path, or move the file"
 _FULL = "free space on that disk, or write elsewhere (--out, UEVAVD_CACHE)"
 _FORBIDDEN = "choose a path you may write to, or change its permissions"
@@ -55,6 +48,10 @@ OS_FAULT_ADVICE = {
     errno.ENOTDIR: _FILE_FOR_FOLDER, errno.EEXIST: _FILE_FOR_FOLDER,  # mkdir over a file (nothing creates exclusively)
     errno.ECHILD: "a worker process died (out of memory?): run the command again; finished work is kept",
 }
+#: OS faults that are the machine's state, not a bug: a full disk, a read-only or forbidden
+#: folder, a path that is a file where a folder is needed (and the reverse), a worker process
+#: that was killed (ECHILD): the faults there is advice for.
+OS_FAULTS = frozenset(OS_FAULT_ADVICE)
 
 
 def os_fault(exc: BaseException) -> bool:

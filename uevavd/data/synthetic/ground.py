@@ -85,10 +85,10 @@ def build_ground(
     order = sorted(strips, key=lambda s: {"pavement": 0, "track": 1, "road": 2}[s.kind])
     for strip in order:
         rows = strip.axis == "x"
-        across_1d = coords[:, None] if rows else coords[None, :]
-        inside = ((across_1d >= strip.lo) & (across_1d < strip.hi)).ravel()
+        across, along = (yy, xx) if rows else (xx, yy)
+        inside = ((across >= strip.lo) & (across < strip.hi)).ravel()
         band = (inside, slice(None)) if rows else (slice(None), inside)
-        across, along = across_1d[band], (xx if rows else yy)
+        across = across[band]
         b_big, b_fine, b_grain = big[band], fine[band], grain[band]
         if strip.kind == "road":
             tone = 0.30 + 0.03 * b_big + 0.02 * b_fine + 0.025 * b_grain
