@@ -331,6 +331,9 @@ def test_cli_bad_input_is_one_line_and_exit_2(tiny_world, tiny_classifier, tmp_p
         (["prepare", world, "--method", "ibe_map", "--set", "perception.encoder.name=nope"], "", "nope"),
         (["prepare", world, "--method", "map", "--set", "perception.encoder.weights=random", "--classifier",
           str(truncated)], "WeightsError", "cut.safetensors"),
+        # the named classifier is checked before the encoder loads (its ImageNet weights are
+        # absent here, which once hid the bad file behind a "weights not found")
+        (["prepare", world, "--method", "map", "--classifier", str(truncated)], "WeightsError", "cut.safetensors"),
         (["prepare", world, "--method", "map"], "WeightsError", "not found"),
         (["prepare", str(tmp_path / "empty"), "--method", "map"], "DatasetError", "no scene folders"),
         (["train-classifier", str(tmp_path / "empty"), "--out", str(tmp_path / "c.safetensors")],
