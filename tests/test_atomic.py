@@ -48,3 +48,22 @@ def test_a_failed_write_keeps_the_old_file_and_leaves_no_temp(tmp_path):
         (d / "f").write_text("x")
         raise RuntimeError("killed")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["state.bin"]
+
+
+def test_json_files_have_one_layout_and_the_shipped_records_are_in_it(tmp_path):
+    """Every JSON file uevavd writes goes through ``atomic_write_json``: one-space indent, a
+    final newline, paths and numpy scalars as text. The shipped draws record and the zoo's
+    manifest were written by it, so rewriting them changes no byte."""
+    import json
+    from pathlib import Path
+
+    from uevavd.atomic import atomic_write_json, json_text
+    from uevavd.data.synthetic.world import DRAWS_FILE
+    from uevavd.zoo import Zoo
+
+    f = atomic_write_json(tmp_path / "a.json", {"b": Path("x/y"), "a": np.float32(0.5)}, sort_keys=True)
+    assert f.read_text() == '{\n "a": "0.5",\n "b": "x/y"\n}\n'
+    draws = Path(DRAWS_FILE)
+    assert json_text(json.loads(draws.read_text())) == draws.read_text()
+    manifest = Zoo.load("quick").root / "manifest.json"
+    assert json_text(json.loads(manifest.read_text()), sort_keys=True) == manifest.read_text()

@@ -10,13 +10,14 @@ cache, or a Ray worker running as another user, can read what uevavd wrote.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 
 def _umask() -> int:
@@ -54,6 +55,18 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def json_text(obj: Any, *, sort_keys: bool = False) -> str:
+    """The one JSON layout uevavd writes: indented by one space, a final newline, values JSON
+    lacks (paths, numpy scalars) as their ``str``."""
+    return json.dumps(obj, indent=1, sort_keys=sort_keys, default=str) + "\n"
+
+
+def atomic_write_json(path: str | os.PathLike[str], obj: Any, *, sort_keys: bool = False,
+                      fsync: bool = False) -> Path:
+    """:func:`atomic_write` of :func:`json_text` of ``obj``."""
+    return atomic_write(path, json_text(obj, sort_keys=sort_keys), fsync=fsync)
 
 
 def atomic_save(path: str | os.PathLike[str], save: Callable[[str], None]) -> Path:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write_json
 from ..hashing import sha256_hex
 from .layout import CATEGORIES, MANIFEST
 from .reader import UNUSED_FILE_KINDS, Problem, scan
@@ -351,5 +351,5 @@ def _write_json(path: Path, report: ValidationReport) -> None:
     data = {**report.summary(), "problem_list": [
         {"kind": p.kind, "path": str(p.path), "message": p.message} for p in report.problems]}
 
-    atomic_write(path, json.dumps(data, indent=1))
+    atomic_write_json(path, data)
 

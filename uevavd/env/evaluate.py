@@ -18,7 +18,6 @@ does). A policy whose attribute ``needs_features`` is False gets ``features`` of
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -26,7 +25,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, json_text
 from ..data.grid import N_VIEWS, STEP_M
 from ..table import ObservationTable
 from .aod_env import load_table
@@ -123,7 +122,7 @@ class EvalResult:
 
     def to_json(self, path: str | os.PathLike[str] | None = None) -> str:
         """Summary and breakdowns as JSON; written atomically to ``path`` when given."""
-        text = json.dumps(self.to_dict(), indent=1)
+        text = json_text(self.to_dict())
         if path is not None:
             atomic_write(path, text)
         return text

@@ -12,11 +12,6 @@ from typing import Any
 from ..atomic import atomic_write
 
 
-def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
-    """:func:`uevavd.atomic.atomic_write` of UTF-8 text, flushed to the disk."""
-    return atomic_write(path, text, fsync=True)
-
-
 def write_csv(path: str | os.PathLike[str], rows: Iterable[Mapping[str, Any]], columns: Sequence[str]) -> Path:
     """Write rows (dicts) as CSV with exactly ``columns``, atomically."""
     import io
@@ -26,4 +21,4 @@ def write_csv(path: str | os.PathLike[str], rows: Iterable[Mapping[str, Any]], c
     writer.writeheader()
     for row in rows:
         writer.writerow({c: row.get(c, "") for c in columns})
-    return atomic_write_text(path, buf.getvalue())
+    return atomic_write(path, buf.getvalue(), fsync=True)

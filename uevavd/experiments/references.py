@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write_json
 from ..config import load_method
 from ..env.aod_env import AODEnv
 from ..env.evaluate import evaluate_policy
@@ -52,7 +52,7 @@ def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], 
                     steps = int(json.loads(RunDir(job.out).done.read_text(encoding="utf-8"))["env_steps"])
                     log(f"  {agent} rec{r} seed{seed}: {steps:,} env steps on {first}'s table")
                     done = _train_and_evaluate(agent, job, tables[r], config, steps, seed, splits)
-                    atomic_write(cache, json.dumps(done, indent=1))
+                    atomic_write_json(cache, done)
                 base = {"method": agent, "recognizer": r, "seed": seed, "setting": "default"}
                 for split, summary in done["splits"].items():
                     rows.append({**base, **DEFAULT_SETTING, "episodes": -1, "final": True, "split": split,

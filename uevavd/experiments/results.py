@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..atomic import atomic_write_json
 from ..data.grid import N_VIEWS
 from ..env.baselines import baseline_entries
 from ..env.config import make_config
@@ -17,7 +18,6 @@ from ..env.evaluate import evaluate_policy
 from ..policy.acting import load_policy
 from ..policy.rundir import RunDir, read_settings
 from ..table import ObservationTable
-from .io import atomic_write_text
 from .plan import AblationError, Plan, env_config
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -89,7 +89,7 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
         splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
                          "per_context": _per_context(res)}
     out = {"key": key, "splits": splits}
-    atomic_write_text(path, json.dumps(out, indent=1))
+    atomic_write_json(path, out, fsync=True)
     return out
 
 def _per_context(res) -> list[dict[str, Any]]:
@@ -190,5 +190,5 @@ def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], lo
                     rows.append({**base, **setting, "episodes": -1, "final": True, "split": split,
                                  "eval_contexts": _contexts(done[key]), **_metric_row(done[key]), "wall_s": 0.0})
                     ctx_rows += [{**base, "split": split, **c} for c in done[key]["per_context"]]
-    atomic_write_text(cache, json.dumps(done, indent=1))
+    atomic_write_json(cache, done, fsync=True)
     return rows, ctx_rows

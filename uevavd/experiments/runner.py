@@ -10,10 +10,11 @@ rebuilt from the run directories at the end, plus ``DIR/report/``.
 import json
 from pathlib import Path
 
+from ..atomic import atomic_write_json
 from ..config import load_method
 from .audit import audit_table, classifier_summary
 from .backends import run_jobs
-from .io import atomic_write_text, write_csv
+from .io import write_csv
 from .jobs import Job, plan_jobs, run_job
 from .plan import (
     DEFAULT_SETTING,
@@ -88,7 +89,7 @@ def write_meta(plan: Plan, data: Path | None, status: str) -> None:
         "stages": {k: round(v, 2) for k, v in plan.stages.items()},
         "status": status,
     }
-    atomic_write_text(plan.out / "ablation.json", json.dumps(meta, indent=1, default=str))
+    atomic_write_json(plan.out / "ablation.json", meta, fsync=True)
 
 
 def _with_swept_columns(plan: Plan, rows: list[dict]) -> tuple[list[dict], list[str]]:
@@ -147,11 +148,11 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
 
         audit = {str(r): {"classifier": classifier_summary(classifiers[r]),
                           "splits": audit_table(tables[r][plan.methods[0]], terrains)} for r in plan.recognizers}
-        atomic_write_text(plan.out / "recognizer_audit.json", json.dumps(audit, indent=1))
+        atomic_write_json(plan.out / "recognizer_audit.json", audit, fsync=True)
         results = write_csv(plan.out / "results.csv", *_with_swept_columns(plan, rows))
         write_csv(plan.out / "contexts.csv", ctx_rows, CONTEXT_COLUMNS)
         traj = trajectory_rows(plan, jobs, tables[plan.recognizers[0]])
-        atomic_write_text(plan.out / "trajectories.json", json.dumps(traj, indent=1))
+        atomic_write_json(plan.out / "trajectories.json", traj, fsync=True)
     write_meta(plan, data, "reporting")
     with _Stage(plan, "report", log):
         write_meta(plan, data, "done")

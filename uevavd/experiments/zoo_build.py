@@ -3,7 +3,6 @@ write them with their manifest (see :mod:`uevavd.zoo`)."""
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Callable
@@ -11,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from ..atomic import atomic_write
+from ..atomic import atomic_write, atomic_write_json
 from ..data.reader import read_dataset
 from ..hashing import file_sha256
 from ..paths import cache_dir
@@ -85,7 +84,7 @@ def build_zoo(out: str | os.PathLike[str] | None = None, *, preset: str = "quick
                     for row in per_context.to_dict("records")}
         manifest["policies"][method]["published"] = published
     manifest["files"] = files
-    atomic_write(out / MANIFEST, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    atomic_write_json(out / MANIFEST, manifest, sort_keys=True)
     log(f"zoo: {len(files)} files, {sum(f['bytes'] for f in files.values()) / 1e6:.1f} MB in {out} "
         f"({time.perf_counter() - t0:.0f} s)")
     return out

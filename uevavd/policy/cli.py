@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from ..atomic import atomic_write_json
 from ..cli import error as _error
 from ..presets import PRESET_HELP, cli_overrides, known_presets
 from .rundir import RunDir
@@ -154,10 +155,8 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
     print("published: " + ", ".join(f"{k} {published[k]:.4f}" for k in PUBLISHED))
     print("reproduced exactly" if diff == 0 else f"differs from the published numbers by up to {diff:.2e}")
     if args.json:
-        from .trainer import _write_json
-
-        _write_json(args.json, {"split": args.split, "results": frame.reset_index().to_dict("records"),
-                                "published": published})
+        atomic_write_json(args.json, {"split": args.split, "results": frame.reset_index().to_dict("records"),
+                                      "published": published}, sort_keys=True)
         print(f"wrote {args.json}")
     return 0
 
@@ -200,8 +199,6 @@ def _evaluate(args: argparse.Namespace) -> int:
         s = res.summary()
         print(f"{name:<18}" + "".join(f"{s[c]:>18.4f}" for c in cols))
     path = args.json or args.run_dir / f"eval_{args.split}.json"
-    from .trainer import _write_json
-
-    _write_json(path, {name: res.to_dict() for name, res in results.items()})
+    atomic_write_json(path, {name: res.to_dict() for name, res in results.items()}, sort_keys=True)
     print(f"wrote {path}")
     return 0

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, atomic_write_json
 from ..config import MethodSpec, PerceptionSection
 from ..env.aod_env import load_table, select_scenes
 from ..env.batched import BatchedAODEnv, EnvTensors
@@ -45,10 +45,6 @@ from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings,
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    atomic_write(path, obj if isinstance(obj, str) else json.dumps(obj, indent=1, sort_keys=True, default=str))
 
 
 def _versions() -> dict[str, str]:
@@ -183,7 +179,7 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
     spec.save(RunDir(out).method)
-    _write_json(RunDir(out).settings, settings)
+    atomic_write_json(RunDir(out).settings, settings, sort_keys=True)
     act_gen = torch.Generator(device=dev)
     act_gen.manual_seed(cfg.seed + 3)
     n, tmax = cfg.n_envs, env_cfg.t_max
@@ -303,7 +299,7 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
                         for key, value in summary.items():
                             if isinstance(value, int | float):
                                 writer.add_scalar(f"eval_{split}/{key}", value, loop["episodes"])
-                    _write_json(RunDir(out).evals, "".join(json.dumps(r, default=str) + "\n" for r in evals))
+                    atomic_write(RunDir(out).evals, "".join(json.dumps(r, default=str) + "\n" for r in evals))
                 # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
                 stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
                 if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
@@ -320,9 +316,10 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
         # the shareable policy (the network alone), then the mark that the run is finished
         save_policy_file(RunDir(out).policy, net.state_dict(), RunDir(out).method.read_text(encoding="utf-8"),
                          settings)
-        _write_json(RunDir(out).done, {"episodes": loop["episodes"], "env_steps": loop["env_steps"],
-                                        "updates": learner.updates, "wall_s": loop["wall"],
-                                        "final_eval": evals[-len(cfg.eval_splits):] if cfg.eval_splits else []})
+        atomic_write_json(RunDir(out).done, {"episodes": loop["episodes"], "env_steps": loop["env_steps"],
+                                             "updates": learner.updates, "wall_s": loop["wall"],
+                                             "final_eval": evals[-len(cfg.eval_splits):] if cfg.eval_splits else []},
+                          sort_keys=True)
     return out
 
 

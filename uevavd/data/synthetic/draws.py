@@ -10,10 +10,9 @@ file is ignored until then, so worlds stay right, only slower to write).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 
-from ...atomic import atomic_write
+from ...atomic import atomic_write_json
 from ...runtime import WorkerPool, single_threaded_worker
 from ..splits import N_CONTEXTS
 from .world import DRAWS_FILE, draws_record, search_draw
@@ -31,7 +30,7 @@ def record_draws(seeds: list[int], *, workers: int) -> dict:
             found = dict(f.result() for f in [pool.submit(_search, (c, seed)) for c in range(1, N_CONTEXTS + 1)])
             draws[str(seed)] = {str(c): found[c] for c in sorted(found)}
     data = {**draws_record(), "draws": draws}
-    atomic_write(DRAWS_FILE, json.dumps(data, indent=1) + "\n")
+    atomic_write_json(DRAWS_FILE, data)
     return data
 
 

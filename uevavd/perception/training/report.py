@@ -25,10 +25,6 @@ def accuracy_by_visibility(correct: np.ndarray, visible: np.ndarray, bins: np.nd
     return rows
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    atomic_write(path, text)
-
-
 def visibility_report(model, manifest, weights_path: Path, info: dict, *, decoder, max_views: int = 3000,
                       seed: int = 0) -> tuple[Path, Path | None]:
     """Write ``<weights>.md`` (and ``<weights>.png`` when there are training contexts)."""
@@ -72,7 +68,7 @@ def visibility_report(model, manifest, weights_path: Path, info: dict, *, decode
     else:
         lines.append("No training contexts with a known visible fraction: no occlusion curve.")
     md = weights_path.with_suffix(".md")
-    _atomic_write_text(md, "\n".join(lines) + "\n")
+    atomic_write(md, "\n".join(lines) + "\n")
     return md, png
 
 

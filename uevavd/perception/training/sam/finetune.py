@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ....atomic import atomic_write
+from ....atomic import atomic_write, atomic_write_json
 from ....hashing import file_sha256
 from ....paths import cache_dir
 from ...sam.model import LoadedSam, load_sam, save_decoder
@@ -28,7 +28,6 @@ from ...sam.segmenter import SamSegmenter
 from .data import GTViews, view_selection
 from .evaluate import evaluate
 from .loop import TrainArgs, loss_summary, train_loop
-from .train_small import write_json
 
 
 def cached_embeddings(seg: SamSegmenter, views: GTViews, base_sha: str, *, cache: Path | None = None,
@@ -110,5 +109,5 @@ def finetune_model(
     resume = out_path.with_name(out_path.name + ".resume")
     if resume.exists():
         resume.unlink()
-    write_json(out_path.with_name(out_path.name + ".report.json"), report)
+    atomic_write_json(out_path.with_name(out_path.name + ".report.json"), report)
     return report, tuned

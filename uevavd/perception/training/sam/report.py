@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ....atomic import atomic_write_json
 from ...decompose import decompose
 from ...sam import build_sam_segmenter
 from ...sam.model import read_meta
@@ -141,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
              "splits": miou_per_split(seg, a.data, per_context=a.per_context, exclude=trained_on)}
     print(json.dumps(table, indent=2))
     if a.json:
-        Path(a.json).write_text(json.dumps(table, indent=2) + "\n", encoding="utf-8")
+        atomic_write_json(a.json, table)
     if a.png:
         m = read_manifest(a.data)
         ids = sorted({r.context for r in m if r.context is not None and r.split in ("simple", "hard")})

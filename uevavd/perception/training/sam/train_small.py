@@ -8,7 +8,6 @@ a JSON report beside the checkpoint.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import asdict
@@ -18,17 +17,13 @@ import numpy as np
 import torch
 from segment_anything import SamPredictor
 
-from ....atomic import atomic_write
+from ....atomic import atomic_write_json
 from ....hashing import file_sha256
 from ...sam.model import LoadedSam, SmallConfig, build_model, default_small_path, save_full
 from ...sam.segmenter import SamSegmenter, images_to_input
 from .data import GTViews, view_selection
 from .evaluate import evaluate
 from .loop import TrainArgs, loss_summary, train_loop
-
-
-def write_json(path: Path, obj) -> None:
-    atomic_write(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
 def train_small(
@@ -78,5 +73,5 @@ def train_small(
     resume = out_path.with_name(out_path.name + ".resume")
     if resume.exists():
         resume.unlink()
-    write_json(out_path.with_name(out_path.name + ".report.json"), report)
+    atomic_write_json(out_path.with_name(out_path.name + ".report.json"), report)
     return report
