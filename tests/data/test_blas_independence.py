@@ -4,7 +4,7 @@ numpy's OpenBLAS picks its kernel from the CPU: the AVX-512 one (``SkylakeX``) o
 that rendered the world's records, the AVX2 one (``Haswell``) on e.g. an AMD EPYC. Their
 float32 matrix-vector products differ in the last bit, and the shading's Lambert term was one:
 17 of the quick world's 30 context scenes hashed differently from the zoo's records on an AMD
-machine. ``OPENBLAS_CORETYPE`` (read when numpy loads) selects a kernel, so a subprocess can
+machine (1-3 colour values per scene one level apart). ``OPENBLAS_CORETYPE`` (read when numpy loads) selects a kernel, so a subprocess can
 render with either on a CPU that runs it.
 """
 
