@@ -210,13 +210,14 @@ def rows_dot_f32(rows: np.ndarray, v: np.ndarray) -> np.ndarray:
     same bits on every machine.
 
     numpy's ``@`` here calls OpenBLAS's sgemv, whose kernel depends on the CPU; the world's
-    records (draws, the zoo's scene digests) were rendered with its AVX-512 kernel
-    (``SkylakeX``), while e.g. an AMD EPYC gets the AVX2 one (``Haswell``), which sums
-    ``(r0 v0 + r1 v1) + r2 v2`` unfused: about one colour value in 10^6 came out one level
-    apart, and 17 of the quick world's 30 context scenes hashed differently. This function is
-    that AVX-512 kernel's arithmetic, measured against it on every N up to 600, around the
-    switch at 16,384 rows and on 2 M random rows (OpenBLAS 0.3.31; ``tests/data``), in exactly
-    rounded float64 operations: for N <= 16,384, blocks of 16 and then one of 8 rows compute
+    records (the zoo's scene digests) were rendered with its AVX-512 kernel (``SkylakeX``),
+    while e.g. an AMD EPYC gets the AVX2 one (``Haswell``), which sums ``(r0 v0 + r1 v1) +
+    r2 v2`` unfused: about one colour value in 10^6 came out one level apart, and 17 of the
+    quick world's 30 context scenes hashed differently. This function is that AVX-512
+    kernel's arithmetic, measured against it on every N from 2 to 600 (numpy hands a single
+    row to another routine), around its switch at 16,384 rows and on 2 M random rows
+    (OpenBLAS 0.3.31; ``tests/data/test_blas_independence.py``), in exactly rounded float64
+    operations: for N <= 16,384, blocks of 16 and then one of 8 rows compute
     ``fma(r2, v2, fma(r1, v1, r0 v0))``, a following block of 4 and a last single row
     ``fma(r2, v2, fma(r0, v0, r1 v1))``, a pair between them the unfused sum; above 16,384
     rows every row takes the second form."""
