@@ -60,3 +60,22 @@ def test_an_altered_or_stale_zoo_is_refused_naming_the_file(tmp_path):
     assert any("generator version" in p for p in stale.problems())
     with pytest.raises(ZooError, match="is stale .*generator version.*uevavd zoo build"):
         evaluate_pretrained("ibe_map", "hard", zoo=stale, progress=False)
+
+
+def test_zoo_check_render_compares_the_world_rendered_here_with_the_records(tmp_path, capsys, monkeypatch):
+    """`uevavd zoo check --render` tells a user whether this machine renders the zoo's world
+    byte for byte (the world's bytes are numpy's arithmetic, which a CPU can change)."""
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main(["zoo", "check", "--render", "026", "--workers", "1"]) == 0
+    assert "1 of 1 scenes render here byte for byte as the zoo's records" in capsys.readouterr().out
+    root = tmp_path / "zoo"
+    shutil.copytree(Zoo.load("quick").root, root)
+    manifest = json.loads((root / MANIFEST).read_text())
+    manifest["world"]["scenes"]["026"] = "0" * 64  # as a machine that renders 026 otherwise would see it
+    (root / MANIFEST).write_text(json.dumps(manifest))
+    assert main(["zoo", "check", "--zoo", str(root), "--render", "001,026", "--workers", "1"]) == 1
+    assert "1 of 2 scenes render otherwise here than the zoo's records: 026." in capsys.readouterr().out
+    assert main(["zoo", "check", "--render", "999"]) == 2
+    assert "scene(s) ['999'] are not in the zoo's records" in capsys.readouterr().err

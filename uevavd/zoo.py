@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -162,6 +163,25 @@ class Zoo:
                 out.append(f"method {m!r} with the preset's overrides now hashes to {spec.hash}, the shipped "
                            f"policy was trained as {rec['spec_hash']}")
         return out
+
+    def rendered_here(self, scenes: Sequence[str] | None = None, *, workers: int = 1,
+                      progress: bool = False) -> dict[str, bool]:
+        """Render ``scenes`` (default: every scene the manifest records) of the zoo's world on
+        this machine, in a temporary folder, and say for each whether its files hash to the
+        manifest's record. The world's bytes are numpy's arithmetic, which can differ from
+        machine to machine in the last bit (docs/synthetic_world.md, "The same bytes on every
+        machine"); where a scene differs, trained numbers may differ in the last digits."""
+        records = self.manifest["world"]["scenes"]
+        names = list(records) if scenes is None else list(dict.fromkeys(scenes))
+        unknown = [n for n in names if n not in records]
+        if unknown:
+            raise ValueError(f"scene(s) {unknown} are not in the zoo's records; it records {sorted(records)}")
+        world = self.manifest["world"]["world"]
+        contexts = [int(n) for n in names if n not in ("00", "train_605")]
+        with tempfile.TemporaryDirectory(prefix="uevavd-zoo-render-") as tmp:
+            write_world(Path(tmp), contexts=contexts, size=int(world["size"]), seed=int(world["seed"]),
+                        workers=workers, include_unoccluded=len(contexts) < len(names), progress=progress)
+            return {n: scene_digest(Path(tmp) / n / "scene.json") == records[n] for n in names}
 
     def check(self, preset: Mapping[str, Any] | None = None) -> None:
         problems = self.problems(preset)
