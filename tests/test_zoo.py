@@ -79,3 +79,5 @@ def test_zoo_check_render_compares_the_world_rendered_here_with_the_records(tmp_
     assert "1 of 2 scenes render otherwise here than the zoo's records: 026." in capsys.readouterr().out
     assert main(["zoo", "check", "--render", "999"]) == 2
     assert "scene(s) ['999'] are not in the zoo's records" in capsys.readouterr().err
+    assert main(["zoo", "check", "--render", "026", "--workers", "0"]) == 2
+    assert "--workers 0: expected at least 1" in capsys.readouterr().err

@@ -157,7 +157,7 @@ def add_zoo(parser: argparse.ArgumentParser):
 def _render_check(zoo, args: argparse.Namespace) -> int:
     """``zoo check --render``: exit 1 when a scene rendered here differs from the zoo's record."""
     scenes = None if args.render == "all" else [s.strip() for s in args.render.split(",") if s.strip()]
-    workers = args.workers or os.cpu_count() or 1
+    workers = (os.cpu_count() or 1) if args.workers is None else args.workers
     if workers < 1:
         raise ValueError(f"--workers {workers}: expected at least 1")
     same = zoo.rendered_here(scenes, workers=workers, progress=True)
