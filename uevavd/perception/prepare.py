@@ -126,19 +126,16 @@ def build_components(perception: PerceptionSection, data_root: Path, classifier_
     segmenter = perception.segmenter.build() if decomposing and perception.segmenter is not None else None
     if decomposing and segmenter is None:
         raise ValueError(f"{where}: perception.decompose = true needs a perception.segmenter")
-    extra = {"data": str(data_root)}
-    if classifier_path is not None:
-        extra["path"] = str(classifier_path)
-    clf_runtime = runtime(perception.classifier, extra)
-    if classifier_path is not None:
+    named = classifier_path is not None
+    clf_runtime = runtime(perception.classifier, {"data": str(data_root)})
+    enc_extra: dict[str, Any] = {"data": str(data_root)}
+    if named:
         clf_runtime["path"] = str(classifier_path)  # --classifier wins over the method file
+        enc_extra["classifier"] = str(classifier_path)  # weights="classifier" takes this recognizer's backbone
     # a classifier file the user named is read first (cheap), so that a bad one is refused
     # before the encoder loads its weights, or fails for their absence and hides it; the
     # dataset's own recognizer comes last, since it may have to be trained first
-    classifier = perception.classifier.build(**clf_runtime) if classifier_path is not None else None
-    enc_extra: dict[str, Any] = {"data": str(data_root)}
-    if classifier_path is not None:
-        enc_extra["classifier"] = str(classifier_path)  # weights="classifier" takes this recognizer's backbone
+    classifier = perception.classifier.build(**clf_runtime) if named else None
     encoder = perception.encoder.build(**runtime(perception.encoder, enc_extra))
     if classifier is None:
         classifier = perception.classifier.build(**clf_runtime)
