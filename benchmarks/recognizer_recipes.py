@@ -57,7 +57,7 @@ def main() -> None:
                                                 seed=args.seed)
         path = args.out / f"{arch}-{init}-{epochs}-{lr}-seed{args.seed}.safetensors"
         t0 = time.perf_counter()
-        train_classifier(args.world, path, settings=settings, workers=2, progress=False)
+        train_classifier(args.world, path, settings=settings, workers=2, progress=False, threads=args.threads)
         seconds = time.perf_counter() - t0
         clf = load_classifier(path, device="cpu")
         correct = clf.predict_proba(images).argmax(1) == labels

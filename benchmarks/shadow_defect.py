@@ -39,10 +39,7 @@ def main() -> None:
                          "trained with 2)")
     args = ap.parse_args()
     if args.recognizer:
-        import torch
-
-        torch.set_num_threads(args.threads)  # the renders above run on one; training on the zoo's count
-        _recognizer(args.preset, args.workers)
+        _recognizer(args.preset, args.workers, args.threads)
         return
 
     from uevavd.data.grid import N_VIEWS
@@ -84,7 +81,7 @@ def main() -> None:
               f"{np.mean([r[5] for r in sel]):.2f}, views whose target darkens by 1/5+ {100 * np.mean([r[6] for r in sel]):.0f} %")
 
 
-def _recognizer(preset_name: str, workers: int) -> None:
+def _recognizer(preset_name: str, workers: int, threads: int) -> None:
     import tempfile
     from pathlib import Path
 
@@ -108,7 +105,7 @@ def _recognizer(preset_name: str, workers: int) -> None:
             finally:
                 _ShadowMap.HULL_SHADOWS = False
             clf = api.train_classifier(data, Path(tmp) / f"recognizer-{hull_shadows}.safetensors", workers=workers,
-                                       **preset.get("classifier", {}))
+                                       threads=threads, **preset.get("classifier", {}))
             table = api.build_table(data, "map", classifier=clf, overrides=preset_overrides(preset),
                                     out_dir=Path(tmp) / f"table-{hull_shadows}", workers=workers)
             rows.append((name, classifier_summary(clf)["val_accuracy"], audit_table(table)))

@@ -64,3 +64,6 @@ def test_a_misspelled_recipe_setting_is_named_before_any_work(tmp_path):
 
     with pytest.raises(ValueError, match="no key 'epoch'; did you mean 'epochs'"):
         uevavd.train_classifier(tmp_path / "no-data", epoch=3)
+    # another thread count trains other weights: never under the cache name `ablate` reuses
+    with pytest.raises(ValueError, match="threads=4: the cache holds recognizers trained on 2 threads"):
+        uevavd.train_classifier(tmp_path / "no-data", threads=4)

@@ -27,21 +27,28 @@ from .policy.rundir import RunDir
 
 
 def train_classifier(data: str | os.PathLike[str], out: str | os.PathLike[str] | None = None, *,
-                     workers: int = 2, progress: bool = True, **settings: Any) -> Path:
+                     workers: int = 2, progress: bool = True, threads: int | None = None, **settings: Any) -> Path:
     """Train the recognizer on ``data``'s ``train_605`` crops (``settings``: the fields of
     :class:`uevavd.perception.training.classifier.ClassifierRecipe`, e.g. a preset's ``[classifier]``); reuse
-    it when a file of these settings exists. Returns the ``.safetensors`` path."""
+    it when a file of these settings exists. Returns the ``.safetensors`` path. On the CPU it
+    trains on :data:`~uevavd.perception.training.classifier.THREADS` torch threads, as
+    ``uevavd ablate`` and the model zoo (its weights depend on the count); another
+    ``threads`` needs an ``out`` of its own."""
     from .data.reader import read_dataset
     from .perception.classifier import classifier_cache_path, data_hash, train_records
-    from .perception.training.classifier import ClassifierRecipe
+    from .perception.training.classifier import THREADS, ClassifierRecipe
     from .perception.training.classifier import train_classifier as _train
 
     s = ClassifierRecipe.from_preset({}, **settings)  # checked: a misspelled key is a ValueError naming it
+    threads = THREADS if threads is None else int(threads)
+    if out is None and threads != THREADS:
+        raise ValueError(f"threads={threads}: the cache holds recognizers trained on {THREADS} threads; "
+                         "name an out file for another count")
     if out is None:  # the cache `uevavd ablate` uses too
         out = classifier_cache_path(data_hash(train_records(read_dataset(data))), s)
         if out.is_file():
             return out
-    return _train(data, out, settings=s, workers=workers, progress=progress)
+    return _train(data, out, settings=s, workers=workers, progress=progress, threads=threads)
 
 
 def build_table(data: str | os.PathLike[str], method: Any, *, classifier: str | os.PathLike[str] | None = None,

@@ -19,6 +19,7 @@ stops at once on Ctrl-C or a failed job.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import logging
@@ -73,6 +74,22 @@ def single_threaded_worker() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(1)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int | None):
+    """torch's CPU thread count set to ``n`` for the block and restored after it (``None``:
+    left as it is). Float sums split between threads round differently, so a result that
+    must not depend on the machine's cores runs under a fixed count."""
+    import torch
+
+    before = torch.get_num_threads()
+    if n is not None:
+        torch.set_num_threads(max(1, int(n)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 # -- process pools that stop when asked ------------------------------------------------------

@@ -36,17 +36,11 @@ def world_605(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_classifier(world_605, tmp_path_factory) -> Path:
     """A classifier trained by the CLI on 40 viewpoints of ``world_605`` (a few seconds)."""
-    import torch
-
     from uevavd.cli import main
 
     out = tmp_path_factory.mktemp("clf") / "tiny.safetensors"
-    before = torch.get_num_threads()
-    try:
-        rc = main(["train-classifier", str(world_605), "--out", str(out), "--epochs", "3", "--max-views", "40",
-                   "--batch-size", "32", "--lr", "3e-3", "--threads", "1"])
-    finally:
-        torch.set_num_threads(before)
+    rc = main(["train-classifier", str(world_605), "--out", str(out), "--epochs", "3", "--max-views", "40",
+               "--batch-size", "32", "--lr", "3e-3", "--threads", "1"])
     assert rc == 0
     return out
 

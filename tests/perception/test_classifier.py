@@ -78,11 +78,16 @@ def test_a_preset_gives_the_recipe_and_options_win(world_605, tmp_path, capsys, 
     out = tmp_path / "c.safetensors"
     assert main(["train-classifier", str(world_605), "--preset", str(preset), "--epochs", "1", "--out", str(out),
                  "--threads", "1"]) == 0
-    settings = read_classifier_file(out)[1]["train"]["settings"]
+    train = read_classifier_file(out)[1]["train"]
+    settings = train["settings"]
     assert (settings["init"], settings["max_views"], settings["batch_size"], settings["lr"]) == ("random", 10, 16, 2e-3)
     assert settings["epochs"] == 1  # the option, not the preset's 3
+    assert train["threads"] == 1  # recorded: the weights depend on it
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     capsys.readouterr()
+    assert main(["train-classifier", str(world_605), "--out", str(out), "--threads", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--threads 0: expected at least 1 (default 2)" in err, err
     preset.write_text('name = "mine"\n[classifier]\nepoch = 3\n')
     assert main(["train-classifier", str(world_605), "--preset", str(preset), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()

@@ -138,3 +138,31 @@ def test_recognizer_training_is_reproducible_whatever_the_global_rng():
     second = state_dict_hash(fit(images, labels, views, s, progress=False)[0].state_dict())
     assert first == second
     assert torch.equal(torch.random.get_rng_state(), before)  # the caller's stream is left alone
+
+
+def test_recognizer_weights_do_not_depend_on_the_callers_thread_count():
+    """The recognizer's float sums round differently on another torch thread count: the
+    quick preset's recognizer trained with ``--no-zoo`` on a 16-core machine (torch's default:
+    16 threads) was not the zoo's (trained on 2). fit() trains on THREADS threads on the CPU
+    whatever the caller's setting, records the count, and restores the caller's setting."""
+    from uevavd.perception.training.classifier import THREADS, ClassifierRecipe, fit
+    from uevavd.perception.weights import state_dict_hash
+
+    rng = np.random.default_rng(1)
+    labels = np.repeat(np.arange(5), 8)
+    images = np.clip(rng.normal(40 * labels[:, None, None, None] + 40, 30, (40, 32, 32, 3)), 0, 255).astype(np.uint8)
+    views = np.tile(np.arange(8), 5)
+    s = ClassifierRecipe(arch="efficientnet_lite0", epochs=1, batch_size=4)
+    before = torch.get_num_threads()
+    hashes = []
+    try:
+        for caller in (1, 3):
+            torch.set_num_threads(caller)
+            model, info = fit(images, labels, views, s, progress=False)
+            assert info["threads"] == THREADS and torch.get_num_threads() == caller
+            hashes.append(state_dict_hash(model.state_dict()))
+        one = fit(images, labels, views, s, progress=False, threads=1)[1]
+    finally:
+        torch.set_num_threads(before)
+    assert hashes[0] == hashes[1]
+    assert one["threads"] == 1

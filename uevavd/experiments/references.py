@@ -28,6 +28,7 @@ from ..env.aod_env import AODEnv
 from ..env.evaluate import evaluate_policy
 from ..env.wrappers import DiscreteActions
 from ..policy.rundir import RunDir
+from ..runtime import torch_threads
 from ..table import ObservationTable
 from .plan import DEFAULT_SETTING, SB3_AGENTS, env_config
 from .results import _contexts, _metric_row, _per_context
@@ -71,7 +72,6 @@ def sb3_widths(spec: Any) -> list[int]:
 def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, steps: int, seed: int,
                         splits: list[str]) -> dict[str, Any]:
     import stable_baselines3 as sb3
-    import torch
 
     from ..env.sb3 import SB3Policy, silent_logger
 
@@ -79,9 +79,7 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
     table = ObservationTable.load(table_path)
     env = DiscreteActions(AODEnv(table, "train", config))
     widths = sb3_widths(spec)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(job.threads)  # as the method's runs
-    try:
+    with torch_threads(job.threads):  # as the method's runs
         model = getattr(sb3, SB3_AGENTS[agent])("MultiInputPolicy", env, learning_rate=float(spec["train.lr"]),
                                                 gamma=config.gamma, policy_kwargs={"net_arch": widths}, seed=seed,
                                                 device="cpu", verbose=0)
@@ -95,6 +93,4 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
             res = evaluate_policy(table, split, policy, config)
             out["splits"][split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
                                     "per_context": _per_context(res)}
-    finally:
-        torch.set_num_threads(threads)
     return out

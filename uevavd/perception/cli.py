@@ -17,7 +17,7 @@ RECIPE_OPTIONS = ("arch", "init", "epochs", "batch_size", "lr", "val_fraction", 
 
 
 def add_train_classifier(p: argparse.ArgumentParser):
-    from .training.classifier import ClassifierRecipe
+    from .training.classifier import THREADS, ClassifierRecipe
 
     d = ClassifierRecipe()
     p.add_argument("data", help="dataset root (UEVAVD layout) holding the train_605 scene")
@@ -45,7 +45,9 @@ def add_train_classifier(p: argparse.ArgumentParser):
     p.add_argument("--max-views", type=int, default=None,
                    help="train on a seeded sample of this many viewpoints (default: the preset's, else all 605)")
     p.add_argument("--workers", type=int, default=2, help="image decoding threads")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--threads", type=int, default=THREADS,
+                   help=f"torch CPU threads training on the CPU (default {THREADS}, whatever the cores, as the model "
+                        "zoo's recognizer: the weights depend on the count)")
     p.add_argument("--device", default="auto", help="where the network trains: auto (CUDA when present), cpu, cuda")
 
     def run(args) -> int:
@@ -55,14 +57,12 @@ def add_train_classifier(p: argparse.ArgumentParser):
 
         given = {k: getattr(args, k) for k in RECIPE_OPTIONS if getattr(args, k) is not None}
         s = ClassifierRecipe.from_preset(load_preset(args.preset) if args.preset else {}, **given)  # before any work
+        if args.threads < 1:
+            raise ValueError(f"--threads {args.threads}: expected at least 1 (default {THREADS})")
         _logging()
-        if args.threads:
-            import torch
-
-            torch.set_num_threads(args.threads)
         resolve_device(args.device)  # a bad or absent device is refused before any work
         path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers,
-                                device=args.device)
+                                device=args.device, threads=args.threads)
         print(path)
         print(f"report: {path.with_suffix('.md')}")
         return 0

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 
 from ...data.reader import read_dataset
 from ...data.splits import TARGETS
+from ...runtime import torch_threads
 from ..classifier import classifier_cache_path, data_hash, train_records, write_classifier_file
 from ..efficientnet import LITE0_FILE, LITE_MEAN, LITE_STD, check_size, imagenet_backbone, make_lite0
 from ..images import Decoder
@@ -45,6 +46,10 @@ log = logging.getLogger(__name__)
 
 
 ARCHS = ("resnet18", "efficientnet_lite0")
+#: torch CPU threads the recognizer trains on. Its float sums are split between threads and
+#: round differently with another count (not with another number of cores), so the count is
+#: fixed: any machine trains the model zoo's recognizer (trained on 2) weight for weight.
+THREADS = 2
 
 
 @dataclass
@@ -197,7 +202,7 @@ def predict(model: torch.nn.Module, images: np.ndarray, batch_size: int = 256, *
 
 def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: ClassifierRecipe, *,
         imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True,
-        device: str = "auto"):
+        device: str = "auto", threads: int | None = THREADS):
     """Train on (N, H, W, 3) uint8 crops with (N,) int class labels and (N,) view indices.
 
     Returns ``(model, info)``; ``info`` holds the held-out views, clean validation accuracy,
@@ -206,12 +211,18 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cla
     at random in every process) is seeded from ``settings.seed`` for the call and restored
     after it. ``device`` ("cpu", "cuda", "auto") runs the forward and backward passes there;
     batches and their augmentation are drawn on the CPU either way, so both devices see the
-    same images, and the model comes back on the CPU.
+    same images, and the model comes back on the CPU. On the CPU it trains on ``threads``
+    torch threads (default :data:`THREADS`; ``None``: torch's current setting), restored
+    after; ``info["threads"]`` records the count (``None`` on a GPU).
     """
-    with torch.random.fork_rng(devices=[]):
+    dev = resolve_device(device)
+    cpu_threads = threads if dev.type == "cpu" else None
+    with torch.random.fork_rng(devices=[]), torch_threads(cpu_threads):
         torch.manual_seed(int(settings.seed) + 12345)
-        return _fit(images, labels, views, settings, imagenet=imagenet, n_classes=n_classes, progress=progress,
-                    device=resolve_device(device))
+        model, info = _fit(images, labels, views, settings, imagenet=imagenet, n_classes=n_classes,
+                           progress=progress, device=dev)
+        info["threads"] = torch.get_num_threads() if dev.type == "cpu" else None
+    return model, info
 
 
 def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: ClassifierRecipe, *,
@@ -276,11 +287,12 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cl
 
 def train_classifier(data: str | Path, out: str | Path | None = None, *, settings: ClassifierRecipe | None = None,
                      imagenet: str | None = None, workers: int = 2, report_views: int = 3000,
-                     progress: bool = True, device: str = "auto") -> Path:
+                     progress: bool = True, device: str = "auto", threads: int | None = THREADS) -> Path:
     """Train on ``data``'s ``train_605`` crops, write the classifier file (safetensors) and
     its report (``<out>.md`` and ``<out>.png``) beside it. ``out=None`` writes to the
     default location the pipeline reads (:func:`default_classifier_path`). Returns ``out``.
-    ``device``: where the network trains ("auto": CUDA when present); see :func:`fit`."""
+    ``device``: where the network trains ("auto": CUDA when present); ``threads``: torch CPU
+    threads on the CPU; see :func:`fit`."""
     settings = settings or ClassifierRecipe()
     manifest = read_dataset(data)
     recs = train_records(manifest)
@@ -294,7 +306,8 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
         images = dec.images([r.image for r in recs])
         labels = np.array([TARGETS.index(r.target) for r in recs], np.int64)
         views = np.array([r.view for r in recs], np.int64)
-        model, info = fit(images, labels, views, settings, imagenet=imagenet, progress=progress, device=device)
+        model, info = fit(images, labels, views, settings, imagenet=imagenet, progress=progress, device=device,
+                          threads=threads)
         meta = {
             "arch": settings.arch,
             "classes": list(TARGETS),
