@@ -81,3 +81,22 @@ def test_zoo_check_render_compares_the_world_rendered_here_with_the_records(tmp_
     assert "scene(s) ['999'] are not in the zoo's records" in capsys.readouterr().err
     assert main(["zoo", "check", "--render", "026", "--workers", "0"]) == 2
     assert "--workers 0: expected at least 1" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_zoo_check_recognizer_trains_the_shipped_recognizer_here(tmp_path, capsys, monkeypatch):
+    """`uevavd zoo check --recognizer` renders train_605 and trains the shipped recipe on this
+    machine's CPU: the zoo's recognizer, bit for bit, on the fixed thread count (about 75 s).
+    A zoo whose recognizer was trained on other train_605 bytes is named, not trained."""
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main(["zoo", "check", "--recognizer", "--workers", "2"]) == 0
+    assert "the recognizer trained here has the shipped recognizer's weights, bit for bit" in capsys.readouterr().out
+    root = tmp_path / "zoo"
+    shutil.copytree(Zoo.load("quick").root, root)
+    manifest = json.loads((root / MANIFEST).read_text())
+    manifest["recognizer"]["cache_name"] = "0" * 16 + manifest["recognizer"]["cache_name"][16:]
+    (root / MANIFEST).write_text(json.dumps(manifest))
+    assert main(["zoo", "check", "--zoo", str(root), "--recognizer", "--workers", "2"]) == 1
+    assert "train_605 renders otherwise here than the zoo's recognizer was trained on" in capsys.readouterr().out

@@ -34,13 +34,16 @@ from typing import Any
 
 from .api import load_policy_file
 from .config import load_method, loads_method
+from .data.reader import read_dataset
 from .data.splits import resolve_split, scene_name
 from .data.synthetic import write_world
 from .data.synthetic.writer import VERSION
 from .env.baselines import evaluate_beside_baselines
 from .hashing import file_sha256, json_digest
+from .perception.classifier import classifier_cache_path, data_hash, read_classifier_file, train_records
 from .perception.prepare import prepare_table
-from .perception.training.classifier import ClassifierRecipe
+from .perception.training.classifier import ClassifierRecipe, train_classifier
+from .perception.weights import state_dict_hash
 from .policy.checkpoint import read_policy_file
 from .presets import ZOO, load_preset, preset_overrides, world_contexts, world_root
 from .table import ObservationTable
@@ -182,6 +185,25 @@ class Zoo:
             write_world(Path(tmp), contexts=contexts, size=int(world["size"]), seed=int(world["seed"]),
                         workers=workers, include_unoccluded=len(contexts) < len(names), progress=progress)
             return {n: scene_digest(Path(tmp) / n / "scene.json") == records[n] for n in names}
+
+    def recognizer_trained_here(self, *, workers: int = 1, progress: bool = False) -> tuple[str | None, str]:
+        """Render the zoo world's ``train_605`` and train the shipped recognizer's recipe on
+        it on this machine's CPU (on the recognizer's fixed thread count), in a temporary
+        folder: ``(weights hash trained here, the shipped file's)``, the first None when
+        ``train_605`` itself renders otherwise here (then training compares nothing). Equal
+        hashes: this machine's torch trains the zoo's recognizer weight for weight."""
+        rec = self.manifest["recognizer"]
+        shipped = state_dict_hash(read_classifier_file(self.recognizer())[0])
+        recipe = ClassifierRecipe.from_preset({}, **rec["settings"])
+        world = self.manifest["world"]["world"]
+        with tempfile.TemporaryDirectory(prefix="uevavd-zoo-recognizer-") as tmp:
+            root = write_world(Path(tmp) / "world", contexts=[], size=int(world["size"]), seed=int(world["seed"]),
+                               workers=workers, include_unoccluded=True, progress=progress)
+            if classifier_cache_path(data_hash(train_records(read_dataset(root))), recipe).name != rec["cache_name"]:
+                return None, shipped  # other train_605 bytes (or another recipe) than the shipped file's
+            out = train_classifier(root, Path(tmp) / RECOGNIZER, settings=recipe, workers=max(2, workers),
+                                   progress=progress, device="cpu")
+            return state_dict_hash(read_classifier_file(out)[0]), shipped
 
     def check(self, preset: Mapping[str, Any] | None = None) -> None:
         problems = self.problems(preset)

@@ -143,6 +143,9 @@ def add_zoo(parser: argparse.ArgumentParser):
     check.add_argument("--render", nargs="?", const="all", default=None, metavar="SCENES",
                        help="also render the zoo's world here and compare every scene's files with the zoo's "
                             "records (all 32 scenes: about 30 s on 2 cores), or only SCENES, e.g. 026,056")
+    check.add_argument("--recognizer", action="store_true",
+                       help="also render the zoo's train_605 and train the shipped recognizer's recipe here on the "
+                            "CPU, and compare its weights with the shipped file's (about 75 s on 2 cores)")
     check.add_argument("--workers", type=int, default=None, help="processes rendering (default: the number of cores)")
     for p in (listing, check):
         p.add_argument("--zoo", type=Path, default=None, metavar="DIR",
@@ -154,13 +157,17 @@ def add_zoo(parser: argparse.ArgumentParser):
     return run_zoo
 
 
-def _render_check(zoo, args: argparse.Namespace) -> int:
-    """``zoo check --render``: exit 1 when a scene rendered here differs from the zoo's record."""
-    scenes = None if args.render == "all" else [s.strip() for s in args.render.split(",") if s.strip()]
+def _check_workers(args: argparse.Namespace) -> int:
     workers = (os.cpu_count() or 1) if args.workers is None else args.workers
     if workers < 1:
         raise ValueError(f"--workers {workers}: expected at least 1")
-    same = zoo.rendered_here(scenes, workers=workers, progress=True)
+    return workers
+
+
+def _render_check(zoo, args: argparse.Namespace) -> int:
+    """``zoo check --render``: exit 1 when a scene rendered here differs from the zoo's record."""
+    scenes = None if args.render == "all" else [s.strip() for s in args.render.split(",") if s.strip()]
+    same = zoo.rendered_here(scenes, workers=_check_workers(args), progress=True)
     differ = [n for n, ok in same.items() if not ok]
     if not differ:
         print(f"{len(same)} of {len(same)} scenes render here byte for byte as the zoo's records")
@@ -168,6 +175,22 @@ def _render_check(zoo, args: argparse.Namespace) -> int:
     print(f"{len(differ)} of {len(same)} scenes render otherwise here than the zoo's records: {', '.join(differ)}. "
           "This machine's numpy computes some pixels otherwise (docs/synthetic_world.md, \"The same bytes on every "
           "machine\"); numbers trained or evaluated here may differ from the published ones in the last digits")
+    return 1
+
+
+def _recognizer_check(zoo, args: argparse.Namespace) -> int:
+    """``zoo check --recognizer``: exit 1 when the recognizer trained here differs from the shipped one."""
+    here, shipped = zoo.recognizer_trained_here(workers=_check_workers(args), progress=True)
+    if here is None:
+        print("train_605 renders otherwise here than the zoo's recognizer was trained on (see `zoo check --render "
+              "train_605`): the recognizer was not trained")
+        return 1
+    if here == shipped:
+        print(f"the recognizer trained here has the shipped recognizer's weights, bit for bit ({here})")
+        return 0
+    print(f"the recognizer trained here ({here}) differs from the shipped one ({shipped}): this machine's torch "
+          "computes training otherwise (its CPU: `uevavd info`); numbers after `--no-zoo` may differ from the "
+          "published ones")
     return 1
 
 
@@ -184,9 +207,10 @@ def run_zoo(args: argparse.Namespace) -> int:
         if args.zoo_command == "check":
             print("\n".join(f"stale: {p}" for p in problems) or f"{zoo.root}: the shipped models match the world, "
                                                                   "the preset and the methods")
-            if problems or args.render is None:
-                return 1 if problems else 0
-            return _render_check(zoo, args)
+            if problems:
+                return 1
+            rc = _render_check(zoo, args) if args.render is not None else 0
+            return max(rc, _recognizer_check(zoo, args)) if args.recognizer else rc
         for name, rec in sorted(zoo.manifest["files"].items()):
             zoo.verified(name)
             print(f"{name:<26} {rec['bytes'] / 1e6:5.1f} MB  sha256 {rec['sha256'][:16]}... ok")
