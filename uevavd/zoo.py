@@ -179,11 +179,10 @@ class Zoo:
         unknown = [n for n in names if n not in records]
         if unknown:
             raise ValueError(f"scene(s) {unknown} are not in the zoo's records; it records {sorted(records)}")
-        world = self.manifest["world"]["world"]
         contexts = [int(n) for n in names if n not in ("00", "train_605")]
         with tempfile.TemporaryDirectory(prefix="uevavd-zoo-render-") as tmp:
-            write_world(Path(tmp), contexts=contexts, size=int(world["size"]), seed=int(world["seed"]),
-                        workers=workers, include_unoccluded=len(contexts) < len(names), progress=progress)
+            self._write_world(Path(tmp), contexts, include_unoccluded=len(contexts) < len(names), workers=workers,
+                              progress=progress)
             return {n: scene_digest(Path(tmp) / n / "scene.json") == records[n] for n in names}
 
     def recognizer_trained_here(self, *, workers: int = 1, progress: bool = False) -> tuple[str | None, str]:
@@ -195,15 +194,21 @@ class Zoo:
         rec = self.manifest["recognizer"]
         shipped = state_dict_hash(read_classifier_file(self.recognizer())[0])
         recipe = ClassifierRecipe.from_preset({}, **rec["settings"])
-        world = self.manifest["world"]["world"]
         with tempfile.TemporaryDirectory(prefix="uevavd-zoo-recognizer-") as tmp:
-            root = write_world(Path(tmp) / "world", contexts=[], size=int(world["size"]), seed=int(world["seed"]),
-                               workers=workers, include_unoccluded=True, progress=progress)
+            root = self._write_world(Path(tmp) / "world", [], include_unoccluded=True, workers=workers,
+                                     progress=progress)
             if classifier_cache_path(data_hash(train_records(read_dataset(root))), recipe).name != rec["cache_name"]:
                 return None, shipped  # other train_605 bytes (or another recipe) than the shipped file's
-            out = train_classifier(root, Path(tmp) / RECOGNIZER, settings=recipe, workers=max(2, workers),
-                                   progress=progress, device="cpu")
+            out = train_classifier(root, Path(tmp) / RECOGNIZER, settings=recipe, workers=workers, progress=progress,
+                                   device="cpu")
             return state_dict_hash(read_classifier_file(out)[0]), shipped
+
+    def _write_world(self, root: Path, contexts: Sequence[int], *, include_unoccluded: bool, workers: int,
+                     progress: bool) -> Path:
+        """``contexts`` (and ``train_605`` when asked) of the zoo's world, written under ``root``."""
+        world = self.manifest["world"]["world"]
+        return write_world(root, contexts=contexts, size=int(world["size"]), seed=int(world["seed"]), workers=workers,
+                           include_unoccluded=include_unoccluded, progress=progress)
 
     def check(self, preset: Mapping[str, Any] | None = None) -> None:
         problems = self.problems(preset)
