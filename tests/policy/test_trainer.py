@@ -177,3 +177,17 @@ def test_stand_in_table_with_simple_contexts_is_evaluated_on_them(tmp_path):
                 overrides={**SMALL_RUN, "train.eval_splits": ["train", "simple", "hard"]})
     rows = [json.loads(line) for line in (run / "evals.jsonl").read_text().splitlines()]
     assert {r["split"] for r in rows} == {"train", "simple", "hard"}
+
+
+def test_train_restores_the_callers_torch_thread_count(table, tmp_path):
+    """``train.threads`` holds for the run only: a library caller's own setting comes back
+    after it (a notebook set to 2 threads stays on 2 after a 1-thread run)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        run = train(load_method("map"), table, out=tmp_path / "t", episodes=100, progress=False,
+                    overrides=small("map"), device="cpu")
+        assert json.loads((run / "settings.json").read_text())["threads"] == 1  # trained on the run's count
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

@@ -67,7 +67,8 @@ class TrainConfig:
     seed: int = 0
     """Seeds network init, exploration, replay sampling and the environment."""
     threads: int = 0
-    """torch CPU threads (0 leaves torch's default; 1 is fastest on a CPU shared with other jobs)."""
+    """torch CPU threads for the run, the caller's count restored after it (0 leaves the
+    caller's; 1 is fastest on a CPU shared with other jobs)."""
     loss: Literal["huber", "mse"] = "huber"
     """TD loss (Huber is the usual choice for DQN)."""
 

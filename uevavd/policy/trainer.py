@@ -29,6 +29,7 @@ from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
 from ..perception.nets import resolve_device
+from ..runtime import torch_threads
 from .acting import GreedyPolicy, epsilon_greedy
 from .checkpoint import (
     CheckpointError,
@@ -132,7 +133,7 @@ def train(
     training into (:func:`~uevavd.policy.rundir.run_lock`); returns at once for a finished
     run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
     """
-    with run_lock(out):
+    with run_lock(out), torch_threads(None):  # train.threads for the run only: the caller's count after it
         return _train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress,
                       overrides=overrides, max_epochs=max_epochs)
 
