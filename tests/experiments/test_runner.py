@@ -54,17 +54,8 @@ def ablation(tiny) -> dict:
     write_meta(plan, data, "training")  # as an ablation killed during training leaves it
     jobs = plan_jobs(plan, tables)
     interrupted = next(j for j in jobs if j.method == "ibe_map")
-    import torch
-
-    from uevavd.experiments.backends import _threads
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(_threads(plan.workers))  # as the ablation's runs get (a resume checks it)
-    try:
-        train(load_method(interrupted.spec_path), Path(interrupted.table), out=Path(interrupted.out), seed=0,
-              device="cpu", progress=False, max_epochs=1)
-    finally:
-        torch.set_num_threads(threads)
+    train(load_method(interrupted.spec_path), Path(interrupted.table), out=Path(interrupted.out), seed=0,
+          device="cpu", progress=False, max_epochs=1)  # on the method's thread count, as the ablation's runs
     assert not is_done(interrupted)
     partial_epochs = len(Path(interrupted.out, "evals.jsonl").read_text().splitlines())
 
@@ -400,8 +391,9 @@ def test_two_recognizers_give_their_own_classifiers_tables_and_runs(tiny):
 
 
 def test_threads_follow_the_workers_asked_for_not_the_runs_left(monkeypatch):
-    """A resumed ablation with one run left gives it the thread count an uninterrupted one
-    gave it (cores // workers), so its weights are the same (it used to get every core)."""
+    """For a method that sets ``train.threads = 0``, a resumed ablation with one run left gives
+    it the thread count an uninterrupted one gave it (cores // workers), so its weights are
+    the same (it used to get every core)."""
     import uevavd.experiments.backends as backends
 
     monkeypatch.setattr(backends.os, "cpu_count", lambda: 4)

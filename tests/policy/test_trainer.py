@@ -191,3 +191,23 @@ def test_train_restores_the_callers_torch_thread_count(table, tmp_path):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_run_trains_the_same_weights_whatever_the_callers_thread_count(table, tmp_path):
+    """The weights depend on the torch thread count even at these sizes; a run used the
+    caller's (torch's default: the machine's cores), so ``uevavd train`` on 2 cores trained
+    other weights than the demo's 1-thread run of the same method, table and seed."""
+    over = {k: v for k, v in small("map").items() if k != "train.threads"}  # the default count
+    before = torch.get_num_threads()
+    weights, recorded = [], []
+    try:
+        for caller in (1, 2):
+            torch.set_num_threads(caller)
+            run = train(load_method("map"), table, out=tmp_path / f"c{caller}", episodes=200, progress=False,
+                        overrides=over, device="cpu")
+            weights.append(_weights(run))
+            recorded.append(json.loads((run / "settings.json").read_text())["threads"])
+    finally:
+        torch.set_num_threads(before)
+    assert recorded == [1, 1]
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])

@@ -2,8 +2,9 @@
 
 Both call :func:`uevavd.experiments.jobs.run_job`, which resumes a run from its last
 checkpoint, so a retried Ray task (or a rerun after a kill) continues where it stopped.
-Each job gets ``cores // parallel`` torch threads on both backends, so the same seeds
-give the same results whichever backend ran them.
+A run trains on its method's ``train.threads`` (default 1) on both backends, so the same
+seeds give the same results whichever backend, machine or ``--workers`` ran them; a method
+that sets 0 gets ``cores // parallel``.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ def run_jobs(jobs: Sequence[Job], *, backend: str = "local", workers: int = 1, l
              ray_address: str | None = None, gpus_per_job: float = 0.0) -> list[str]:
     if not jobs:
         return []
-    # threads from the workers asked for, not from the runs left: a resumed ablation gives
-    # its last runs the same thread count as an uninterrupted one (results depend on it)
+    # for methods with train.threads = 0: threads from the workers asked for, not from the runs
+    # left, so a resumed ablation gives its last runs an uninterrupted one's count
     threads = _threads(workers)
     workers = max(1, min(workers, len(jobs)))
     jobs = [dataclasses.replace(j, threads=threads) for j in jobs]

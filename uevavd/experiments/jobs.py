@@ -23,7 +23,7 @@ class Job:
     spec_path: str  #: resolved method spec (TOML), written by the driver
     table: str  #: observation table folder
     out: str  #: run directory
-    threads: int = 1
+    threads: int = 1  #: torch threads for a method that sets train.threads = 0 (cores // workers)
     device: str = "cpu"
     recognizer: int = 0  #: which recognizer (its training seed) the table's probabilities come from
 

@@ -79,7 +79,7 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
     table = ObservationTable.load(table_path)
     env = DiscreteActions(AODEnv(table, "train", config))
     widths = sb3_widths(spec)
-    with torch_threads(job.threads):  # as the method's runs
+    with torch_threads(spec.train_config().threads or job.threads):  # as the method's runs
         model = getattr(sb3, SB3_AGENTS[agent])("MultiInputPolicy", env, learning_rate=float(spec["train.lr"]),
                                                 gamma=config.gamma, policy_kwargs={"net_arch": widths}, seed=seed,
                                                 device="cpu", verbose=0)

@@ -66,9 +66,13 @@ class TrainConfig:
     """"auto" (CUDA when available), "cpu" or "cuda[:i]"."""
     seed: int = 0
     """Seeds network init, exploration, replay sampling and the environment."""
-    threads: int = 0
-    """torch CPU threads for the run, the caller's count restored after it (0 leaves the
-    caller's; 1 is fastest on a CPU shared with other jobs)."""
+    threads: int = 1
+    """torch CPU threads for the run, the caller's count restored after it. An update's float
+    sums round by how they are split between threads, so the weights depend on the count: a
+    fixed one gives the same run on every machine (``uevavd train`` and ``uevavd ablate``
+    train the same weights). 0 takes the caller's count (torch's default is the cores;
+    ``ablate`` gives such runs ``cores // workers``): faster at the paper's sizes on an idle
+    CPU, other weights on another machine. Recorded in the run, checked on resume."""
     loss: Literal["huber", "mse"] = "huber"
     """TD loss (Huber is the usual choice for DQN)."""
 
