@@ -7,6 +7,7 @@ each fault, the exit status and the line the user reads.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -28,11 +29,14 @@ SMALL = ["--set", "state.input_dim=24", "--set", "state.box_dim=8", "--set", "st
          "--set", "train.learning_starts=40", "--set", "train.epoch_episodes=100", "--set", "train.eval_contexts=1",
          "--set", "train.threads=1"]
 
+PROGRESS_BAR = re.compile(r"\[\d+:\d\d[<,\]]")  # a tqdm line on stderr (its elapsed time), not the message
+
 
 def run(*args):
     p = subprocess.run([sys.executable, "-m", "uevavd.cli", *map(str, args)], capture_output=True, text=True,
                        env={**os.environ, "UEVAVD_DEBUG": ""}, timeout=600)
-    err = [ln for ln in p.stderr.strip().splitlines() if ln and "Warning" not in ln and "warn" not in ln]
+    err = [ln for ln in p.stderr.strip().splitlines()
+           if ln.strip() and "Warning" not in ln and "warn" not in ln and not PROGRESS_BAR.search(ln)]
     return p.returncode, (err[-1] if err else p.stdout.strip().splitlines()[-1] if p.stdout.strip() else "")
 
 
