@@ -128,3 +128,18 @@ def test_train_with_a_preset_and_the_preset_a_table_fits(table, tmp_path, capsys
     settings = json.loads((tmp_path / "run" / "settings.json").read_text())["train"]
     assert settings["eps_fraction"] == 0.15 and settings["episodes"] == 100  # the preset's; --episodes
     assert settings["lr"] == 0.002 and settings["learning_starts"] == 40  # --set over the preset's 1e-3, 500
+
+
+def test_train_threads_option_sets_the_runs_thread_count(table, tmp_path, capsys, monkeypatch):
+    """``--threads N`` is ``--set train.threads=N``: recorded in the run; a negative count is
+    one line and exit 2, before any run directory exists."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    base = ["train", "--method", "map", "--table", str(path), "--episodes", "100", "--no-progress",
+            "--device", "cpu", *_sets()]
+    assert main([*base, "--out", str(tmp_path / "two"), "--threads", "2"]) == 0
+    assert json.loads((tmp_path / "two" / "settings.json").read_text())["threads"] == 2
+    capsys.readouterr()
+    assert main([*base, "--out", str(tmp_path / "bad"), "--threads", "-1"]) == 2
+    _one_line_error(capsys, "train.threads = -1", "expected an integer >= 0")
+    assert not (tmp_path / "bad").exists()

@@ -77,6 +77,9 @@ def add_train(p: argparse.ArgumentParser):
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:i]")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a method key, e.g. --set train.batch_size=128 --set head.td_target=indep")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads, i.e. --set train.threads=N (default: the method's, 1: the same weights "
+                        "on every machine; 0: torch's default, the cores, faster at the paper's sizes)")
     p.add_argument("--max-epochs", type=int, default=None, help="stop after this many epochs (resume later)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -86,7 +89,8 @@ def add_train(p: argparse.ArgumentParser):
         from .trainer import train
 
         try:
-            overrides = cli_overrides(args.preset, args.set)
+            sets = [*args.set, *([f"train.threads={args.threads}"] if args.threads is not None else [])]
+            overrides = cli_overrides(args.preset, sets)
             spec = load_method(args.method, overrides)
         except (ConfigError, *BAD_INPUT) as exc:
             return _error("train", exc)
