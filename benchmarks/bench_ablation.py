@@ -6,7 +6,7 @@
 The runs `uevavd ablate --preset PRESET` trains (the paper preset: 300,000 episodes each, an
 exhaustive evaluation on train, simple and hard every 10,000, then the final evaluation),
 through the ablation's own runner (`uevavd.experiments.backends.run_jobs`: ``--workers``
-spawned processes, each with cores // workers torch threads), on a stand-in table with the
+spawned processes, each run on its method's `train.threads`, 1), on a stand-in table with the
 paper's sizes: 2048-d features, 100 train, 25 simple and 25 hard contexts
 (`uevavd.testing.policy.toy_table`). A run's time depends on the sizes, not on the
 features' content, so this times the training part of an ablation without its world,
