@@ -211,3 +211,20 @@ def test_a_run_trains_the_same_weights_whatever_the_callers_thread_count(table, 
         torch.set_num_threads(before)
     assert recorded == [1, 1]
     assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+
+def test_train_leaves_the_callers_torch_random_stream_alone(table, tmp_path):
+    """The run seeds torch's global RNG to initialise its network; a notebook's own stream
+    continued from the run's seed afterwards. It is restored, and the run's weights do not
+    depend on what the caller drew before."""
+    over = small("map")
+    torch.manual_seed(987)  # whatever ran before in the process
+    before = torch.random.get_rng_state()
+    first = train(load_method("map"), table, out=tmp_path / "a", episodes=100, progress=False, overrides=over,
+                  device="cpu")
+    assert torch.equal(torch.random.get_rng_state(), before)
+    torch.rand(5)
+    second = train(load_method("map"), table, out=tmp_path / "b", episodes=100, progress=False, overrides=over,
+                   device="cpu")
+    wa, wb = _weights(first), _weights(second)
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)

@@ -12,6 +12,7 @@ after every epoch evaluates, logs and checkpoints. Run directory::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import platform
 import time
@@ -133,13 +134,14 @@ def train(
     training into (:func:`~uevavd.policy.rundir.run_lock`); returns at once for a finished
     run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
     """
-    with run_lock(out), torch_threads(None):  # train.threads for the run only: the caller's count after it
+    # train.threads and the seeded torch RNG for the run only: the caller's after it
+    with run_lock(out), torch_threads(None), contextlib.ExitStack() as caller_state:
         return _train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress,
-                      overrides=overrides, max_epochs=max_epochs)
+                      overrides=overrides, max_epochs=max_epochs, caller_state=caller_state)
 
 
 def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, seed: int, device: str,
-           progress: bool, overrides: dict | None, max_epochs: int | None) -> Path:
+           progress: bool, overrides: dict | None, max_epochs: int | None, caller_state: contextlib.ExitStack) -> Path:
     # -- settings -----------------------------------------------------------------------------
     spec = spec.with_overrides(overrides)
     table = load_table(table)
@@ -169,7 +171,13 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
 
     # -- seeding and setup (everything that can refuse the input, before the run directory
     # is written: a table without the train or an eval split leaves no half-made run) --------
-    torch.manual_seed(cfg.seed)
+    # the network initialises from torch's global RNG (on the CPU, then moved); seeded here,
+    # the caller's streams (the CPU's, the run's GPU's) restored after the run
+    caller_state.enter_context(torch.random.fork_rng(devices=[dev] if dev.type == "cuda" else []))
+    torch.random.default_generator.manual_seed(cfg.seed)
+    if dev.type == "cuda":
+        with torch.cuda.device(dev):
+            torch.cuda.manual_seed(cfg.seed)
     net = build_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
