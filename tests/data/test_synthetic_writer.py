@@ -224,3 +224,17 @@ def test_a_scene_killed_while_being_rewritten_is_not_complete(world, tmp_path, m
     monkeypatch.setattr(writer, "_png", real_png)
     write_world(out, contexts=[5], size=SIZE, seed=3, include_unoccluded=False, progress=False)
     assert _tree_bytes(out / "005") == _tree_bytes(world / "005")
+
+
+def test_a_resumed_world_s_progress_rate_counts_only_the_views_it_renders(world, tmp_path, capsys):
+    """Views already on disk start the bar; they are not views rendered in no time (a rerun of
+    a finished world printed hundreds of millions of views/s)."""
+    import re
+
+    out = tmp_path / "w"
+    shutil.copytree(world, out)
+    write_world(out, contexts=[5], size=SIZE, seed=3, include_unoccluded=False, progress=True)
+    err = capsys.readouterr().err
+    assert f"{N_VIEWS}/{N_VIEWS}" in err
+    rates = [float(r) for r in re.findall(r"([0-9.]+)view/s", err)]
+    assert all(r == 0 for r in rates), err  # nothing rendered: no rate, or 0

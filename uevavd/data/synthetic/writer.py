@@ -241,8 +241,9 @@ def write_world(
     names = _scene_jobs(contexts, include_unoccluded)
     todo = [n for n in names if not scene_complete(root / n, size=size, seed=seed)]
     total = sum(_views_in(n) for n in names)
-    bar = tqdm(total=total, unit="view", desc=f"synth {size}px", disable=not progress)
-    bar.update(total - sum(_views_in(n) for n in todo))
+    # views already written start the bar (initial), so its rate counts this call's views only
+    bar = tqdm(total=total, initial=total - sum(_views_in(n) for n in todo), unit="view", desc=f"synth {size}px",
+               disable=not progress)
     if workers == 1 or len(todo) <= 1:
         for n in todo:
             bar.update(_job(str(root), n, size, seed)[1])
