@@ -535,5 +535,6 @@ def test_the_training_bar_counts_episodes_from_the_runs_files(ablation, tmp_path
     assert episodes_trained(partial) == recorded and episodes_trained(fresh) == 0
     with RunsProgress([partial, fresh], every=3600) as progress:
         assert (progress.bar.total, progress.bar.n) == (2 * asked, min(asked, recorded))
+        assert progress.bar.initial == min(asked, recorded)  # the rate counts this call's episodes only
         progress.finished(fresh)
         assert progress.bar.n == min(asked, recorded) + asked and progress.bar.desc.startswith("runs 1/2")

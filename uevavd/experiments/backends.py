@@ -77,7 +77,8 @@ class RunsProgress:
         self.bar = tqdm(total=sum(self.episodes.values()), unit="ep", unit_scale=True,
                         desc=self._desc(), dynamic_ncols=True)
         self._lock = threading.Lock()  # the polling thread and finished() both refresh
-        self.refresh()  # resumed runs show what they have already trained
+        self.refresh()  # resumed runs show what they have already trained,
+        self.bar.initial = self.bar.n  # which the rate and the time left do not count
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._poll, name="uevavd-runs-progress", daemon=True)
         self._thread.start()
