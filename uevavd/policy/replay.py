@@ -10,6 +10,7 @@ generator, whose state is checkpointed with the buffer).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -35,6 +36,18 @@ class EpisodeBatch:
 class EpisodeReplay:
     """Ring buffer of ``capacity`` episodes of at most ``t_max`` decisions."""
 
+    #: False (as every published number was trained): sampling raises the priorities to alpha
+    #: with torch's vectorised pow and sums them with its vectorised sum, whose last bits depend
+    #: on the CPU's vector width (torch's AVX-512 and AVX2 kernels), so the same run samples
+    #: other episodes on a CPU without AVX-512 and trains other weights. True: each priority is
+    #: raised to alpha once, when it is written, by Python's scalar ``math.pow`` (float64);
+    #: multinomial takes those weights as they are (its CPU kernel sums them in order) and the
+    #: importance weights (N P(i))^-beta / max_j (N P(j))^-beta = (w_i / min_j w_j)^-beta of
+    #: the batch need no total; then runs train the same weights under both kernel sets
+    #: (docs/agents.md, "What a run's weights depend on"). It moves every trained number, so it
+    #: belongs to the next step that retrains them (world version 5).
+    CPU_INDEPENDENT = False
+
     def __init__(self, capacity: int, t_max: int, *, alpha: float = 0.6, eps: float = 1e-3, seed: int = 0,
                  device: torch.device | str = "cpu") -> None:
         if capacity < 1 or t_max < 1:
@@ -49,6 +62,7 @@ class EpisodeReplay:
         self.reward = torch.zeros(capacity, t_max, dtype=torch.float32, **z)
         self.length = torch.zeros(capacity, dtype=torch.int64, **z)
         self.priority = torch.zeros(capacity, dtype=torch.float32, **z)
+        self.weight = torch.zeros(capacity, dtype=torch.float64, **z)  # priority**alpha (CPU_INDEPENDENT)
         self.ptr = 0
         self.size = 0
         self.max_priority = 1.0
@@ -75,17 +89,25 @@ class EpisodeReplay:
         self.reward[idx] = reward.to(self.device, torch.float32)
         self.length[idx] = length.to(self.device)
         self.priority[idx] = self.max_priority
+        if self.CPU_INDEPENDENT:
+            self._raise(idx)
         self.ptr = (self.ptr + n) % self.capacity
         self.size = min(self.capacity, self.size + n)
 
     def sample(self, batch_size: int, beta: float) -> EpisodeBatch:
         if self.size == 0:
             raise RuntimeError("cannot sample from an empty replay buffer")
-        p = self.priority[: self.size] ** self.alpha
-        probs = p / p.sum()
-        idx = torch.multinomial(probs, batch_size, replacement=True, generator=self.generator)
-        w = (self.size * probs[idx]) ** (-beta)
-        w = w / w.max()
+        if self.CPU_INDEPENDENT:
+            idx = torch.multinomial(self.weight[: self.size], batch_size, replacement=True, generator=self.generator)
+            picked = self.weight[idx].tolist()
+            low = min(picked)
+            w = torch.tensor([math.pow(v / low, -beta) for v in picked], dtype=torch.float64, device=self.device)
+        else:
+            p = self.priority[: self.size] ** self.alpha
+            probs = p / p.sum()
+            idx = torch.multinomial(probs, batch_size, replacement=True, generator=self.generator)
+            w = (self.size * probs[idx]) ** (-beta)
+            w = w / w.max()
         steps = torch.arange(self.t_max, device=self.device)
         length = self.length[idx]
         return EpisodeBatch(
@@ -99,6 +121,13 @@ class EpisodeReplay:
         pr = td_abs.detach().to(self.device, torch.float32) + self.eps
         self.priority[index] = pr
         self.max_priority = max(self.max_priority, float(pr.max()))
+        if self.CPU_INDEPENDENT:  # from the stored priorities: an index sampled twice keeps one value
+            self._raise(index)
+
+    def _raise(self, index: torch.Tensor) -> None:
+        """weight[index] = priority[index] ** alpha, element by element in Python's float64."""
+        self.weight[index] = torch.tensor([math.pow(v, self.alpha) for v in self.priority[index].tolist()],
+                                          dtype=torch.float64, device=self.device)
 
     # -- checkpointing ----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -116,4 +145,6 @@ class EpisodeReplay:
                 raise ValueError(f"replay {name}: checkpoint shape {tuple(state[name].shape)} != {tuple(mine.shape)}")
             mine.copy_(state[name])
         self.ptr, self.size, self.max_priority = int(state["ptr"]), int(state["size"]), float(state["max_priority"])
+        if self.CPU_INDEPENDENT:  # derived from the priorities: not checkpointed
+            self._raise(torch.arange(self.size, device=self.device))
         self.generator.set_state(state["generator"])
