@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -229,8 +230,6 @@ def test_a_scene_killed_while_being_rewritten_is_not_complete(world, tmp_path, m
 def test_a_resumed_world_s_progress_rate_counts_only_the_views_it_renders(world, tmp_path, capsys):
     """Views already on disk start the bar; they are not views rendered in no time (a rerun of
     a finished world printed hundreds of millions of views/s)."""
-    import re
-
     out = tmp_path / "w"
     shutil.copytree(world, out)
     write_world(out, contexts=[5], size=SIZE, seed=3, include_unoccluded=False, progress=True)

@@ -47,7 +47,7 @@ def test_importance_weights_are_the_usual_ones(cpu_independent):
     """(w_i / min_j w_j)^-beta over the batch is (N P(i))^-beta / max_j (N P(j))^-beta."""
     buf = _filled()
     p = buf.priority[: buf.size].double() ** buf.alpha
-    assert torch.allclose(buf.weight[: buf.size], p, rtol=1e-12, atol=0)
+    assert torch.allclose(buf.priority_alpha[: buf.size], p, rtol=1e-12, atol=0)
     batch = buf.sample(64, 0.4)
     want = (buf.size * p[batch.index] / p.sum()) ** -0.4
     assert torch.allclose(batch.weight.double(), want / want.max(), rtol=1e-6, atol=0)

@@ -62,7 +62,7 @@ class EpisodeReplay:
         self.reward = torch.zeros(capacity, t_max, dtype=torch.float32, **z)
         self.length = torch.zeros(capacity, dtype=torch.int64, **z)
         self.priority = torch.zeros(capacity, dtype=torch.float32, **z)
-        self.weight = torch.zeros(capacity, dtype=torch.float64, **z)  # priority**alpha (CPU_INDEPENDENT)
+        self.priority_alpha = torch.zeros(capacity, dtype=torch.float64, **z)  # priority**alpha (CPU_INDEPENDENT)
         self.ptr = 0
         self.size = 0
         self.max_priority = 1.0
@@ -90,7 +90,7 @@ class EpisodeReplay:
         self.length[idx] = length.to(self.device)
         self.priority[idx] = self.max_priority
         if self.CPU_INDEPENDENT:
-            self._raise(idx)
+            self._raise_to_alpha(idx)
         self.ptr = (self.ptr + n) % self.capacity
         self.size = min(self.capacity, self.size + n)
 
@@ -98,8 +98,8 @@ class EpisodeReplay:
         if self.size == 0:
             raise RuntimeError("cannot sample from an empty replay buffer")
         if self.CPU_INDEPENDENT:
-            idx = torch.multinomial(self.weight[: self.size], batch_size, replacement=True, generator=self.generator)
-            picked = self.weight[idx].tolist()
+            idx = torch.multinomial(self.priority_alpha[: self.size], batch_size, replacement=True, generator=self.generator)
+            picked = self.priority_alpha[idx].tolist()
             low = min(picked)
             w = torch.tensor([math.pow(v / low, -beta) for v in picked], dtype=torch.float64, device=self.device)
         else:
@@ -122,11 +122,11 @@ class EpisodeReplay:
         self.priority[index] = pr
         self.max_priority = max(self.max_priority, float(pr.max()))
         if self.CPU_INDEPENDENT:  # from the stored priorities: an index sampled twice keeps one value
-            self._raise(index)
+            self._raise_to_alpha(index)
 
-    def _raise(self, index: torch.Tensor) -> None:
-        """weight[index] = priority[index] ** alpha, element by element in Python's float64."""
-        self.weight[index] = torch.tensor([math.pow(v, self.alpha) for v in self.priority[index].tolist()],
+    def _raise_to_alpha(self, index: torch.Tensor) -> None:
+        """priority_alpha[index] = priority[index] ** alpha, element by element in Python's float64."""
+        self.priority_alpha[index] = torch.tensor([math.pow(v, self.alpha) for v in self.priority[index].tolist()],
                                           dtype=torch.float64, device=self.device)
 
     # -- checkpointing ----------------------------------------------------------------------
@@ -146,5 +146,5 @@ class EpisodeReplay:
             mine.copy_(state[name])
         self.ptr, self.size, self.max_priority = int(state["ptr"]), int(state["size"]), float(state["max_priority"])
         if self.CPU_INDEPENDENT:  # derived from the priorities: not checkpointed
-            self._raise(torch.arange(self.size, device=self.device))
+            self._raise_to_alpha(torch.arange(self.size, device=self.device))
         self.generator.set_state(state["generator"])
