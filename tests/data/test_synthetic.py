@@ -290,17 +290,8 @@ def test_a_stage_shares_its_shadows_between_targets_and_renders_the_same_bits():
         render_view(other, views[0], 48, _Prep(other, shared))
 
 
-@pytest.mark.parametrize("hull_shadows", [
-    pytest.param(False, marks=pytest.mark.xfail(strict=True, reason=(
-        "world version 4: a hull's padding planes (0 . p <= 1) give the shadow map's ray a denominator of "
-        "-0.0, so no hull (building, vehicle, trunk) casts a shadow; only ellipsoids do. Fixing it changes "
-        "every image: world version 5 (docs/synthetic_world.md)"))),
-    True,  # the fix, off until world version 5
-])
-def test_a_building_between_the_sun_and_the_target_shades_it(hull_shadows, monkeypatch):
-    from uevavd.data.synthetic.shading import _ShadowMap
-
-    monkeypatch.setattr(_ShadowMap, "HULL_SHADOWS", hull_shadows)
+def test_a_building_between_the_sun_and_the_target_shades_it():
+    """Hulls cast shadows (world version 5; version 4's shadow map let every sun ray miss them)."""
     scene = build_unoccluded("suv", seed=0)
     sun = scene.sun_dir
     towards_sun = (float(5 * sun[0] / sun[2]), float(5 * sun[1] / sun[2]))  # 5 m up the sun's ray from the target

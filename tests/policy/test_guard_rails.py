@@ -232,3 +232,46 @@ def test_a_run_another_process_is_training_is_refused_in_one_line(table, tmp_pat
         holder.kill()
         holder.wait()
     assert main(args) == 0 and (run / "done.json").is_file()
+
+
+def test_the_replays_sampling_is_a_recorded_setting_checked_on_resume(table, tmp_path):
+    """train.replay_sampling changes the trained weights: it is recorded in settings.json
+    ("portable" by default since world version 5), a resume with the other value is refused
+    naming it, and a run recorded before the setting existed resumes as it trained
+    ("vectorised")."""
+    import torch
+
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 300})
+    out = train(spec, table, out=tmp_path / "run", device="cpu", progress=False, max_epochs=1)
+    settings = json.loads((out / "settings.json").read_text())
+    assert settings["train"]["replay_sampling"] == "portable"
+    with pytest.raises(RunDirError, match="train.replay_sampling: run has 'portable', now 'vectorised'"):
+        train(spec, table, out=out, device="cpu", progress=False,
+              overrides={"train.replay_sampling": "vectorised"})
+    # the same run, as a run of the earlier version recorded it: no replay_sampling anywhere
+    old = load_method("map", overrides={**small("map"), "train.episodes": 300, "train.replay_sampling": "vectorised"})
+    legacy = train(old, table, out=tmp_path / "legacy", device="cpu", progress=False, max_epochs=1)
+    settings = json.loads((legacy / "settings.json").read_text())
+    del settings["train"]["replay_sampling"]
+    (legacy / "settings.json").write_text(json.dumps(settings))
+    ck = torch.load(legacy / "checkpoint.pt", weights_only=True)
+    del ck["meta"]["train"]["replay_sampling"]
+    torch.save(ck, legacy / "checkpoint.pt")
+    with pytest.raises(RunDirError, match="train.replay_sampling: run has 'vectorised', now 'portable'"):
+        train(spec, table, out=legacy, device="cpu", progress=False)
+    train(old, table, out=legacy, device="cpu", progress=False)  # resumes and finishes
+    assert (legacy / "policy.safetensors").is_file()
+
+
+def test_the_two_replay_samplings_train_different_weights(table, tmp_path):
+    """The setting matters (else recording it would be noise): the same seed trains other
+    weights under the two samplings."""
+    from safetensors.torch import load_file
+
+    def weights(sampling: str) -> dict:
+        spec = load_method("map", overrides={**small("map"), "train.episodes": 300, "train.replay_sampling": sampling})
+        out = train(spec, table, out=tmp_path / sampling, device="cpu", progress=False)
+        return load_file(out / "policy.safetensors")
+
+    a, b = weights("portable"), weights("vectorised")
+    assert any(not (a[k] == b[k]).all() for k in a)

@@ -1,4 +1,4 @@
-"""Prioritised episode replay: the CPU-independent sampling (``EpisodeReplay.CPU_INDEPENDENT``).
+"""Prioritised episode replay: the portable sampling (``TrainConfig.replay_sampling``), the default.
 
 torch picks its vectorised kernels from the CPU (``torch.backends.cpu.get_cpu_capability()``:
 AVX512 here, AVX2 on a CPU without AVX-512) and ``ATEN_CPU_CAPABILITY`` (read when torch loads)
@@ -26,10 +26,10 @@ def _add(buf: EpisodeReplay, k: int) -> None:
             torch.zeros(k, T_MAX), torch.ones(k, dtype=torch.int64))
 
 
-def _filled(n: int = 3000, capacity: int = 4000, seed: int = 0) -> EpisodeReplay:
+def _filled(n: int = 3000, capacity: int = 4000, seed: int = 0, sampling: str = "portable") -> EpisodeReplay:
     """A buffer of n one-decision episodes whose priorities are then spread over 4 decades."""
     gen = torch.Generator().manual_seed(seed)
-    buf = EpisodeReplay(capacity, T_MAX, seed=seed)
+    buf = EpisodeReplay(capacity, T_MAX, seed=seed, sampling=sampling)
     for start in range(0, n, 64):
         _add(buf, min(64, n - start))
     for _ in range(40):
@@ -38,12 +38,7 @@ def _filled(n: int = 3000, capacity: int = 4000, seed: int = 0) -> EpisodeReplay
     return buf
 
 
-@pytest.fixture
-def cpu_independent(monkeypatch):
-    monkeypatch.setattr(EpisodeReplay, "CPU_INDEPENDENT", True)
-
-
-def test_importance_weights_are_the_usual_ones(cpu_independent):
+def test_importance_weights_are_the_usual_ones():
     """(w_i / min_j w_j)^-beta over the batch is (N P(i))^-beta / max_j (N P(j))^-beta."""
     buf = _filled()
     p = buf.priority[: buf.size].double() ** buf.alpha
@@ -53,7 +48,7 @@ def test_importance_weights_are_the_usual_ones(cpu_independent):
     assert torch.allclose(batch.weight.double(), want / want.max(), rtol=1e-6, atol=0)
 
 
-def test_sampling_follows_priority_to_the_alpha(cpu_independent):
+def test_sampling_follows_priority_to_the_alpha():
     buf = EpisodeReplay(4, T_MAX, alpha=0.5, seed=1)
     _add(buf, 4)
     buf.update_priorities(torch.arange(4), torch.tensor([1.0, 4.0, 9.0, 16.0]) - buf.eps)
@@ -62,7 +57,7 @@ def test_sampling_follows_priority_to_the_alpha(cpu_independent):
     assert torch.allclose(share, torch.tensor([1.0, 2.0, 3.0, 4.0]) / 10, atol=0.01)  # sqrt of the priorities
 
 
-def test_a_restored_buffer_samples_as_the_original(cpu_independent):
+def test_a_restored_buffer_samples_as_the_original():
     buf = _filled()
     again = EpisodeReplay(buf.capacity, T_MAX)
     again.load_state_dict(buf.state_dict())
@@ -75,8 +70,7 @@ import hashlib, sys, torch
 sys.path.insert(0, sys.argv[2])
 import test_replay as t
 from uevavd.policy.replay import EpisodeReplay
-EpisodeReplay.CPU_INDEPENDENT = sys.argv[1] == "1"
-buf, h = t._filled(), hashlib.sha256()
+buf, h = t._filled(sampling=sys.argv[1]), hashlib.sha256()
 for _ in range(20):
     batch = buf.sample(64, 0.4)
     h.update(batch.index.numpy().tobytes()); h.update(batch.weight.numpy().tobytes())
@@ -84,24 +78,23 @@ print(torch.backends.cpu.get_cpu_capability(), h.hexdigest())
 """
 
 
-def _sampled_under(capability: str, cpu_independent: bool) -> str:
+def _sampled_under(capability: str, sampling: str) -> str:
     env = {**os.environ, "ATEN_CPU_CAPABILITY": capability}
-    out = subprocess.run([sys.executable, "-c", _SAMPLE, str(int(cpu_independent)), os.path.dirname(__file__)],
+    out = subprocess.run([sys.executable, "-c", _SAMPLE, sampling, os.path.dirname(__file__)],
                          env=env, capture_output=True, text=True, check=True)
     return out.stdout.strip()
 
 
 @pytest.mark.skipif(torch.backends.cpu.get_cpu_capability() != "AVX512",
                     reason="needs a CPU whose torch kernels are AVX-512, to compare them with AVX2's")
-@pytest.mark.parametrize("cpu_independent", [
-    pytest.param(False, marks=pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
+@pytest.mark.parametrize("sampling", [
+    pytest.param("vectorised", marks=pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
         "priority ** alpha and its sum run torch's vectorised kernels, whose last bits depend on the vector "
-        "width: a CPU without AVX-512 samples other episodes. The fix moves every trained number: it waits "
-        "for the next retraining (world version 5; docs/agents.md)"))),
-    True,  # the fix, off until then
+        "width: a CPU without AVX-512 samples other episodes (the sampling of runs before world version 5, "
+        "kept to resume them)"))),
+    "portable",  # the default since world version 5
 ])
-def test_sampling_does_not_depend_on_the_cpus_vector_width(cpu_independent):
-    wide, narrow = _sampled_under("avx512", cpu_independent), _sampled_under("avx2", cpu_independent)
+def test_sampling_does_not_depend_on_the_cpus_vector_width(sampling):
+    wide, narrow = _sampled_under("avx512", sampling), _sampled_under("avx2", sampling)
     assert wide.split()[0] == "AVX512" and narrow.split()[0] == "AVX2"
     assert wide.split()[1] == narrow.split()[1]
-

@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from ..atomic import atomic_save, atomic_write
+from .config import recorded_train
 from .rundir import RunDir
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
@@ -69,9 +70,10 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
     if not isinstance(state, dict) or "meta" not in state:
         raise CheckpointError(f"{path}: not a uevavd training checkpoint (no meta)")
     if expect is not None:
-        want = checkpoint_meta(expect)
-        diffs = [f"{k}: checkpoint has {state['meta'].get(k)!r}, expected {want[k]!r}"
-                 for k in keys if state["meta"].get(k) != want[k]]
+        want, have = checkpoint_meta(expect), dict(state["meta"])
+        have["train"] = recorded_train(have.get("train"))
+        diffs = [f"{k}: checkpoint has {have.get(k)!r}, expected {want[k]!r}"
+                 for k in keys if have.get(k) != want[k]]
         if diffs:
             raise CheckpointError(f"{path} belongs to another configuration: " + "; ".join(diffs))
     return state

@@ -7,9 +7,21 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from ..config import ConfigError
+from .replay import SAMPLINGS
 
 #: ``TrainConfig.gamma``'s default; at this value it follows ``env.gamma``.
 DEFAULT_GAMMA = 0.9
+
+#: What a run recorded before a training setting existed trained with: a run's recorded
+#: ``train`` section is read through :func:`recorded_train`, so resuming it compares like
+#: with like (and names the setting to pass to resume it) instead of seeing a missing key.
+LEGACY_TRAIN = {"replay_sampling": "vectorised"}
+
+
+def recorded_train(train: dict[str, Any]) -> dict[str, Any]:
+    """A run's recorded ``train`` settings with the ones it predates filled in as it trained
+    (:data:`LEGACY_TRAIN`)."""
+    return {**LEGACY_TRAIN, **train} if isinstance(train, dict) else train
 
 
 @dataclass(frozen=True)
@@ -75,6 +87,14 @@ class TrainConfig:
     CPU, other weights on another machine. Recorded in the run, checked on resume."""
     loss: Literal["huber", "mse"] = "huber"
     """TD loss (Huber is the usual choice for DQN)."""
+    replay_sampling: Literal["portable", "vectorised"] = "portable"
+    """How prioritised replay draws its batches. "portable": each priority**alpha is computed
+    once, when written, by Python's scalar float64 pow, and sampled as it is, so a run samples
+    the same episodes, and trains the same weights, on every x86 CPU. "vectorised": torch's
+    vectorised pow and sum over the whole buffer at each draw (every run before world version
+    5), whose last bits depend on the CPU's vector width (AVX-512 or AVX2), so a CPU without
+    AVX-512 trains other weights. Recorded in the run and checked on resume; a run recorded
+    without it trained "vectorised" (docs/agents.md, "What a run's weights depend on")."""
 
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
@@ -95,6 +115,7 @@ class TrainConfig:
         need(0.0 < self.eps_fraction <= 1.0, "eps_fraction", "a share of training in (0, 1]")
         need(self.per_alpha >= 0, "per_alpha", "a number >= 0")
         need(self.per_eps > 0, "per_eps", "a number > 0")
+        need(self.replay_sampling in SAMPLINGS, "replay_sampling", f"one of {SAMPLINGS}")
         need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
         need(self.grad_clip >= 0, "grad_clip", "a number >= 0 (0 disables clipping)")
         need(self.learning_starts < self.episodes, "learning_starts",

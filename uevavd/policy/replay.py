@@ -33,26 +33,29 @@ class EpisodeBatch:
     weight: torch.Tensor
 
 
+#: How a buffer can draw its batches (``TrainConfig.replay_sampling``; see :class:`EpisodeReplay`).
+SAMPLINGS = ("portable", "vectorised")
+
+
 class EpisodeReplay:
     """Ring buffer of ``capacity`` episodes of at most ``t_max`` decisions."""
 
-    #: False (as every published number was trained): sampling raises the priorities to alpha
-    #: with torch's vectorised pow and sums them with its vectorised sum, whose last bits depend
-    #: on the CPU's vector width (torch's AVX-512 and AVX2 kernels), so the same run samples
-    #: other episodes on a CPU without AVX-512 and trains other weights. True: each priority is
-    #: raised to alpha once, when it is written, by Python's scalar ``math.pow`` (float64);
-    #: multinomial takes those weights as they are (its CPU kernel sums them in order) and the
-    #: importance weights (N P(i))^-beta / max_j (N P(j))^-beta = (w_i / min_j w_j)^-beta of
-    #: the batch need no total; then runs train the same weights under both kernel sets
-    #: (docs/agents.md, "What a run's weights depend on"). It moves every trained number, so it
-    #: belongs to the next step that retrains them (world version 5).
-    CPU_INDEPENDENT = False
-
     def __init__(self, capacity: int, t_max: int, *, alpha: float = 0.6, eps: float = 1e-3, seed: int = 0,
-                 device: torch.device | str = "cpu") -> None:
+                 sampling: str = "portable", device: torch.device | str = "cpu") -> None:
+        """``sampling`` (``TrainConfig.replay_sampling``): "portable" raises each priority to
+        alpha once, when it is written, with Python's scalar ``math.pow`` (float64);
+        multinomial takes those weights as they are (its CPU kernel sums them in order) and
+        the importance weights (N P(i))^-beta / max_j (N P(j))^-beta = (w_i / min_j w_j)^-beta
+        of the batch need no total, so the draws are the same bits under torch's AVX-512 and
+        AVX2 kernels. "vectorised" (every run before world version 5) raises and sums the
+        whole buffer with torch's vectorised kernels at each draw, whose last bits depend on
+        the CPU's vector width."""
         if capacity < 1 or t_max < 1:
             raise ValueError(f"EpisodeReplay: capacity={capacity} and t_max={t_max} must be >= 1")
+        if sampling not in SAMPLINGS:
+            raise ValueError(f"EpisodeReplay: sampling={sampling!r}, expected one of {SAMPLINGS}")
         self.capacity, self.t_max, self.alpha, self.eps = capacity, t_max, alpha, eps
+        self.portable = sampling == "portable"
         self.device = torch.device(device)
         z = dict(device=self.device)
         self.scene = torch.zeros(capacity, dtype=torch.int64, **z)
@@ -62,7 +65,7 @@ class EpisodeReplay:
         self.reward = torch.zeros(capacity, t_max, dtype=torch.float32, **z)
         self.length = torch.zeros(capacity, dtype=torch.int64, **z)
         self.priority = torch.zeros(capacity, dtype=torch.float32, **z)
-        self.priority_alpha = torch.zeros(capacity, dtype=torch.float64, **z)  # priority**alpha (CPU_INDEPENDENT)
+        self.priority_alpha = torch.zeros(capacity, dtype=torch.float64, **z)  # priority**alpha (portable sampling)
         self.ptr = 0
         self.size = 0
         self.max_priority = 1.0
@@ -89,7 +92,7 @@ class EpisodeReplay:
         self.reward[idx] = reward.to(self.device, torch.float32)
         self.length[idx] = length.to(self.device)
         self.priority[idx] = self.max_priority
-        if self.CPU_INDEPENDENT:
+        if self.portable:
             self._raise_to_alpha(idx)
         self.ptr = (self.ptr + n) % self.capacity
         self.size = min(self.capacity, self.size + n)
@@ -97,7 +100,7 @@ class EpisodeReplay:
     def sample(self, batch_size: int, beta: float) -> EpisodeBatch:
         if self.size == 0:
             raise RuntimeError("cannot sample from an empty replay buffer")
-        if self.CPU_INDEPENDENT:
+        if self.portable:
             idx = torch.multinomial(self.priority_alpha[: self.size], batch_size, replacement=True, generator=self.generator)
             picked = self.priority_alpha[idx].tolist()
             low = min(picked)
@@ -121,7 +124,7 @@ class EpisodeReplay:
         pr = td_abs.detach().to(self.device, torch.float32) + self.eps
         self.priority[index] = pr
         self.max_priority = max(self.max_priority, float(pr.max()))
-        if self.CPU_INDEPENDENT:  # from the stored priorities: an index sampled twice keeps one value
+        if self.portable:  # from the stored priorities: an index sampled twice keeps one value
             self._raise_to_alpha(index)
 
     def _raise_to_alpha(self, index: torch.Tensor) -> None:
@@ -145,6 +148,6 @@ class EpisodeReplay:
                 raise ValueError(f"replay {name}: checkpoint shape {tuple(state[name].shape)} != {tuple(mine.shape)}")
             mine.copy_(state[name])
         self.ptr, self.size, self.max_priority = int(state["ptr"]), int(state["size"]), float(state["max_priority"])
-        if self.CPU_INDEPENDENT:  # derived from the priorities: not checkpointed
+        if self.portable:  # derived from the priorities: not checkpointed
             self._raise_to_alpha(torch.arange(self.size, device=self.device))
         self.generator.set_state(state["generator"])

@@ -28,6 +28,7 @@ from typing import Any
 from filelock import FileLock, Timeout
 
 from ..config import MethodSpec, load_method
+from .config import recorded_train
 
 
 @dataclass(frozen=True)
@@ -140,6 +141,7 @@ def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
             raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
         return
     old = json.loads(path.read_text(encoding="utf-8"))
+    old["train"] = recorded_train(old.get("train"))
     diffs = []
     for k in RUN_KEYS:
         if old.get(k) != settings.get(k):

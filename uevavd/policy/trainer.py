@@ -181,7 +181,7 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     net = build_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
-                           seed=cfg.seed + 1, device=dev)
+                           seed=cfg.seed + 1, sampling=cfg.replay_sampling, device=dev)
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=cfg.seed + 2,
                         features_dtype=torch.float16)
     lookup = FeatureLookup(env.tensors)

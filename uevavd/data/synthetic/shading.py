@@ -24,11 +24,6 @@ class _ShadowMap:
     and reused by every later view."""
 
     TILE = 128
-    # Generator version 4's defect (docs/synthetic_world.md, "Known defect"): a hull's padding
-    # planes get the denominator -(0 . sun) = -0.0, which makes every sun ray miss every hull,
-    # so only ellipsoids cast shadows. True casts the hulls' too (+ 0.0 turns -0.0 into +0.0);
-    # it changes every image, so it belongs to world version 5
-    HULL_SHADOWS = False
 
     def __init__(self, prep: _Prep, sun: np.ndarray, cell: float, *, cast: str = "all",
                  under: _ShadowMap | None = None):
@@ -84,9 +79,10 @@ class _ShadowMap:
                 o = (cu[None, i0:i1, None] * fu + cv[j0:j1, None, None] * fv + top * sun).reshape(-1, 3)
                 if kind == "h":
                     pl = self.p["h_planes"][i].astype(np.float64)
-                    den = -(pl[:, :3] @ sun)[:, None]
-                    if self.HULL_SHADOWS:
-                        den += 0.0
+                    # + 0.0: a hull's padding planes (0 . p <= 1) give -(0 . sun) = -0.0, which
+                    # _hull_t would read as a plane the ray leaves at -inf, so no sun ray would hit
+                    # any hull (world versions <= 4 cast only the ellipsoids' shadows)
+                    den = -(pl[:, :3] @ sun)[:, None] + 0.0
                     t = _hull_t(pl[:, 3, None] - pl[:, :3] @ o.T, den, 0)
                 else:
                     t = _ellipsoid_t(o, -sun, self.p["e_centre"][i], self.p["e_radii"][i])

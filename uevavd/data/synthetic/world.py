@@ -73,7 +73,9 @@ VALIDITY = ValidityRule()
 #: Generator version: bump it whenever the world or the renderer changes what they write,
 #: so that resumed or cached worlds written by an older generator are redone.
 #: 4: the hard split holds shifted-urban and woodland contexts; the validity rule.
-VERSION = 4
+#: 5: hulls (buildings, vehicles, trunks) cast shadows too (version 4's shadow map let every
+#: sun ray miss them; docs/synthetic_world.md, "Shadows").
+VERSION = 5
 
 #: The first valid draw of every context for the presets' world seed, recorded so that writing
 #: a preset's world does not repeat the validity search (a fifth of its time). Written by
