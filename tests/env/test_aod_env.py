@@ -212,3 +212,30 @@ def test_check_env_passes_on_a_table_without_visible_fractions_and_through_gym_m
     wrapped = DiscreteActions(gym.make("uevavd/AOD-v0", table=bare, split="train"))
     check_env(wrapped, skip_render_check=True)
     assert wrapped.spec.make().action_space == gym.spaces.Discrete(28)
+
+
+def test_train_per_block_keeps_the_first_training_contexts_of_each_block():
+    """EnvConfig.train_per_block: of the training contexts, the first N of each block (by id)
+    make the "train" split of the env, the batched env and the evaluation; test contexts stay;
+    a block holding fewer is refused naming it."""
+    from uevavd.env.baselines import PassivePolicy
+    from uevavd.env.batched import EnvTensors
+    from uevavd.env.evaluate import evaluate_policy
+
+    contexts = [1, 2, 3, 31, 32, 26, 56]
+    t = ObservationTable.from_arrays(
+        np.zeros((7, N_VIEWS, 4)), np.full((7, N_VIEWS, 5), 0.2), np.zeros((7, N_VIEWS, 4)),
+        scenes=[f"{c:03d}" for c in contexts], contexts=contexts, targets=[0, 0, 0, 1, 1, 0, 1],
+        splits=["train"] * 5 + ["hard"] * 2)
+    two = EnvConfig(train_per_block=2)
+    assert sorted(t.contexts[AODEnv(t, "train", two).scenes]) == [1, 2, 31, 32]
+    assert sorted(AODEnv(t, "train").scenes.tolist()) == [0, 1, 2, 3, 4]  # 0: all
+    assert sorted(EnvTensors(t, "train", EnvConfig(train_per_block=1)).contexts) == [1, 31]
+    assert sorted(EnvTensors(t, "hard", EnvConfig(train_per_block=1)).contexts) == [26, 56]
+    res = evaluate_policy(t, "train", PassivePolicy(), EnvConfig(train_per_block=1))
+    assert sorted(set(res.context.tolist())) == [1, 31]
+    with pytest.raises(TableError, match=r"env.train_per_block = 3: .*block 1 \(contexts 31-60\) holds only 2"):
+        AODEnv(t, "train", EnvConfig(train_per_block=3))
+    for bad in (-1, 21, 1.5, True):
+        with pytest.raises(EnvConfigError, match="train_per_block"):
+            EnvConfig(train_per_block=bad)

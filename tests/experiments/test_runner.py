@@ -538,3 +538,51 @@ def test_the_training_bar_counts_episodes_from_the_runs_files(ablation, tmp_path
         assert progress.bar.initial == min(asked, recorded)  # the rate counts this call's episodes only
         progress.finished(fresh)
         assert progress.bar.n == min(asked, recorded) + asked and progress.bar.desc.startswith("runs 1/2")
+
+
+def test_a_context_count_sweep_enlarges_the_world_and_keeps_the_presets_default(tmp_path):
+    """``--sweep env.train_per_block=10,20`` on the quick preset: one world holding 20 training
+    contexts per block and every test context, the default setting at the preset's 4, and the
+    axis swept for every method (not only the sweep methods)."""
+    plan = make_plan(preset="quick", out=tmp_path / "a", methods=["map", "ibe_map"],
+                     sweeps=parse_sweeps(["env.train_per_block=4,10,20"]), sweep_methods=["ibe_map"])
+    assert plan.preset["world"]["per_block"] == {"train": 20, "simple": 5, "hard": 5}
+    assert plan.preset["overrides"]["env.train_per_block"] == 4
+    for method in ("map", "ibe_map"):  # 4 is the default: run once
+        assert [n for n, _ in plan.settings(method)] == ["default", "env.train_per_block=10",
+                                                         "env.train_per_block=20"]
+    from uevavd.presets import load_preset
+
+    assert load_preset("quick")["world"]["per_block"]["train"] == 4  # the preset itself is untouched
+    for bad in ("0", "21", "2.5"):
+        with pytest.raises(AblationError, match=rf"env.train_per_block={bad}.*integers in 1..20"):
+            make_plan(preset="quick", out=tmp_path / "b", methods=["map"],
+                      sweeps=parse_sweeps([f"env.train_per_block={bad}"]))
+
+
+def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_report(tmp_path):
+    """On data with two training contexts per block, sweeping ``env.train_per_block=1``: the
+    runs and the baselines of that setting train and are evaluated on the first training
+    context of each block, the hard contexts are the same for both settings, and the report
+    gains the table and figure of the axis."""
+    preset = tmp_path / "tiny.toml"
+    preset.write_text(tiny_preset(ablation='methods = ["map"]\nseeds = 1\n'))
+    world = write_tiny_world(tmp_path / "world", contexts=(1, 2, 26, 31, 32, 56), train605=True)
+    plan = make_plan(preset=str(preset), out=tmp_path / "out", data=world, workers=1,
+                     sweeps=parse_sweeps(["env.train_per_block=1"]))
+    assert plan.preset["overrides"]["env.train_per_block"] == 0  # on --data the default is all of it
+    df = pd.read_csv(run_ablation(plan, log=lambda *_: None))
+    final = df[df["final"]].set_index(["method", "setting", "split"])
+    for method in ("map", "passive", "oracle"):
+        assert final.loc[(method, "default", "train"), "eval_contexts"] == 4
+        assert final.loc[(method, "env.train_per_block=1", "train"), "eval_contexts"] == 2
+        assert final.loc[(method, "env.train_per_block=1", "hard"), "eval_contexts"] == 2
+    run = plan.out / "runs" / "map" / "env.train_per_block=1" / "rec0" / "seed0"
+    assert json.loads((run / "settings.json").read_text())["env"]["train_per_block"] == 1
+    ctx = pd.read_csv(plan.out / "contexts.csv")
+    trained = ctx[(ctx["method"] == "map") & (ctx["split"] == "train")].groupby("setting")["context"]
+    assert sorted(trained.unique()["env.train_per_block=1"]) == [1, 31]
+    report = (plan.out / "report" / "report.md").read_text()
+    assert "## Test return against the number of training contexts" in report
+    assert "| MAP | 2 | 1 |" in report and "| MAP | 4 | 1 |" in report
+    assert (plan.out / "report" / "fig_contexts.png").stat().st_size > 10_000

@@ -13,11 +13,17 @@ targets from all 605 viewpoints and is used only to train the classifier.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from itertools import accumulate
+
 from .grid import N_VIEWS
 
 N_CONTEXTS = 150
 BLOCK = 30
 N_BLOCKS = N_CONTEXTS // BLOCK
+#: Contexts of each split within a block (Table 1: 20 / 5 / 5), in block order.
+PER_BLOCK: dict[str, int] = {"train": 20, "simple": 5, "hard": 5}
+TRAIN_PER_BLOCK = PER_BLOCK["train"]
 #: The three context splits, in report order.
 SPLITS: tuple[str, ...] = ("train", "simple", "hard")
 #: Names accepted for a split, mapped to the canonical one(s). "test" means both tests.
@@ -50,11 +56,11 @@ def check_context(context_id: int) -> int:
 def split_of(context_id: int) -> str:
     """The split ("train", "simple" or "hard") that owns a context id."""
     offset = (check_context(context_id) - 1) % BLOCK  # 0..29
-    if offset < 20:
-        return "train"
-    if offset < 25:
-        return "simple"
-    return "hard"
+    for split, n in PER_BLOCK.items():
+        if offset < n:
+            return split
+        offset -= n
+    raise AssertionError("PER_BLOCK covers a block")
 
 
 def block_of(context_id: int) -> int:
@@ -86,18 +92,32 @@ def scene_name(context_id: int) -> str:
     return f"{check_context(context_id):03d}"
 
 
+def first_per_block(contexts: Iterable[int], n: int) -> list[int]:
+    """The first ``n`` of ``contexts`` (by id) in each block that holds any; a block holding
+    fewer than ``n`` is a ValueError naming it and what it holds."""
+    by_block: dict[int, list[int]] = {}
+    for c in sorted({int(c) for c in contexts}):
+        by_block.setdefault(block_of(c), []).append(c)
+    short = {b: cs for b, cs in by_block.items() if len(cs) < n}
+    if short:
+        b, cs = min(short.items())
+        raise ValueError(f"{n} contexts per block asked, but block {b} (contexts {b * BLOCK + 1}-{(b + 1) * BLOCK}) "
+                         f"holds only {len(cs)} here: {cs}")
+    return sorted(c for cs in by_block.values() for c in cs[:n])
+
+
 def subset(per_block: dict[str, int]) -> tuple[int, ...]:
     """A smaller world that keeps the block structure: the first ``n`` contexts of each
     split within every block, e.g. ``subset({"train": 4, "simple": 1, "hard": 1})``.
     """
-    limits = {"train": 20, "simple": 5, "hard": 5}
+    limits = PER_BLOCK
     unknown = set(per_block) - set(limits)
     if unknown:
         raise ValueError(f"unknown split(s) {sorted(unknown)}: expected keys among {list(limits)}")
     out = []
     for k in range(N_BLOCKS):
         base = BLOCK * k
-        starts = {"train": base + 1, "simple": base + 21, "hard": base + 26}
+        starts = dict(zip(limits, accumulate(limits.values(), initial=base + 1), strict=False))
         for split, n in per_block.items():
             if not 0 <= n <= limits[split]:
                 raise ValueError(f"{split}={n} per block: expected 0..{limits[split]}")

@@ -36,6 +36,7 @@ import numpy as np
 from gymnasium import spaces
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
+from ..data.splits import first_per_block
 from ..table import ObservationTable, TableError
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
@@ -53,13 +54,25 @@ def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationT
     raise TypeError(f"table={table!r}: expected an ObservationTable or the path of a table folder")
 
 
-def select_scenes(table: ObservationTable, split: str, contexts: Any = None) -> np.ndarray:
+def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, train_per_block: int = 0
+                  ) -> np.ndarray:
     """(n,) int64 table scene indices of ``split``, optionally only the given context ids.
 
+    ``train_per_block`` (``EnvConfig.train_per_block``; 0 = all) keeps of the split's
+    training contexts the first N of each block, by id; test contexts are never dropped.
     Raises :class:`TableError` when the selection is empty (a table without contexts of
-    that split) and ``ValueError`` naming context ids that are not in the split.
+    that split) or a block holds fewer than ``train_per_block`` training contexts, and
+    ``ValueError`` naming context ids that are not in the split.
     """
     idx = table.scene_indices(split)
+    if train_per_block:
+        is_train = np.asarray(table.splits)[idx] == "train"
+        try:
+            keep = set(first_per_block(table.contexts[idx[is_train]], train_per_block))
+        except ValueError as exc:
+            raise TableError(f"env.train_per_block = {train_per_block}: {exc} (table {table.key!r}); build the "
+                             "table over a world with more training contexts, or lower it") from None
+        idx = idx[~is_train | np.isin(table.contexts[idx], sorted(keep))]
     if contexts is not None:
         wanted = [int(c) for c in np.atleast_1d(np.asarray(contexts))]
         have = {int(table.contexts[i]): int(i) for i in idx}
@@ -103,7 +116,7 @@ class AODEnv(gym.Env):
         self.table = load_table(table)
         self.config = cfg = make_config(config, **overrides)
         self.split = split
-        self.scenes = select_scenes(self.table, split, contexts)
+        self.scenes = select_scenes(self.table, split, contexts, train_per_block=cfg.train_per_block)
         self._tr = transitions(cfg.max_range)
         self._mask_i8 = self._tr.mask.astype(np.int8)
         self._coords = view_coords(np.arange(N_VIEWS))  # (605, 3) float64 metres

@@ -60,7 +60,7 @@ class EnvTensors:
         dev = torch.device(device)
         self.device = dev
         self.config = config
-        sel = select_scenes(table, split, contexts)
+        sel = select_scenes(table, split, contexts, train_per_block=config.train_per_block)
         self.scenes = torch.as_tensor(sel, dtype=torch.int64, device=dev)
         local = np.full(len(table), -1, np.int64)
         local[sel] = np.arange(len(sel))

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..data.grid import N_TYPES, N_VIEWS
+from ..data.splits import TRAIN_PER_BLOCK
 
 
 def _where(cond: Any, a: Any, b: Any) -> Any:
@@ -60,6 +61,12 @@ class EnvConfig:
     """Recognised means the classifier's probability for the true class is > thre."""
     start: str = "uniform"
     """Start view: "uniform" over the 605 views, or a view index as a string ("302")."""
+    train_per_block: int = 0
+    """Training contexts per target block that the "train" split holds: the first N of each
+    block's training contexts in the table, by context id (0 = all of them). The number of
+    training contexts is an experiment axis of its own (``uevavd ablate --sweep
+    env.train_per_block=4,10,20``); a run trains, and is evaluated on "train", on those
+    contexts only, and the test splits are untouched. A block holding fewer is an error."""
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> EnvConfigError:
@@ -69,6 +76,10 @@ class EnvConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise bad(name, "an integer >= 1")
+        v = self.train_per_block
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= TRAIN_PER_BLOCK:
+            raise bad("train_per_block", f"an integer in 0..{TRAIN_PER_BLOCK} (training contexts per target "
+                      "block; 0 = all the table holds)")
         for name in ("gamma", "xi1", "xi2", "C", "thre"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):

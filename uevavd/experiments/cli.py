@@ -33,9 +33,12 @@ def add_ablate(parser: argparse.ArgumentParser):
                              "seeds (default: the preset's)")
     parser.add_argument("--sweep", action="append", default=None, metavar="KEY=V1,V2,...",
                         help="sweep one key from the default: thre, C (the paper's) or any dotted key of a method's "
-                             "env/train/state/head section, e.g. --sweep thre=0.2,0.4,0.6,0.8 --sweep env.xi2=0.05,0.2")
+                             "env/train/state/head section, e.g. --sweep thre=0.2,0.4,0.6,0.8 --sweep env.xi2=0.05,0.2; "
+                             "--sweep env.train_per_block=4,10,20 varies the number of training contexts per target "
+                             "block for every method, on a world holding the most asked and every test context")
     parser.add_argument("--sweep-methods", nargs="+", default=None, metavar="METHOD",
-                        help="methods the sweeps run on (default: the last of --methods)")
+                        help="methods the sweeps run on (default: the preset's [ablation] sweep_methods among "
+                             "--methods, else the last of --methods); env.train_per_block runs on every method")
     parser.add_argument("--episodes", type=int, default=None, help="training episodes per run (default: the preset's)")
     parser.add_argument("--backend", choices=("local", "ray"), default="local",
                         help="local processes, or Ray tasks (a local Ray instance, or RAY_ADDRESS)")

@@ -150,6 +150,54 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
     return _save(fig, path)
 
 
+#: Panels of the training-contexts figure: (column of ``context_table``, y-axis label).
+CONTEXT_PANELS: tuple[tuple[str, str], ...] = (
+    ("hard return", "return, hard-test contexts"),
+    ("simple return", "return, simple-test contexts"),
+    ("GenGap (train − hard)", "GenGap (train − hard)"),
+    ("hard recognition", "recognition rate, hard-test contexts"),
+    ("hard path (m)", "movement distance (m), hard-test contexts"),
+    ("train return", "return, own training contexts"),
+)
+
+
+def plot_context_axis(table: pd.DataFrame, path: Path) -> Path:
+    """Test return, recognition, path and GenGap against the number of training contexts.
+
+    ``table``: :func:`uevavd.experiments.report_contexts.context_table` (one row per method and
+    count, each panel's column with ``lo`` / ``hi``). Learned methods: line and 95% band (the
+    tables' interval); baselines: dashed lines in their colours, their own value at each count
+    (passive and the oracles are evaluated on each setting's training contexts too)."""
+    refs = set(reference_names())
+    methods = order_methods(table["method"].unique())
+    learned = [m for m in methods if m not in refs]
+    palette = dict(zip(learned, sns.color_palette("tab10", len(learned)), strict=True))
+    fig, axes = plt.subplots(2, 3, figsize=(14, 8), squeeze=False)
+    for ax, (col, ylabel) in zip(axes.ravel(), CONTEXT_PANELS, strict=True):
+        for m in methods:
+            g = table[table["method"] == m].sort_values("contexts")
+            x, y = g["contexts"].to_numpy(), g[col].to_numpy(dtype=np.float64)
+            if m in palette:
+                ax.plot(x, y, "o-", color=palette[m], lw=2, label=label(m))
+                lo, hi = g[f"{col} lo"].to_numpy(dtype=np.float64), g[f"{col} hi"].to_numpy(dtype=np.float64)
+                ok = np.isfinite(lo) & np.isfinite(hi)
+                if ok.any():
+                    ax.fill_between(x, lo, hi, where=ok, color=palette[m], alpha=0.2, linewidth=0)
+            else:
+                ax.plot(x, y, "--", color=_BASELINE_COLOURS.get(m, "0.3"), lw=1.2, label=label(m))
+        ax.set_xlabel("training contexts")
+        ax.set_ylabel(ylabel)
+        ax.set_xticks(sorted(table["contexts"].unique()))
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=max(1, len(labels)), frameon=False,
+               bbox_to_anchor=(0.5, -0.01))
+    fig.suptitle("Against the number of training contexts: mean over runs and 95% interval; dashed: baselines",
+                 fontsize=11)
+    fig.tight_layout(rect=(0, 0.04, 1, 0.97))
+    return _save(fig, path)
+
+
 def _move_text(a: int, b: int, last: bool, stopped: bool) -> str:
     """The move from view ``a`` to ``b`` inferred from the grid (when the episode has no
     recorded actions): the axis and metres flown, "no move" (a clamped move), or at the

@@ -4,6 +4,7 @@ gives its runs."""
 
 from __future__ import annotations
 
+import copy
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -11,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError, known_methods, load_method, parse_override
+from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
 from ..perception.nets import resolve_device
 from ..perception.training.classifier import ClassifierRecipe
@@ -21,6 +23,9 @@ DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
 #: The paper's two sweeps, by their short names; any other dotted key of a method (env.*,
 #: train.*, state.*, head.*; not perception.*, which would need other tables) sweeps too.
 SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
+#: The number of training contexts (per target block): swept for every method, on one world
+#: that holds the most training contexts asked and every test context (see :func:`make_plan`).
+CONTEXTS_KEY = "env.train_per_block"
 
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
 SECTION_KEYS = {"world": {"seed", "size", "per_block"},
@@ -82,12 +87,13 @@ class Plan:
     use_zoo: bool = True
 
     def settings(self, method: str) -> list[tuple[str, dict[str, Any]]]:
-        """(name, {thre, C[, swept key]}) of each setting this method runs: "default" plus its
-        sweeps (one key varied at a time from the default)."""
+        """(name, {thre, C[, swept key]}) of each setting this method runs: "default" plus the
+        sweeps if it is a sweep method, and the number of training contexts (:data:`CONTEXTS_KEY`)
+        whatever it is (one key varied at a time from the default)."""
         out = [("default", dict(DEFAULT_SETTING))]
-        if method in self.sweep_methods:
-            spec = load_method(method, overrides=preset_overrides(self.preset)) if self.extra_sweeps else None
-            for key, values in self.sweeps.items():
+        spec = load_method(method, overrides=preset_overrides(self.preset)) if self.extra_sweeps else None
+        for key, values in self.sweeps.items():
+            if method in self.sweep_methods or key == CONTEXTS_KEY:
                 for v in values:
                     s = dict(DEFAULT_SETTING, **{key: v})
                     if s != DEFAULT_SETTING and (key in SWEEPABLE or v != resolved_value(spec, key)):
@@ -193,6 +199,8 @@ def make_plan(
     if n_rec < 1:
         raise AblationError(f"--recognizers {n_rec}: expected at least 1")
     sweeps = dict(sweeps if sweeps is not None else {k: list(v) for k, v in abl.get("sweeps", {}).items()})
+    if CONTEXTS_KEY in sweeps:
+        cfg = with_context_axis(cfg, sweeps[CONTEXTS_KEY], from_data=data is not None)
     for key, values in sweeps.items():
         if key in SWEEPABLE:
             continue
@@ -250,6 +258,33 @@ def make_plan(
         sb3=sb3_agents,
         use_zoo=bool(use_zoo),
     )
+
+
+def with_context_axis(preset: dict[str, Any], values: Sequence[Any], *, from_data: bool) -> dict[str, Any]:
+    """The preset of an ablation that sweeps the number of training contexts per block.
+
+    Its synthetic world holds the most training contexts asked (or the preset's, if more)
+    and every test context (Table 1's 5 simple and 5 hard per block), so that every setting
+    is evaluated on the same test contexts; a context's images do not depend on which others
+    exist, so the scenes, the recognizer and the tables are made once for all settings. The
+    default setting keeps the preset's own count (its ``[world] per_block.train``, or an
+    ``env.train_per_block`` override), so the default rows are the preset's runs on the
+    larger test set. On ``--data`` the world is the data and the default is all its
+    training contexts."""
+    bad = [v for v in values if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= TRAIN_PER_BLOCK]
+    if bad:
+        raise AblationError(f"--sweep {CONTEXTS_KEY}={bad[0]!r}: expected integers in 1..{TRAIN_PER_BLOCK} "
+                            "(training contexts per target block)")
+    preset = copy.deepcopy(preset)
+    over = preset.setdefault("overrides", {})
+    if from_data:
+        over.setdefault(CONTEXTS_KEY, 0)
+        return preset
+    world = preset["world"]
+    default = int(over.get(CONTEXTS_KEY) or world.get("per_block", {}).get("train", TRAIN_PER_BLOCK))
+    world["per_block"] = {**PER_BLOCK, "train": max(default, *values)}
+    over[CONTEXTS_KEY] = default
+    return preset
 
 
 def default_workers() -> int:

@@ -28,6 +28,7 @@ from ..atomic import atomic_write
 from .audit import audit_markdown
 from .claims import Claim, check_claims, diagnose
 from .figures import plot_curves, plot_strips
+from .report_contexts import contexts_section
 from .report_data import (
     DEFAULT_C,
     DEFAULT_THRE,
@@ -375,6 +376,7 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     lines += _curves_section(results, final, setting, out_dir, window)
     lines += _sweep_section(final, "thre", 2, ablation_dir)
     lines += _sweep_section(final, "C", 3, ablation_dir)
+    lines += contexts_section(final, out_dir)
     lines += _strips_section(ablation_dir, meta, out_dir)
     lines += _claims_section(claims, diagnose(results, claims))
     path = out_dir / "report.md"

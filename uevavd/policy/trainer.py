@@ -102,7 +102,7 @@ class _Evaluator:
         net.train()
         self.tensors = {}
         for split in cfg.eval_splits:
-            ctx = table.contexts[select_scenes(table, split)]
+            ctx = table.contexts[select_scenes(table, split, train_per_block=env_cfg.train_per_block)]
             if cfg.eval_contexts and cfg.eval_contexts < len(ctx):
                 ctx = ctx[np.linspace(0, len(ctx) - 1, cfg.eval_contexts).round().astype(int)]
             self.tensors[split] = EnvTensors(table, split, env_cfg, device=device, contexts=ctx,
