@@ -248,14 +248,15 @@ def test_the_replays_sampling_is_a_recorded_setting_checked_on_resume(table, tmp
     with pytest.raises(RunDirError, match="train.replay_sampling: run has 'portable', now 'vectorised'"):
         train(spec, table, out=out, device="cpu", progress=False,
               overrides={"train.replay_sampling": "vectorised"})
-    # the same run, as a run of the earlier version recorded it: no replay_sampling anywhere
+    # the same run, as a run of the earlier version recorded it: no replay_sampling (nor
+    # env.train_per_block, which came after it) anywhere
     old = load_method("map", overrides={**small("map"), "train.episodes": 300, "train.replay_sampling": "vectorised"})
     legacy = train(old, table, out=tmp_path / "legacy", device="cpu", progress=False, max_epochs=1)
     settings = json.loads((legacy / "settings.json").read_text())
-    del settings["train"]["replay_sampling"]
+    del settings["train"]["replay_sampling"], settings["env"]["train_per_block"]
     (legacy / "settings.json").write_text(json.dumps(settings))
     ck = torch.load(legacy / "checkpoint.pt", weights_only=True)
-    del ck["meta"]["train"]["replay_sampling"]
+    del ck["meta"]["train"]["replay_sampling"], ck["meta"]["env"]["train_per_block"]
     torch.save(ck, legacy / "checkpoint.pt")
     with pytest.raises(RunDirError, match="train.replay_sampling: run has 'vectorised', now 'portable'"):
         train(spec, table, out=legacy, device="cpu", progress=False)

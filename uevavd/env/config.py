@@ -32,6 +32,11 @@ def _where(cond: Any, a: Any, b: Any) -> Any:
     return torch.where(cond, a, b)
 
 
+#: What a run recorded before an env setting existed ran with: read into its recorded ``env``
+#: section on resume (:func:`uevavd.policy.rundir.with_legacy_settings`).
+LEGACY_ENV = {"train_per_block": 0}
+
+
 class EnvConfigError(ValueError):
     """An environment constant is out of its range; the message names it and the range."""
 

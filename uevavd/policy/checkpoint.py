@@ -23,8 +23,7 @@ from typing import Any
 import torch
 
 from ..atomic import atomic_save, atomic_write
-from .config import recorded_train
-from .rundir import RunDir
+from .rundir import RunDir, with_legacy_settings
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
 ARCH_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "n_types", "n_ranges", "t_max", "state", "head")
@@ -70,8 +69,7 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
     if not isinstance(state, dict) or "meta" not in state:
         raise CheckpointError(f"{path}: not a uevavd training checkpoint (no meta)")
     if expect is not None:
-        want, have = checkpoint_meta(expect), dict(state["meta"])
-        have["train"] = recorded_train(have.get("train"))
+        want, have = checkpoint_meta(expect), with_legacy_settings(state["meta"])
         diffs = [f"{k}: checkpoint has {have.get(k)!r}, expected {want[k]!r}"
                  for k in keys if have.get(k) != want[k]]
         if diffs:

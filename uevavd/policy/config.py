@@ -12,16 +12,9 @@ from .replay import SAMPLINGS
 #: ``TrainConfig.gamma``'s default; at this value it follows ``env.gamma``.
 DEFAULT_GAMMA = 0.9
 
-#: What a run recorded before a training setting existed trained with: a run's recorded
-#: ``train`` section is read through :func:`recorded_train`, so resuming it compares like
-#: with like (and names the setting to pass to resume it) instead of seeing a missing key.
+#: What a run recorded before a training setting existed trained with (see
+#: :func:`uevavd.policy.rundir.with_legacy_settings`).
 LEGACY_TRAIN = {"replay_sampling": "vectorised"}
-
-
-def recorded_train(train: dict[str, Any]) -> dict[str, Any]:
-    """A run's recorded ``train`` settings with the ones it predates filled in as it trained
-    (:data:`LEGACY_TRAIN`)."""
-    return {**LEGACY_TRAIN, **train} if isinstance(train, dict) else train
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,8 @@ from typing import Any
 from filelock import FileLock, Timeout
 
 from ..config import MethodSpec, load_method
-from .config import recorded_train
+from ..env.config import LEGACY_ENV
+from .config import LEGACY_TRAIN
 
 
 @dataclass(frozen=True)
@@ -131,6 +132,19 @@ def run_spec(run_dir: str | Path) -> MethodSpec:
     return load_method(path)
 
 
+def with_legacy_settings(recorded: dict[str, Any]) -> dict[str, Any]:
+    """A run's recorded settings (``settings.json``, a checkpoint's meta) with the ``train``
+    and ``env`` settings it predates filled in as it ran (:data:`LEGACY_TRAIN`,
+    :data:`~uevavd.env.config.LEGACY_ENV`), so that resuming a run of an earlier version
+    compares like with like: it resumes when nothing else differs, and a setting that does
+    differ is named instead of a missing key."""
+    out = dict(recorded)
+    for key, legacy in (("train", LEGACY_TRAIN), ("env", LEGACY_ENV)):
+        if isinstance(out.get(key), dict):
+            out[key] = {**legacy, **out[key]}
+    return out
+
+
 def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
     path = RunDir(out).settings
     if out.exists() and not out.is_dir():
@@ -141,7 +155,7 @@ def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
             raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
         return
     old = json.loads(path.read_text(encoding="utf-8"))
-    old["train"] = recorded_train(old.get("train"))
+    old = with_legacy_settings(old)
     diffs = []
     for k in RUN_KEYS:
         if old.get(k) != settings.get(k):
