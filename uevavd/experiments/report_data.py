@@ -41,12 +41,13 @@ def deterministic() -> tuple[str, ...]:
 
 
 #: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "sb3_dqn", "sb3_ppo",
+METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "ibe_map_sam", "sb3_dqn", "sb3_ppo",
                                   "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
     "memo_map": "Memo-MAP",
     "ibe_map": "IBE-MAP",
+    "ibe_map_sam": "IBE-MAP (SAM masks)",
     "random": "Random",
     "passive": "Passive",
     "visibility_oracle": "Visibility oracle",
