@@ -54,3 +54,8 @@ def __getattr__(name: str) -> Any:
 
         return getattr(api, name)
     raise AttributeError(f"module 'uevavd' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    # the lazily loaded API too, so tab completion and help() list it (PEP 562)
+    return sorted({*globals(), *__all__})

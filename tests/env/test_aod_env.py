@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -151,7 +153,7 @@ def test_bad_input(table, tmp_path):
                           ({"start": "middle"}, "start"), ({"xi1": -1}, "xi1")):
         with pytest.raises(EnvConfigError, match=match):
             EnvConfig(**kwargs)
-    with pytest.raises(EnvConfigError, match="unknown EnvConfig field"):
+    with pytest.raises(TypeError, match="unexpected keyword argument 'tmax' \\(did you mean 't_max'\\?\\)"):
         AODEnv(table, "train", tmax=3)
     # a table folder works in place of the table; NaN in it is refused at load
     path = table.save(tmp_path / "tbl")
@@ -207,7 +209,7 @@ def test_check_env_passes_on_a_table_without_visible_fractions_and_through_gym_m
                                         targets=table.targets, splits=table.splits, contexts=table.contexts)
     env = AODEnv(bare, "train")
     _, info = env.reset(seed=0)
-    assert "visible" not in info
+    assert info["visible"] == -1.0  # a number equal to itself, not NaN: the key is there at every step
     check_env(env, skip_render_check=True)
     wrapped = DiscreteActions(gym.make("uevavd/AOD-v0", table=bare, split="train"))
     check_env(wrapped, skip_render_check=True)
@@ -239,3 +241,54 @@ def test_train_per_block_keeps_the_first_training_contexts_of_each_block():
     for bad in (-1, 21, 1.5, True):
         with pytest.raises(EnvConfigError, match="train_per_block"):
             EnvConfig(train_per_block=bad)
+
+
+def test_info_has_the_same_keys_and_types_at_every_step(table):
+    """Minari's record_infos and Gymnasium's vector envs stack infos step by step: the keys and
+    their types do not change between reset, a move and the last step (recognized / correct /
+    stopped / return of the current view and the episode so far; visible -1 where unknown)."""
+    env = AODEnv(table, "train")
+    _, first = env.reset(seed=0, options={"view": 302})
+    _, r0, _, _, moved = env.step(np.array([5, 0]))  # up one step: the episode goes on
+    _, r1, term, _, last = env.step(np.array([STOP, 0]))
+    assert term and last["stopped"] and not moved["stopped"] and not first["stopped"]
+    for info in (first, moved, last):
+        assert list(info) == list(first)
+        assert [type(v) for v in info.values()] == [type(v) for v in first.values()]
+    assert first["return"] == 0.0 and moved["return"] == pytest.approx(r0)
+    assert last["return"] == pytest.approx(r0 + 0.9 * r1)
+    assert moved["recognized"] == bool(table.correct(0.2)[moved["scene"], moved["view"]])
+    unknown = ObservationTable.from_arrays(table.features, table.probs, table.boxes, scenes=table.scenes,
+                                           contexts=table.contexts, targets=table.targets, splits=table.splits)
+    env = AODEnv(unknown, "train")
+    _, info = env.reset(seed=0)
+    assert info["visible"] == -1.0 and list(info) == list(first)
+
+
+def test_unknown_keywords_are_pythons_type_error_and_t_is_a_numpy_integer(table):
+    """TorchRL's GymEnv passes frameskip= and drops it only on the standard TypeError."""
+    with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):
+        AODEnv(table, "train", frameskip=4)
+    obs, _ = AODEnv(table, "train").reset(seed=0)
+    assert isinstance(obs["t"], np.integer) and obs["t"] in AODEnv(table, "train").observation_space["t"]
+
+
+def test_the_lazy_api_is_listed_by_dir():
+    import uevavd
+
+    assert {"train", "load_method", "evaluate_pretrained", "registry"} <= set(dir(uevavd))
+
+
+@pytest.mark.parametrize("options, needle", [
+    ({"view": 2.5}, "view=2.5: expected an integer"),
+    ({"view": True}, "view=True: expected an integer"),
+    ({"view": float("nan")}, "view=nan: expected an integer"),
+    ({"context": 1.7}, "context=1.7: expected an integer"),
+    ({"scene": "0"}, "scene='0': expected an integer"),
+    ([("view", 3)], "expected a dict"),
+])
+def test_reset_options_that_are_not_integers_are_refused_naming_the_option(table, options, needle):
+    """They used to be truncated (view 2.5 -> 2, context 1.7 -> 1, True -> 1) or fail naming nothing."""
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        AODEnv(table, "train").reset(seed=0, options=options)
+    assert AODEnv(table, "train").reset(seed=0, options={"view": np.int64(3)})[1]["view"] == 3

@@ -152,3 +152,15 @@ def test_torchrl_wraps_the_env_and_its_spec_check_passes(table):
     check_env_specs(env)
     rollout = env.rollout(12)
     assert rollout["next", "done"].any()  # episodes end (stop or T_max) through the flat actions
+
+
+def test_torchrl_gymenv_makes_the_env_by_its_id(table):
+    """``torchrl.envs.GymEnv("uevavd/AOD-v0", table=...)`` passes ``frameskip=`` and drops it
+    on the standard TypeError, which AODEnv raises for an unexpected keyword."""
+    pytest.importorskip("torchrl")
+    from torchrl.envs import GymEnv
+    from torchrl.envs.utils import check_env_specs
+
+    env = GymEnv(ENV_ID, table=table, split="train")
+    check_env_specs(env)
+    assert env.rollout(12)["next", "done"].any()

@@ -27,6 +27,8 @@ determinism check, NaN != NaN), ``distance_m`` and ``steps`` flown so far, ``con
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import os
 from pathlib import Path
 from typing import Any
@@ -91,6 +93,19 @@ def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, 
     return idx
 
 
+#: ``info["visible"]`` where the data has no visible fraction (the real release).
+NO_VISIBLE = -1.0
+
+
+def _int_option(options: dict[str, Any], name: str) -> int:
+    """A reset option that must be an integer (a Python or numpy int, not a bool, not a float
+    that would be truncated), as an int; anything else is a ValueError naming the option."""
+    value = options[name]
+    if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
+        raise ValueError(f"reset option {name}={value!r}: expected an integer")
+    return int(value)
+
+
 class AODEnv(gym.Env):
     """The AOD environment over an observation table, one episode at a time.
 
@@ -113,6 +128,13 @@ class AODEnv(gym.Env):
         render_mode: str | None = None,
         **overrides: Any,
     ) -> None:
+        fields = {f.name for f in dataclasses.fields(EnvConfig)}
+        unexpected = sorted(set(overrides) - fields)
+        if unexpected:  # Python's own error for a bad keyword: clients (TorchRL's frameskip) retry without it
+            near = difflib.get_close_matches(unexpected[0], sorted(fields), n=1)
+            raise TypeError(f"AODEnv() got an unexpected keyword argument {unexpected[0]!r}"
+                            + (f" (did you mean {near[0]!r}?)" if near else "") + "; its keywords are table, split, "
+                            f"config, contexts, render_mode and the EnvConfig fields {sorted(fields)}")
         self.table = load_table(table)
         self.config = cfg = make_config(config, **overrides)
         self.split = split
@@ -149,30 +171,39 @@ class AODEnv(gym.Env):
             "features": np.array(self.table.features[s, v], dtype=np.float32),
             "box": np.array(self.table.boxes[s, v], dtype=np.float32),
             "action_mask": self._mask_i8[v].copy(),
-            "t": int(self._t),
+            "t": np.int64(self._t),  # as Discrete(t_max + 1).sample() gives it
         }
 
-    def _info(self) -> dict[str, Any]:
+    def _info(self, stopped: bool = False) -> dict[str, Any]:
+        """The same keys with the same types at every step (Minari's ``record_infos`` and
+        Gymnasium's vector envs stack them): ``recognized`` / ``correct`` of the current view,
+        ``stopped`` (this step chose stop), ``return`` (discounted, so far; the episode's at
+        its end) and ``visible`` (-1.0 where the data has no visible fraction: not NaN, which
+        is unequal to itself and fails Gymnasium's determinism check)."""
         s, v = self._scene, self._view
         visible = float(self.table.visible[s, v])
         return {
             "view": int(v),
             "xyz": self._coords[v].copy(),
             "probs": np.array(self.table.probs[s, v], dtype=np.float32),
-            **({} if np.isnan(visible) else {"visible": visible}),
+            "visible": NO_VISIBLE if np.isnan(visible) else visible,
             "distance_m": float(self._dist),
             "steps": int(self._steps),
             "context": int(self.table.contexts[s]),
             "scene": int(s),
             "target": int(self.table.targets[s]),
             "t": int(self._t),
+            "recognized": bool(self._reco[s, v]),
+            "correct": bool(self._acc[s, v]),
+            "stopped": bool(stopped),
+            "return": float(self._return),
         }
 
     def _start_scene(self, options: dict[str, Any]) -> int:
         if "scene" in options and "context" in options:
             raise ValueError("reset options: give 'context' (id) or 'scene' (table index), not both")
         if "context" in options:
-            c = int(options["context"])
+            c = _int_option(options, "context")
             hits = self.scenes[self.table.contexts[self.scenes] == c]
             if hits.size == 0:
                 raise ValueError(
@@ -181,7 +212,7 @@ class AODEnv(gym.Env):
                 )
             return int(hits[0])
         if "scene" in options:
-            s = int(options["scene"])
+            s = _int_option(options, "scene")
             if s not in set(self.scenes.tolist()):
                 raise ValueError(
                     f"reset option scene={s} is not a scene of split {self.split!r}: "
@@ -193,13 +224,15 @@ class AODEnv(gym.Env):
     # -- gymnasium API ----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"reset options {options!r}: expected a dict such as {{'context': 26, 'view': 302}}")
         options = dict(options or {})
         unknown = sorted(set(options) - {"context", "scene", "view"})
         if unknown:
             raise ValueError(f"unknown reset option(s) {unknown}: expected 'context', 'scene', 'view'")
         self._scene = self._start_scene(options)
         if options.get("view") is not None:
-            v = int(options["view"])
+            v = _int_option(options, "view")
             if not 0 <= v < N_VIEWS:
                 raise ValueError(f"reset option view={v}: expected a view index 0..{N_VIEWS - 1}")
         else:
@@ -254,16 +287,8 @@ class AODEnv(gym.Env):
         self._t = t + 1
         reward = cfg.reward(final, bool(self._reco[self._scene, self._view]), cost)
         self._return += cfg.gamma**t * reward
-        info = self._info()
-        if final:
-            self._done = True
-            info.update(
-                recognized=bool(self._reco[self._scene, self._view]),
-                correct=bool(self._acc[self._scene, self._view]),
-                stopped=a_type == STOP,
-                **{"return": float(self._return)},
-            )
-        return self._obs(), float(reward), bool(final), False, info
+        self._done = final
+        return self._obs(), float(reward), bool(final), False, self._info(stopped=a_type == STOP)
 
     def render(self) -> np.ndarray | None:
         """With ``render_mode="rgb_array"``: the current view (read from the table's dataset
