@@ -586,3 +586,16 @@ def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_repo
     assert "## Test return against the number of training contexts" in report
     assert "| MAP | 2 | 1 |" in report and "| MAP | 4 | 1 |" in report
     assert (plan.out / "report" / "fig_contexts.png").stat().st_size > 10_000
+
+
+def test_a_sweep_that_would_run_on_no_method_or_outside_its_range_is_refused(tmp_path):
+    """--sweep thre=0.4 with --methods map on the quick preset (whose sweep method is ibe_map)
+    used to be dropped without a word; thre=nan and C=-1 were not checked either."""
+    with pytest.raises(AblationError, match=r"--sweep thre would run on no method.*--sweep-methods"):
+        make_plan(preset="quick", out=tmp_path / "a", methods=["map"], sweeps=parse_sweeps(["thre=0.4"]))
+    plan = make_plan(preset="quick", out=tmp_path / "b", methods=["map"], sweeps=parse_sweeps(["thre=0.4"]),
+                     sweep_methods=["map"])
+    assert [n for n, _ in plan.settings("map")] == ["default", "thre=0.4"]
+    for item, needle in (("thre=nan", r"--sweep thre=nan: .*thre"), ("C=-1", r"--sweep C=-1.0: .*C")):
+        with pytest.raises(AblationError, match=needle):
+            make_plan(preset="quick", out=tmp_path / "c", sweeps=parse_sweeps([item]))

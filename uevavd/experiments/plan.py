@@ -203,6 +203,11 @@ def make_plan(
         cfg = with_context_axis(cfg, sweeps[CONTEXTS_KEY], from_data=data is not None)
     for key, values in sweeps.items():
         if key in SWEEPABLE:
+            for v in values:  # thre=nan or C=-1 would otherwise surface in the runs, or not at all
+                try:
+                    EnvConfig(**{key: v})
+                except ValueError as exc:
+                    raise AblationError(f"--sweep {key}={v!r}: {exc}") from None
             continue
         if key.split(".", 1)[0] not in ("env", "train", "state", "head") or "." not in key:
             raise AblationError(f"sweep over {key!r}: expected thre, C or a dotted key of a method's env, train, state "
@@ -219,6 +224,11 @@ def make_plan(
     unknown = [m for m in sweep_methods if m not in methods]
     if unknown:
         raise AblationError(f"--sweep-methods {unknown} are not among --methods {methods}")
+    idle = [k for k in sweeps if k != CONTEXTS_KEY]
+    if idle and not sweep_methods:
+        raise AblationError(f"--sweep {', '.join(idle)} would run on no method: the preset's sweep methods "
+                            f"{abl.get('sweep_methods', [methods[-1]])} are not among --methods {methods}; "
+                            "name the methods to sweep with --sweep-methods")
     if not 0.0 <= float(gpus_per_run) <= 8.0:
         raise AblationError(f"--gpus-per-run {gpus_per_run}: expected a share of a GPU, e.g. 0.25 or 1")
     try:
