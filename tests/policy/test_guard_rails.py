@@ -276,3 +276,20 @@ def test_the_two_replay_samplings_train_different_weights(table, tmp_path):
 
     a, b = weights("portable"), weights("vectorised")
     assert any(not (a[k] == b[k]).all() for k in a)
+
+
+@pytest.mark.parametrize("left", ["method.toml", "settings.json"])
+def test_a_run_killed_between_its_first_two_writes_resumes(table, tmp_path, left):
+    """A kill after method.toml (the order of earlier versions) or after settings.json (now
+    written first), before the other: the rerun trains the run instead of calling the folder
+    someone else's; it ends with the weights of an uninterrupted run."""
+    from safetensors.torch import load_file
+
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 200})
+    whole = train(spec, table, out=tmp_path / "whole", device="cpu", progress=False)
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / left).write_bytes((whole / left).read_bytes())
+    train(spec, table, out=killed, device="cpu", progress=False)
+    a, b = load_file(whole / "policy.safetensors"), load_file(killed / "policy.safetensors")
+    assert all((a[k] == b[k]).all() for k in a)

@@ -151,7 +151,10 @@ def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
         raise RunDirError(f"--out {out} is a file, not a run directory: choose a new --out (or a run's folder, "
                           "to resume it)")
     if not path.is_file():
-        if out.exists() and any(p != RunDir(out).tensorboard for p in out.iterdir()):
+        # a run killed before its settings.json leaves at most its method.toml (written first by
+        # earlier versions) and tb/: that folder is an unstarted run, not someone else's
+        unstarted = {RunDir(out).tensorboard, RunDir(out).method}
+        if out.exists() and any(p not in unstarted for p in out.iterdir()):
             raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
         return
     old = json.loads(path.read_text(encoding="utf-8"))

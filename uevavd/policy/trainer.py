@@ -187,8 +187,10 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     lookup = FeatureLookup(env.tensors)
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
-    spec.save(RunDir(out).method)
+    # settings.json first: it is what makes the folder this run's, so a kill between the two
+    # writes leaves a run that resumes (method.toml is rewritten on every call)
     atomic_write_json(RunDir(out).settings, settings, sort_keys=True)
+    spec.save(RunDir(out).method)
     act_gen = torch.Generator(device=dev)
     act_gen.manual_seed(cfg.seed + 3)
     n, tmax = cfg.n_envs, env_cfg.t_max
