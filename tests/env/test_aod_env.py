@@ -292,3 +292,24 @@ def test_reset_options_that_are_not_integers_are_refused_naming_the_option(table
     with pytest.raises(ValueError, match=re.escape(needle)):
         AODEnv(table, "train").reset(seed=0, options=options)
     assert AODEnv(table, "train").reset(seed=0, options={"view": np.int64(3)})[1]["view"] == 3
+
+
+def test_the_validation_split_is_the_training_contexts_a_run_leaves_out():
+    """split "validation" with env.train_per_block = N: the training contexts past the first N of
+    each block (to choose recipes on training data only); refused without N, or when N leaves
+    nothing out."""
+    from uevavd.env.batched import EnvTensors
+
+    contexts = [1, 2, 3, 31, 32, 26]
+    t = ObservationTable.from_arrays(
+        np.zeros((6, N_VIEWS, 4)), np.full((6, N_VIEWS, 5), 0.2), np.zeros((6, N_VIEWS, 4)),
+        scenes=[f"{c:03d}" for c in contexts], contexts=contexts, targets=[0, 0, 0, 1, 1, 0],
+        splits=["train"] * 5 + ["hard"])
+    cfg = EnvConfig(train_per_block=1)
+    assert sorted(t.contexts[AODEnv(t, "validation", cfg).scenes]) == [2, 3, 32]
+    assert sorted(t.contexts[AODEnv(t, "train", cfg).scenes]) == [1, 31]
+    assert sorted(EnvTensors(t, "validation", EnvConfig(train_per_block=2)).contexts) == [3]
+    with pytest.raises(TableError, match="set env.train_per_block"):
+        AODEnv(t, "validation")
+    with pytest.raises(TableError, match="block 1 .* holds only 2"):
+        AODEnv(t, "validation", EnvConfig(train_per_block=3))

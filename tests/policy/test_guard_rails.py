@@ -293,3 +293,15 @@ def test_a_run_killed_between_its_first_two_writes_resumes(table, tmp_path, left
     train(spec, table, out=killed, device="cpu", progress=False)
     a, b = load_file(whole / "policy.safetensors"), load_file(killed / "policy.safetensors")
     assert all((a[k] == b[k]).all() for k in a)
+
+
+def test_a_run_evaluates_its_held_out_training_contexts_as_the_validation_split(table, tmp_path):
+    """train.eval_splits = ["train", "validation"] with env.train_per_block: the per-epoch and
+    final evaluations cover the trained contexts and the held-out ones apart."""
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 200, "env.train_per_block": 2,
+                                         "train.eval_splits": ["train", "validation"], "train.eval_contexts": 0})
+    out = train(spec, table, out=tmp_path / "run", device="cpu", progress=False)
+    done = json.loads((out / "done.json").read_text())
+    final = {r["split"]: r for r in done["final_eval"]}
+    assert set(final) == {"train", "validation"}
+    assert final["train"]["eval_episodes"] == 2 * 605 and final["validation"]["eval_episodes"] == 605

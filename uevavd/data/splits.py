@@ -35,6 +35,11 @@ SPLIT_ALIASES: dict[str, tuple[str, ...]] = {
     "hard_test": ("hard",),
     "test": ("simple", "hard"),
 }
+#: The training contexts a run leaves out of its training (those past ``env.train_per_block`` in
+#: each block): not a split of the data but of a run, to choose recipes on training data only
+#: (never on a test split). Evaluated like a split (``train.eval_splits``, ``uevavd evaluate
+#: --split validation``) wherever the run's ``env.train_per_block`` is set.
+VALIDATION = "validation"
 #: The scene of unoccluded views, and the classifier's training crops.
 UNOCCLUDED_SCENE = "00"
 CLASSIFIER_SCENE = "train_605"

@@ -38,7 +38,7 @@ import numpy as np
 from gymnasium import spaces
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
-from ..data.splits import first_per_block
+from ..data.splits import VALIDATION, first_per_block
 from ..table import ObservationTable, TableError
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
@@ -62,10 +62,14 @@ def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, 
 
     ``train_per_block`` (``EnvConfig.train_per_block``; 0 = all) keeps of the split's
     training contexts the first N of each block, by id; test contexts are never dropped.
+    ``split="validation"`` (:data:`~uevavd.data.splits.VALIDATION`) is the other training
+    contexts: those a run with this ``train_per_block`` never trains on.
     Raises :class:`TableError` when the selection is empty (a table without contexts of
     that split) or a block holds fewer than ``train_per_block`` training contexts, and
     ``ValueError`` naming context ids that are not in the split.
     """
+    if split == VALIDATION:
+        return _validation_scenes(table, contexts, train_per_block)
     idx = table.scene_indices(split)
     if train_per_block:
         is_train = np.asarray(table.splits)[idx] == "train"
@@ -104,6 +108,23 @@ def _int_option(options: dict[str, Any], name: str) -> int:
     if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
         raise ValueError(f"reset option {name}={value!r}: expected an integer")
     return int(value)
+
+
+def _validation_scenes(table: ObservationTable, contexts: Any, train_per_block: int) -> np.ndarray:
+    """The table's training scenes past the first ``train_per_block`` of each block."""
+    if not train_per_block:
+        raise TableError("split 'validation' is the training contexts a run leaves out of its training: set "
+                         "env.train_per_block (e.g. 16 of the 20 per block) to hold some out")
+    idx = select_scenes(table, "train")
+    trained = select_scenes(table, "train", train_per_block=train_per_block)
+    idx = idx[~np.isin(idx, trained)]
+    if idx.size == 0:
+        raise TableError(f"env.train_per_block = {train_per_block} leaves no training context of table "
+                         f"{table.key!r} out: nothing to validate on; lower it")
+    if contexts is not None:
+        wanted = {int(c) for c in np.atleast_1d(np.asarray(contexts))}
+        idx = idx[np.isin(table.contexts[idx], sorted(wanted))]
+    return idx
 
 
 class AODEnv(gym.Env):

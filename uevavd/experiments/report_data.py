@@ -59,7 +59,7 @@ LABELS: dict[str, str] = {
 #: (the RL seed alone in ``rl_seed``), so that every grouping by seed keeps the runs of
 #: different recognizers apart; ``seed // UNIT`` is the recognizer.
 UNIT = 1000
-SPLITS: tuple[str, ...] = ("train", "simple", "hard")
+SPLITS: tuple[str, ...] = ("train", "simple", "hard", "validation")
 #: The paper's defaults (DESIGN.md section 2), written once in EnvConfig.
 DEFAULT_THRE = EnvConfig.thre
 DEFAULT_C = EnvConfig.C

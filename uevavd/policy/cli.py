@@ -19,14 +19,16 @@ BAD_INPUT = (ValueError, FileNotFoundError, NotADirectoryError)
 def split_problem(table: Any, split: str, where: str) -> str | None:
     """Why ``split`` cannot be evaluated on ``table`` (an unknown name, or no contexts of it
     in the table), naming the splits the table has; None when it can."""
-    from ..data.splits import SPLIT_ALIASES, resolve_split
+    from ..data.splits import SPLIT_ALIASES, VALIDATION, resolve_split
 
+    if split == VALIDATION:
+        return None  # the run's held-out training contexts: its env config says which (select_scenes)
     present = {s: int(sum(1 for x in table.splits if x == s)) for s in dict.fromkeys(table.splits)}
     have = ", ".join(f"{s} ({n} contexts)" for s, n in present.items()) or "none"
     try:
         resolve_split(split)
     except ValueError:
-        return (f"unknown split {split!r}: expected one of {sorted(SPLIT_ALIASES)}; "
+        return (f"unknown split {split!r}: expected one of {sorted([*SPLIT_ALIASES, VALIDATION])}; "
                 f"{where} has the splits {have}")
     if table.scene_indices(split).size == 0:
         return f"{where} has no contexts of split {split!r}; its splits: {have}"
