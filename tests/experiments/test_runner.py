@@ -509,8 +509,19 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
             "random", "passive", "visibility_oracle", "oracle", "first_range_up"]
         assert list(run.evaluate("hard").index) == ["map", "random", "passive", "visibility_oracle", "oracle",
                                                     "first_range_up"]
+        report = (out / "report" / "report.md").read_text()
     finally:
         manager.unregister_plugin("baseline-test")
+    # the plugin uninstalled, the report reads the roles the ablation recorded: the same report,
+    # first_range_up still a reference and never a learned method whose claims are judged
+    from uevavd.experiments.report import write_report
+
+    assert "first_range_up" in json.loads((out / "ablation.json").read_text())["roles"]["baselines"]
+    again = write_report(out).read_text()
+    # every section after Setup (whose stage timings now include the first report's) is the same
+    assert again.split("\n## ")[2:] == report.split("\n## ")[2:]
+    setup = again.split("\n## ")[1]
+    assert "references: " in setup and "first_range_up" in setup.split("references: ")[1].splitlines()[0]
 
 
 def test_the_training_bar_counts_episodes_from_the_runs_files(ablation, tmp_path):

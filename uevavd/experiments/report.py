@@ -48,6 +48,7 @@ from .report_data import (
     load_results,
     md_table,
     order_methods,
+    recorded_roles,
     sweep_methods,
     sweep_rows,
 )
@@ -357,6 +358,12 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     results = load_results(ablation_dir / "results.csv")
     notes: list[str] = []
     meta = _read_json(ablation_dir / "ablation.json", notes)
+    with recorded_roles(meta):
+        return _write_report(ablation_dir, results, meta, notes, window)
+
+
+def _write_report(ablation_dir: Path, results: pd.DataFrame, meta: dict | None, notes: list[str],
+                  window: int | None) -> Path:
     out_dir = ablation_dir / REPORT_DIR
     out_dir.mkdir(parents=True, exist_ok=True)
     final = final_rows(results)

@@ -14,7 +14,11 @@ instead; both read the same way here.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -24,20 +28,50 @@ from ..plugins.manager import manager
 from .plan import SB3_AGENTS
 from .stats import Estimate
 
+#: The roles of an ablation's rows as its ``ablation.json`` recorded them when it ran
+#: (``{"baselines": [...], "deterministic": [...]}``), set by :func:`recorded_roles` while a
+#: report is written: a report never depends on which plugins are installed when it is read.
+_RECORDED: ContextVar[dict[str, Any] | None] = ContextVar("uevavd_recorded_roles", default=None)
+
+
+@contextmanager
+def recorded_roles(meta: dict[str, Any] | None) -> Iterator[None]:
+    """Within this block, :func:`baselines` and :func:`deterministic` answer from the
+    ablation's own record (``meta["roles"]``, written by the runner); an ablation.json of an
+    earlier version, without it, falls back to the registry."""
+    roles = meta.get("roles") if isinstance(meta, dict) else None
+    ok = isinstance(roles, dict) and all(isinstance(roles.get(k), list) for k in ("baselines", "deterministic"))
+    token = _RECORDED.set(roles if ok else None)
+    try:
+        yield
+    finally:
+        _RECORDED.reset(token)
+
 
 def baselines() -> tuple[str, ...]:
-    """Reference policies, never counted among the learned methods: the registered baselines
-    (kind ``"baseline"``, :func:`uevavd.plugins.hookspecs.register_baselines`) and the
-    off-the-shelf agents of ``ablate --sb3`` (:data:`uevavd.experiments.plan.SB3_AGENTS`)."""
-
+    """Reference policies, never counted among the learned methods: those the ablation
+    recorded (:func:`recorded_roles`), else the registered baselines (kind ``"baseline"``,
+    :func:`uevavd.plugins.hookspecs.register_baselines`) and the off-the-shelf agents of
+    ``ablate --sb3`` (:data:`uevavd.experiments.plan.SB3_AGENTS`)."""
+    recorded = _RECORDED.get()
+    if recorded is not None:
+        return tuple(recorded["baselines"])
     return (*(e.name for e in manager.registry.in_order("baseline")), *SB3_AGENTS)
 
 
 def deterministic() -> tuple[str, ...]:
-    """Registered baselines that do not depend on the seed (not tagged "seeded"): one row
-    per recognizer, exact with one recognizer."""
-
+    """Baselines that do not depend on the seed (not tagged "seeded"): one row per
+    recognizer, exact with one recognizer; as recorded by the ablation, else registered."""
+    recorded = _RECORDED.get()
+    if recorded is not None:
+        return tuple(recorded["deterministic"])
     return tuple(e.name for e in manager.registry.in_order("baseline") if "seeded" not in e.tags)
+
+
+def roles_now() -> dict[str, list[str]]:
+    """What :func:`recorded_roles` reads back: the baselines and deterministic baselines of
+    the registry now (the runner records them in ``ablation.json``)."""
+    return {"baselines": list(baselines()), "deterministic": list(deterministic())}
 
 
 #: Display order and names of the methods (unknown methods follow, by name).

@@ -28,6 +28,7 @@ from .plan import (
 )
 from .references import sb3_rows
 from .report import write_report
+from .report_data import roles_now
 from .results import (
     CONTEXT_COLUMNS,
     RESULT_COLUMNS,
@@ -88,6 +89,9 @@ def write_meta(plan: Plan, data: Path | None, status: str) -> None:
         "data_root": str(data) if data else None,
         "stages": {k: round(v, 2) for k, v in plan.stages.items()},
         "status": status,
+        # which rows are references, as installed now: `uevavd report` reads this, not the
+        # plugins installed when it runs
+        "roles": roles_now(),
     }
     atomic_write_json(plan.out / "ablation.json", meta, fsync=True)
 
