@@ -164,3 +164,17 @@ def test_torchrl_gymenv_makes_the_env_by_its_id(table):
     env = GymEnv(ENV_ID, table=table, split="train")
     check_env_specs(env)
     assert env.rollout(12)["next", "done"].any()
+
+
+def test_the_vector_env_states_its_autoreset_mode_and_refuses_use_after_close(table):
+    """Gymnasium 1.x conventions: ``autoreset_mode`` as an attribute (TorchRL reads it there)
+    beside the metadata key; ``close()`` sets ``closed`` and a later step or reset is an error."""
+    env = AODVectorEnv(table, "train", num_envs=4)
+    assert env.autoreset_mode == gym.vector.AutoresetMode.SAME_STEP == env.metadata["autoreset_mode"]
+    env.reset(seed=0)
+    env.close()
+    assert env.closed
+    with pytest.raises(RuntimeError, match="closed"):
+        env.step(np.zeros((4, 2), np.int64))
+    with pytest.raises(RuntimeError, match="closed"):
+        env.reset(seed=0)

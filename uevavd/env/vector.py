@@ -70,6 +70,7 @@ class AODVectorEnv(gym.vector.VectorEnv):
         """New episodes everywhere. ``seed`` reseeds the start sampler (an int, or a list whose
         first entry is used: the envs share one generator); ``options`` may give ``scenes``
         (table scene indices) and ``views`` (N,) as BatchedAODEnv.reset does."""
+        self._check_open("reset")
         if seed is not None:
             first = seed[0] if isinstance(seed, list | tuple) else seed
             if first is not None:
@@ -82,6 +83,7 @@ class AODVectorEnv(gym.vector.VectorEnv):
         return self._numpy(self._obs), {}
 
     def step(self, actions: Any):
+        self._check_open("step")
         a_type, a_range = self._split_actions(actions)
         obs, reward, done, info = self._batched.step(a_type, a_range)
         self._obs = obs
@@ -105,10 +107,23 @@ class AODVectorEnv(gym.vector.VectorEnv):
             raise RuntimeError("action_masks() before reset()")
         return action_masks(self._obs["mask"].cpu().numpy(), self.actions)
 
+    @property
+    def autoreset_mode(self) -> gym.vector.AutoresetMode:
+        """Same-step autoreset (``metadata["autoreset_mode"]``), as an attribute too: TorchRL's
+        GymWrapper reads it there."""
+        return self.metadata["autoreset_mode"]
+
     def close(self, **kwargs: Any) -> None:
+        """Release the episode state; ``closed`` is True after it and a later ``step`` or
+        ``reset`` is an error (Gymnasium's vector envs behave so)."""
         self._obs = None
+        self.closed = True
 
     # -- helpers --------------------------------------------------------------------------------
+    def _check_open(self, what: str) -> None:
+        if getattr(self, "closed", False):
+            raise RuntimeError(f"{what}() on a closed AODVectorEnv: make a new one")
+
     def _split_actions(self, actions: Any) -> tuple[torch.Tensor, torch.Tensor]:
         a = np.asarray(actions)
         n = self.num_envs
