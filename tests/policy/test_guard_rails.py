@@ -25,6 +25,7 @@ from .test_cli import _sets
     ("train.batch_size", 0, "train.batch_size = 0: expected an integer >= 1"),
     ("train.updates_per_step", -1, "train.updates_per_step = -1"),
     ("train.learning_starts", 500, "no gradient update would ever run"),
+    ("train.lr", 1e300, "train.lr = 1e+300: expected a learning rate in (0, 1]"),  # diverged mid-run
 ])
 def test_out_of_range_training_values_are_refused_before_the_run_starts(table, tmp_path, capsys, monkeypatch,
                                                                         key, value, needle):
@@ -305,3 +306,24 @@ def test_a_run_evaluates_its_held_out_training_contexts_as_the_validation_split(
     final = {r["split"]: r for r in done["final_eval"]}
     assert set(final) == {"train", "validation"}
     assert final["train"]["eval_episodes"] == 2 * 605 and final["validation"]["eval_episodes"] == 605
+
+
+def test_an_infinite_or_nan_learning_rate_is_refused():
+    from uevavd.policy.config import TrainConfig
+
+    for lr in (float("inf"), float("nan"), 0.0, 2.0):
+        with pytest.raises(ConfigError, match=r"train.lr = .*: expected a learning rate in \(0, 1\]"):
+            TrainConfig(lr=lr)
+
+
+@pytest.mark.parametrize("value", ["0", "-1"])
+def test_max_epochs_below_one_is_refused_before_anything_is_written(table, tmp_path, capsys, monkeypatch, value):
+    """--max-epochs 0 / -1 used to train one epoch."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    out = tmp_path / "run"
+    rc = main(["train", "--method", "map", "--table", str(path), "--episodes", "200", "--out", str(out),
+               "--no-progress", "--device", "cpu", "--max-epochs", value, *_sets()])
+    assert rc == 2
+    _one_line(capsys, f"max_epochs = {value}: expected an integer >= 1")
+    assert not out.exists()

@@ -101,7 +101,8 @@ class TrainConfig:
             need(isinstance(getattr(self, key), int) and getattr(self, key) >= 1, key, "an integer >= 1")
         for key in ("learning_starts", "eval_contexts", "threads", "seed"):
             need(isinstance(getattr(self, key), int) and getattr(self, key) >= 0, key, "an integer >= 0")
-        need(self.lr > 0, "lr", "a learning rate > 0")
+        need(isinstance(self.lr, int | float) and 0 < self.lr <= 1, "lr",
+             "a learning rate in (0, 1] (Adam's; a larger or infinite one diverges mid-run)")
         need(self.updates_per_step > 0, "updates_per_step", "a number > 0 (gradient updates per step)")
         for key in ("eps_start", "eps_end", "per_beta"):
             need(0.0 <= getattr(self, key) <= 1.0, key, "a number in [0, 1]")

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..atomic import atomic_write, atomic_write_json
-from ..config import MethodSpec, PerceptionSection
+from ..config import ConfigError, MethodSpec, PerceptionSection
 from ..env.aod_env import load_table, select_scenes
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
@@ -134,6 +134,9 @@ def train(
     training into (:func:`~uevavd.policy.rundir.run_lock`); returns at once for a finished
     run. ``max_epochs`` stops this call after that many epochs (a later call resumes).
     """
+    if max_epochs is not None and (isinstance(max_epochs, bool) or not isinstance(max_epochs, int) or max_epochs < 1):
+        raise ConfigError(f"max_epochs = {max_epochs!r}: expected an integer >= 1 (epochs this call trains), "
+                          "or None for the whole run")
     # train.threads and the seeded torch RNG for the run only: the caller's after it
     with run_lock(out), torch_threads(None), contextlib.ExitStack() as caller_state:
         return _train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress,
