@@ -136,6 +136,33 @@ def test_cli_reports_bad_input(tmp_path, capsys):
     assert not (tmp_path / "w").exists()
 
 
+@pytest.mark.parametrize("args, needle", [
+    (["--contexts", ""], "names no context"),  # used to render the preset's 30
+    (["--contexts", "1", "--seed", "-1"], "--seed -1: expected a world seed >= 0"),  # said so after making the folder
+    (["--contexts", "1", "--workers", "0"], "--workers 0: expected at least 1"),
+])
+def test_cli_refuses_empty_contexts_negative_seeds_and_no_workers_before_writing(tmp_path, capsys, args, needle):
+    assert main(["synth", "--out", str(tmp_path / "w"), "--quiet", *args]) == 2
+    assert needle in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
+
+
+def test_cli_starts_no_more_processes_than_scenes(tmp_path, monkeypatch):
+    """--workers 1000 for one scene used to fork 1000 processes."""
+    import uevavd.data.synthetic.writer as writer
+
+    seen = {}
+
+    def fake_write_world(out, **kwargs):
+        seen.update(kwargs)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(writer, "write_world", fake_write_world)
+    assert main(["synth", "--out", str(tmp_path / "w"), "--quiet", "--contexts", "1", "--no-unoccluded",
+                 "--workers", "1000"]) == 2
+    assert seen["workers"] == 1
+
+
 @pytest.mark.parametrize("command", [["synth", "--contexts", "1", "--size", "16", "--quiet"], ["demo"]])
 def test_an_output_folder_that_is_a_file_is_one_line_saying_what_to_do(tmp_path, capsys, monkeypatch, command):
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)

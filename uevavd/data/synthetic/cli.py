@@ -52,12 +52,19 @@ def _run(args: argparse.Namespace) -> int:
 
     try:
         world = load_preset(args.preset).get("world", {})
-        contexts = parse_contexts(args.contexts) if args.contexts else list(subset(world["per_block"]))
+        # --contexts '' names no context (it used to mean the preset's 30): only an absent option does
+        contexts = parse_contexts(args.contexts) if args.contexts is not None else list(subset(world["per_block"]))
         size = int(args.size or world["size"])
         seed = int(world.get("seed", 0) if args.seed is None else args.seed)
+        if seed < 0:  # refused before the folder is made (numpy's seeding refused it after)
+            raise ValueError(f"--seed {seed}: expected a world seed >= 0")
+        if args.workers < 1:
+            raise ValueError(f"--workers {args.workers}: expected at least 1")
+        # never more processes than scenes to render (1000 workers forked 1000 processes for 2 scenes)
+        workers = min(args.workers, len(contexts) + (0 if args.no_unoccluded else 2))
         t0 = time.perf_counter()
         out = write_world(
-            args.out, contexts=contexts, size=size, seed=seed, workers=args.workers,
+            args.out, contexts=contexts, size=size, seed=seed, workers=workers,
             include_unoccluded=not args.no_unoccluded, progress=not args.quiet,
         )
     except (ValueError, FileNotFoundError) as err:
