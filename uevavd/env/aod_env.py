@@ -18,11 +18,12 @@ Observation (``Dict``):
   (stop always 1); use it or ignore it - clamped moves are legal
 * ``"t"`` Discrete(T_max + 1): decisions taken so far
 
-``info``: ``view`` (index), ``xyz`` (metres), ``probs`` (K,) float32, ``visible``
-(fraction; absent where the table does not know it: a NaN would break Gymnasium's
-determinism check, NaN != NaN), ``distance_m`` and ``steps`` flown so far, ``context``,
-``scene`` (table index), ``target`` (class index), ``t``; at the end also
-``recognized``, ``correct`` (argmax == target) and ``return`` (discounted).
+``info``, the same keys and types at every step: ``view`` (index), ``xyz`` (metres),
+``probs`` (K,) float32, ``visible`` (fraction; -1.0 where the table does not know it: a NaN
+would break Gymnasium's determinism check, NaN != NaN), ``distance_m`` and ``steps`` flown so
+far, ``context``, ``scene`` (table index), ``target`` (class index), ``t``, ``recognized`` and
+``correct`` (argmax == target) of the current view, ``stopped`` (this step chose stop) and
+``return`` (discounted, so far; at the end, the episode's).
 """
 
 from __future__ import annotations
