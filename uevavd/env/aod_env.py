@@ -70,16 +70,17 @@ def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, 
     ``ValueError`` naming context ids that are not in the split.
     """
     if split == VALIDATION:
-        return _validation_scenes(table, contexts, train_per_block)
-    idx = table.scene_indices(split)
-    if train_per_block:
-        is_train = np.asarray(table.splits)[idx] == "train"
-        try:
-            keep = set(first_per_block(table.contexts[idx[is_train]], train_per_block))
-        except ValueError as exc:
-            raise TableError(f"env.train_per_block = {train_per_block}: {exc} (table {table.key!r}); build the "
-                             "table over a world with more training contexts, or lower it") from None
-        idx = idx[~is_train | np.isin(table.contexts[idx], sorted(keep))]
+        idx = _validation_scenes(table, train_per_block)
+    else:
+        idx = table.scene_indices(split)
+        if train_per_block:
+            is_train = np.asarray(table.splits)[idx] == "train"
+            try:
+                keep = set(first_per_block(table.contexts[idx[is_train]], train_per_block))
+            except ValueError as exc:
+                raise TableError(f"env.train_per_block = {train_per_block}: {exc} (table {table.key!r}); build "
+                                 "the table over a world with more training contexts, or lower it") from None
+            idx = idx[~is_train | np.isin(table.contexts[idx], sorted(keep))]
     if contexts is not None:
         wanted = [int(c) for c in np.atleast_1d(np.asarray(contexts))]
         have = {int(table.contexts[i]): int(i) for i in idx}
@@ -111,20 +112,16 @@ def _int_option(options: dict[str, Any], name: str) -> int:
     return int(value)
 
 
-def _validation_scenes(table: ObservationTable, contexts: Any, train_per_block: int) -> np.ndarray:
+def _validation_scenes(table: ObservationTable, train_per_block: int) -> np.ndarray:
     """The table's training scenes past the first ``train_per_block`` of each block."""
     if not train_per_block:
         raise TableError("split 'validation' is the training contexts a run leaves out of its training: set "
                          "env.train_per_block (e.g. 16 of the 20 per block) to hold some out")
-    idx = select_scenes(table, "train")
-    trained = select_scenes(table, "train", train_per_block=train_per_block)
-    idx = idx[~np.isin(idx, trained)]
+    idx = table.scene_indices("train")
+    idx = idx[~np.isin(idx, select_scenes(table, "train", train_per_block=train_per_block))]
     if idx.size == 0:
         raise TableError(f"env.train_per_block = {train_per_block} leaves no training context of table "
                          f"{table.key!r} out: nothing to validate on; lower it")
-    if contexts is not None:
-        wanted = {int(c) for c in np.atleast_1d(np.asarray(contexts))}
-        idx = idx[np.isin(table.contexts[idx], sorted(wanted))]
     return idx
 
 
