@@ -73,7 +73,7 @@ def main() -> int:
     if not args.report:
         for name in args.only:
             preset = write_preset(name, CANDIDATES[name], args.out)
-            cmd = ["uevavd", "ablate", "--preset", str(preset), "--data", args.data, "--seeds", str(args.seeds),
+            cmd = [sys.executable, "-m", "uevavd.cli", "ablate", "--preset", str(preset), "--data", args.data, "--seeds", str(args.seeds),
                    "--recognizers", "1", "--methods", "map", "memo_map", "ibe_map", "--out", str(args.out / name)]
             print("$", " ".join(cmd), flush=True)
             if subprocess.run(cmd).returncode:
