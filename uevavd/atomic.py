@@ -57,6 +57,18 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
     return path
 
 
+def check_writable(path: str | os.PathLike[str]) -> Path:
+    """Make ``path``'s folder and prove a file can be written in it (a temporary one, removed),
+    so work whose result goes to ``path`` fails before it starts, not after (an unwritable
+    ``--out`` failed after minutes of training). Raises the ``OSError`` naming the folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".probe")
+    os.close(fd)
+    os.unlink(tmp)
+    return path
+
+
 def json_text(obj: Any, *, sort_keys: bool = False) -> str:
     """The one JSON layout uevavd writes: indented by one space, a final newline, values JSON
     lacks (paths, numpy scalars) as their ``str``."""

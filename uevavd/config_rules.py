@@ -38,6 +38,31 @@ class ConfigError(ValueError):
     """A method config is invalid; the message names the file, the key and what is accepted."""
 
 
+#: The widest layer a shipped component builds (the paper's widest is 544): a width past it
+#: is a typo that would fail as an allocation traceback, or allocate gigabytes, mid-build.
+MAX_WIDTH = 8192
+
+
+def check_count(option: str, value: Any, low: int = 1, high: int | None = None, exc: type = ValueError) -> int:
+    """A command-line count (``--workers``, ``--threads``, ``--seeds``) as an int, or ``exc``
+    naming the option and the accepted range: one rule for every command's counts, checked
+    before any work (a negative thread count was a traceback, 10**9 seeds the kernel's kill)."""
+    ok = isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
+    if not ok:
+        want = f"an integer in {low}..{high}" if high is not None else f"at least {low}"
+        raise exc(f"{option} {value}: expected {want}")
+    return value
+
+
+def check_widths(section: str, **widths: Any) -> None:
+    """Refuse a layer width of a component section (``state``, ``head``) that is not an
+    integer in 1..MAX_WIDTH, naming the key: a width of 0 builds a network that trains to
+    nothing, a negative or huge one fails inside torch."""
+    for key, v in widths.items():
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_WIDTH:
+            raise ConfigError(f"{section}.{key} = {v!r}: expected a layer width, an integer in 1..{MAX_WIDTH}")
+
+
 # -- overrides ------------------------------------------------------------------------------
 def parse_override(text: str) -> tuple[str, Any]:
     """``"head.hidden=256"`` -> ``("head.hidden", 256)``; values are TOML, else strings."""

@@ -237,7 +237,9 @@ def test_sweep_adds_settings_with_their_reward_constants(tiny):
     "kwargs, message",
     [
         ({"methods": ["map", "mapp"]}, r"unknown method 'mapp': known methods are \["),
-        ({"seeds": 0}, "at least 1"),
+        ({"seeds": 0}, r"--seeds 0: expected an integer in 1\.\.1000"),
+        ({"seeds": 10**9}, r"--seeds 1000000000: expected an integer in 1\.\.1000"),  # was the kernel's kill
+        ({"recognizers": 0}, r"--recognizers 0: expected an integer in 1\.\.100"),
         ({"sweep_methods": ["memo_map"]}, "not among --methods"),
         ({"backend": "slurm"}, "expected 'local' or 'ray'"),
         ({"device": "gpu"}, "--device: device 'gpu': expected 'auto', 'cpu', 'cuda'"),

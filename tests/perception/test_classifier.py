@@ -87,7 +87,13 @@ def test_a_preset_gives_the_recipe_and_options_win(world_605, tmp_path, capsys, 
     capsys.readouterr()
     assert main(["train-classifier", str(world_605), "--out", str(out), "--threads", "0"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "--threads 0: expected at least 1 (default 2)" in err, err
+    assert err.count("\n") == 0 and "--threads 0: expected at least 1" in err, err
+    # an --out no file can be written to fails before the training, not after it
+    (tmp_path / "a-file").write_text("")
+    blocked = tmp_path / "a-file" / "c.safetensors"
+    assert main(["train-classifier", str(world_605), "--out", str(blocked), "--threads", "1", "--epochs", "50"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "a-file" in err and "Traceback" not in err, err
     preset.write_text('name = "mine"\n[classifier]\nepoch = 3\n')
     assert main(["train-classifier", str(world_605), "--preset", str(preset), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()

@@ -74,3 +74,18 @@ def test_a_recognizer_of_another_crop_size_is_refused(tiny_world, tiny_classifie
     with pytest.raises(ValueError, match=r"trained on 24 x 24 px crops, but .* holds 16 x 16 px views"):
         prepare_table(tiny_world, method, classifier_path=other, out_dir=tmp_path / "t", progress=False)
     assert json.dumps(meta["input_size"]) == "[16, 16]"
+
+
+@pytest.mark.parametrize("option, value", [("--threads", "-2"), ("--workers", "0"), ("--shards", "0")])
+def test_prepare_refuses_a_count_below_one_in_one_line(tiny_world, method_toml, tmp_path, capsys, monkeypatch,
+                                                      option, value):
+    """``prepare --threads -2`` was torch's traceback; every count is refused before any work."""
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    method = tmp_path / "m.toml"
+    method.write_text(method_toml.format(decompose="false"))
+    rc = main(["prepare", str(tiny_world), "--method", str(method), "--out", str(tmp_path / "tables"), option, value])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and err.count("\n") == 0 and f"{option} {value}: expected at least 1" in err, err
+    assert not (tmp_path / "tables").exists()

@@ -26,6 +26,13 @@ from .test_cli import _sets
     ("train.updates_per_step", -1, "train.updates_per_step = -1"),
     ("train.learning_starts", 500, "no gradient update would ever run"),
     ("train.lr", 1e300, "train.lr = 1e+300: expected a learning rate in (0, 1]"),  # diverged mid-run
+    # widths and sizes: 0 trained to nothing and "finished", -4 and huge ones were allocation tracebacks
+    ("head.hidden", 0, "head.hidden = 0: expected a layer width, an integer in 1..8192"),
+    ("head.hidden", 10**9, "head.hidden = 1000000000: expected a layer width"),
+    ("state.state_dim", -4, "state.state_dim = -4: expected a layer width"),
+    ("train.buffer_episodes", 10**9, "train.buffer_episodes = 1000000000: expected at most 10,000,000"),
+    ("train.n_envs", 10**7, "train.n_envs = 10000000: expected at most 65,536"),
+    ("env.t_max", 10**9, "EnvConfig.t_max=1000000000: expected an integer in 1..100"),
 ])
 def test_out_of_range_training_values_are_refused_before_the_run_starts(table, tmp_path, capsys, monkeypatch,
                                                                         key, value, needle):
@@ -37,6 +44,16 @@ def test_out_of_range_training_values_are_refused_before_the_run_starts(table, t
     assert rc == 2
     _one_line(capsys, needle)
     assert not out.exists()  # nothing written: the directory is not locked to a bad config
+
+
+def test_a_seed_past_32_bits_is_refused_naming_it(table, tmp_path, capsys, monkeypatch):
+    """``--seed 10**20`` ended in an OverflowError naming no value, after the folder was made."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--seed", str(10**20),
+                 "--out", str(tmp_path / "run"), "--no-progress", *_sets()]) == 2
+    _one_line(capsys, "train.seed = 100000000000000000000: expected an integer in 0..4294967295")
+    assert not (tmp_path / "run").exists()
 
 
 def test_zero_episodes_are_refused(table, tmp_path, capsys, monkeypatch):

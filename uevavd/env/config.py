@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ..data.grid import N_TYPES, N_VIEWS
+from ..data.grid import N_TYPES, N_VIEWS, NX, NY
 from ..data.splits import TRAIN_PER_BLOCK
 
 
@@ -35,6 +35,10 @@ def _where(cond: Any, a: Any, b: Any) -> Any:
 #: What a run recorded before an env setting existed ran with: read into its recorded ``env``
 #: section on resume (:func:`uevavd.policy.rundir.with_legacy_settings`).
 LEGACY_ENV = {"train_per_block": 0}
+#: The longest move that can stay on the grid (across its wider side), and a cap on the
+#: decisions of an episode (the paper's 5; buffers are allocated for t_max + 1 observations).
+MAX_RANGE = max(NX, NY) - 1
+MAX_T_MAX = 100
 
 
 class EnvConfigError(ValueError):
@@ -77,10 +81,10 @@ class EnvConfig:
         def bad(name: str, expected: str) -> EnvConfigError:
             return EnvConfigError(f"EnvConfig.{name}={getattr(self, name)!r}: expected {expected}")
 
-        for name in ("t_max", "max_range"):
+        for name, most in (("t_max", MAX_T_MAX), ("max_range", MAX_RANGE)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise bad(name, "an integer >= 1")
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= most:
+                raise bad(name, f"an integer in 1..{most}")
         v = self.train_per_block
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= TRAIN_PER_BLOCK:
             raise bad("train_per_block", f"an integer in 0..{TRAIN_PER_BLOCK} (training contexts per target "

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..cli import error as _error
+from ..config_rules import check_count
 from ..plugins.registry import UnknownComponentError
 
 
@@ -161,10 +162,7 @@ def add_zoo(parser: argparse.ArgumentParser):
 
 
 def _check_workers(args: argparse.Namespace) -> int:
-    workers = (os.cpu_count() or 1) if args.workers is None else args.workers
-    if workers < 1:
-        raise ValueError(f"--workers {workers}: expected at least 1")
-    return workers
+    return check_count("--workers", (os.cpu_count() or 1) if args.workers is None else args.workers)
 
 
 def _render_check(zoo, args: argparse.Namespace) -> int:

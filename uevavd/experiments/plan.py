@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import ConfigError, known_methods, load_method, parse_override
+from ..config_rules import check_count
 from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
 from ..perception.nets import resolve_device
@@ -26,6 +27,9 @@ SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
 #: The number of training contexts (per target block): swept for every method, on one world
 #: that holds the most training contexts asked and every test context (see :func:`make_plan`).
 CONTEXTS_KEY = "env.train_per_block"
+#: Upper bounds of --seeds and --recognizers (each is a run per method and setting).
+MAX_SEEDS = 1000
+MAX_RECOGNIZERS = 100
 
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
 SECTION_KEYS = {"world": {"seed", "size", "per_block"},
@@ -192,12 +196,11 @@ def make_plan(
     for m in methods:
         if m not in known:
             raise AblationError(f"unknown method {m!r}: known methods are {known} (see `uevavd plugins`)")
-    n_seeds = int(seeds if seeds is not None else abl.get("seeds", 1))
-    if n_seeds < 1:
-        raise AblationError(f"--seeds {n_seeds}: expected at least 1")
-    n_rec = int(recognizers if recognizers is not None else abl.get("recognizers", 1))
-    if n_rec < 1:
-        raise AblationError(f"--recognizers {n_rec}: expected at least 1")
+    # each seed is a run per method, recognizer and setting: 10**9 seeds was the kernel's kill
+    n_seeds = check_count("--seeds", seeds if seeds is not None else abl.get("seeds", 1), high=MAX_SEEDS,
+                          exc=AblationError)
+    n_rec = check_count("--recognizers", recognizers if recognizers is not None else abl.get("recognizers", 1),
+                        high=MAX_RECOGNIZERS, exc=AblationError)
     sweeps = dict(sweeps if sweeps is not None else {k: list(v) for k, v in abl.get("sweeps", {}).items()})
     if CONTEXTS_KEY in sweeps:
         cfg = with_context_axis(cfg, sweeps[CONTEXTS_KEY], from_data=data is not None)

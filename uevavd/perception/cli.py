@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
+from ..config_rules import check_count
 from ..presets import PRESET_HELP, cli_overrides
 
 
@@ -57,8 +58,8 @@ def add_train_classifier(p: argparse.ArgumentParser):
 
         given = {k: getattr(args, k) for k in RECIPE_OPTIONS if getattr(args, k) is not None}
         s = ClassifierRecipe.from_preset(load_preset(args.preset) if args.preset else {}, **given)  # before any work
-        if args.threads < 1:
-            raise ValueError(f"--threads {args.threads}: expected at least 1 (default {THREADS})")
+        check_count("--threads", args.threads)
+        check_count("--workers", args.workers)
         _logging()
         resolve_device(args.device)  # a bad or absent device is refused before any work
         path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers,
@@ -88,6 +89,11 @@ def add_prepare(p: argparse.ArgumentParser):
 
     def run(args) -> int:
         overrides = cli_overrides(args.preset, args.overrides)  # bad input before any work
+        check_count("--workers", args.workers)
+        if args.threads is not None:
+            check_count("--threads", args.threads)
+        if args.shards is not None:
+            check_count("--shards", args.shards)
         if args.threads:
             import torch
 

@@ -11,6 +11,11 @@ from .replay import SAMPLINGS
 
 #: ``TrainConfig.gamma``'s default; at this value it follows ``env.gamma``.
 DEFAULT_GAMMA = 0.9
+#: Upper bounds of the sizes a run allocates, and of a seed (numpy's and torch's generators
+#: take any, but a run derives several from it and records it in JSON).
+MAX_BUFFER_EPISODES = 10_000_000
+MAX_N_ENVS = 65_536
+MAX_SEED = 2**32 - 1
 
 #: What a run recorded before a training setting existed trained with (see
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
@@ -101,6 +106,11 @@ class TrainConfig:
             need(isinstance(getattr(self, key), int) and getattr(self, key) >= 1, key, "an integer >= 1")
         for key in ("learning_starts", "eval_contexts", "threads", "seed"):
             need(isinstance(getattr(self, key), int) and getattr(self, key) >= 0, key, "an integer >= 0")
+        # sizes that allocate: past these a typo fails as an allocation traceback (or the kernel's kill)
+        need(self.buffer_episodes <= MAX_BUFFER_EPISODES, "buffer_episodes",
+             f"at most {MAX_BUFFER_EPISODES:,} episodes (the replay buffer is allocated whole)")
+        need(self.n_envs <= MAX_N_ENVS, "n_envs", f"at most {MAX_N_ENVS:,} environments stepped side by side")
+        need(self.seed <= MAX_SEED, "seed", f"an integer in 0..{MAX_SEED} (2**32 - 1)")
         need(isinstance(self.lr, int | float) and 0 < self.lr <= 1, "lr",
              "a learning rate in (0, 1] (Adam's; a larger or infinite one diverges mid-run)")
         need(self.updates_per_step > 0, "updates_per_step", "a number > 0 (gradient updates per step)")

@@ -13,6 +13,7 @@ from typing import Literal
 import torch
 from torch import nn
 
+from ..config_rules import check_widths
 from . import targets as T
 
 
@@ -101,6 +102,7 @@ def build_branching_dueling(
     td_target: Literal["mean", "indep"] = "mean",
 ) -> BranchingDuelingHead:
     """MAP's two-channel dueling head; ``td_target`` "mean" (BDQ) or "indep"."""
+    check_widths("head", state_dim=state_dim, hidden=hidden)
     return BranchingDuelingHead(state_dim, hidden, n_types, n_ranges, td_target)
 
 
@@ -108,4 +110,5 @@ def build_joint_dueling(
     *, state_dim: int = 512, hidden: int = 256, n_types: int = 7, n_ranges: int = 4
 ) -> JointDuelingHead:
     """Dueling head over the 28 joint (type, range) actions."""
+    check_widths("head", state_dim=state_dim, hidden=hidden)
     return JointDuelingHead(state_dim, hidden, n_types, n_ranges)

@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..config_rules import check_widths
 from .base import ObservationEncoder
 from .packed_gru import packed_gru, supports_packed
 
@@ -110,4 +111,6 @@ def build_gru(
     """The recurrent estimator (paper sizes: g_t 544, h_t 544, s_t 512). ``hidden`` (h_t)
     defaults to ``input_dim``, as in the paper, so scaling g_t scales h_t with it.
     ``feature_dim`` (D of the table) is passed by the trainer at build time."""
-    return GRUState(feature_dim, input_dim, box_dim, input_dim if hidden is None else int(hidden), state_dim)
+    hidden = input_dim if hidden is None else hidden
+    check_widths("state", input_dim=input_dim, box_dim=box_dim, hidden=hidden, state_dim=state_dim)
+    return GRUState(feature_dim, input_dim, box_dim, hidden, state_dim)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..config_rules import check_widths
 from .base import ObservationEncoder
 
 
@@ -41,4 +42,5 @@ def build_single_view(
 ) -> SingleViewState:
     """MAP's estimator. ``feature_dim`` (D of the table) is passed by the trainer at build
     time; g_t has ``input_dim`` = (input_dim - box_dim) image + ``box_dim`` box channels."""
+    check_widths("state", input_dim=input_dim, box_dim=box_dim, state_dim=state_dim)
     return SingleViewState(feature_dim, input_dim, box_dim, state_dim)

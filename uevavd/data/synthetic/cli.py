@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+from ...config_rules import check_count
 from ..splits import N_CONTEXTS, check_context
 
 
@@ -58,8 +59,7 @@ def _run(args: argparse.Namespace) -> int:
         seed = int(world.get("seed", 0) if args.seed is None else args.seed)
         if seed < 0:  # refused before the folder is made (numpy's seeding refused it after)
             raise ValueError(f"--seed {seed}: expected a world seed >= 0")
-        if args.workers < 1:
-            raise ValueError(f"--workers {args.workers}: expected at least 1")
+        check_count("--workers", args.workers)
         # never more processes than scenes to render (1000 workers forked 1000 processes for 2 scenes)
         workers = min(args.workers, len(contexts) + (0 if args.no_unoccluded else 2))
         t0 = time.perf_counter()

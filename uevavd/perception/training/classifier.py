@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ...atomic import check_writable
 from ...data.reader import read_dataset
 from ...data.splits import TARGETS
 from ...runtime import torch_threads
@@ -300,6 +301,7 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
     out = Path(out) if out is not None else classifier_cache_path(digest)
     if out.suffix != ".safetensors":
         raise ValueError(f"--out {out}: the classifier is written as safetensors; name it *.safetensors")
+    check_writable(out)  # before the minutes of training, not after
     used = set(sample_views(np.unique([r.view for r in recs]), settings).tolist())
     recs = [r for r in recs if r.view in used]
     with Decoder(workers) as dec:
