@@ -612,3 +612,24 @@ def test_a_sweep_that_would_run_on_no_method_or_outside_its_range_is_refused(tmp
     for item, needle in (("thre=nan", r"--sweep thre=nan: .*thre"), ("C=-1", r"--sweep C=-1.0: .*C")):
         with pytest.raises(AblationError, match=needle):
             make_plan(preset="quick", out=tmp_path / "c", sweeps=parse_sweeps([item]))
+
+
+def test_data_without_a_split_the_runs_are_evaluated_on_is_refused_before_any_work(tiny, tmp_path, capsys,
+                                                                                   monkeypatch):
+    """``ablate --data`` on a root without simple contexts, with a preset evaluating on them,
+    failed only after the recognizer and the tables were made; now the world stage refuses it."""
+    from uevavd.cli import main
+
+    preset = tmp_path / "simple.toml"
+    preset.write_text(TINY_PRESET.replace('["train", "hard"]', '["train", "simple", "hard"]'))
+    plan = make_plan(preset=str(preset), out=tmp_path / "a", data=tiny["world"], workers=1, methods=["map"])
+    with pytest.raises(AblationError, match=r"holds no contexts of split\(s\) \['simple'\].*holds \['hard', 'train'\]"):
+        stage_world(plan, print)
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    capsys.readouterr()
+    assert main(["ablate", "--preset", str(preset), "--data", str(tiny["world"]), "--methods", "map",
+                 "--out", str(tmp_path / "b"), "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "['simple']" in err, err
+    assert not list((tmp_path / "b").glob("runs/*")) and not (tmp_path / "b" / "specs").exists()
+    stage_world(_plan(tiny, "ok", methods=["map"]), print)  # train and hard only: accepted

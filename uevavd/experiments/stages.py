@@ -10,6 +10,7 @@ from pathlib import Path
 from ..atomic import atomic_write
 from ..config import load_method
 from ..data.reader import read_dataset
+from ..data.splits import VALIDATION, resolve_split, split_of
 from ..data.synthetic import write_world
 from ..data.synthetic.quality import format_rows, read_visible, split_rows
 from ..hashing import json_digest
@@ -19,7 +20,7 @@ from ..perception.prepare_ray import prepare_table_ray
 from ..perception.training.classifier import ClassifierRecipe, train_classifier
 from ..presets import world_contexts, world_root
 from ..zoo import Zoo
-from .plan import DEFAULT_SETTING, Plan, method_overrides
+from .plan import DEFAULT_SETTING, AblationError, Plan, method_overrides
 
 
 class _Stage:
@@ -41,7 +42,7 @@ class _Stage:
 def stage_world(plan: Plan, log) -> Path:
     """The dataset root: ``--data`` as given, else the preset's synthetic world (cached)."""
     if plan.data is not None:
-        read_dataset(plan.data)  # fails early, naming the files it cannot parse
+        _check_splits(plan, read_dataset(plan.data))  # fails early, naming the files it cannot parse
         return plan.data
 
     world = plan.preset["world"]
@@ -51,6 +52,21 @@ def stage_world(plan: Plan, log) -> Path:
 
     log("  visibility per split:\n" + format_rows(split_rows(read_visible(root))))
     return root
+
+
+def _check_splits(plan: Plan, manifest) -> None:
+    """``--data`` must hold every split the runs train or evaluate on (a root without simple
+    contexts failed only after the recognizer and the tables were made)."""
+    needed = {"train"}
+    for m in plan.methods:
+        for split in load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)).train_config().eval_splits:
+            needed.update(("train",) if split == VALIDATION else resolve_split(split))
+    have = {split_of(c) for c in manifest.contexts()}
+    missing = sorted(needed - have)
+    if missing:
+        raise AblationError(f"--data {plan.data} holds no contexts of split(s) {missing}, which the runs train or "
+                            f"are evaluated on (it holds {sorted(have) or 'none'}): use a root holding them, or a "
+                            "preset whose train.eval_splits leaves them out")
 
 
 def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
