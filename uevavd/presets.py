@@ -1,6 +1,6 @@
 """Presets (``model_zoo/presets/*.toml``): named bundles of world, perception and
-training settings. ``quick`` runs in minutes on a laptop; ``paper`` is the paper's
-full protocol."""
+training settings. ``quick`` runs in minutes on a laptop; ``paper64`` is Table 1's data
+scale at 64 px, about an hour on 2 cores; ``paper`` is the paper's full protocol."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def preset_overrides(preset: Mapping[str, Any]) -> dict[str, Any]:
 
 
 #: The ``--preset`` option's help, for every command that loads methods.
-PRESET_HELP = ("a preset (quick, paper) or its TOML path: the method is loaded with its [overrides] (encoder, "
+PRESET_HELP = ("a preset (quick, paper64, paper) or its TOML path: the method is loaded with its [overrides] (encoder, "
                "recognizer, network sizes, schedule), as `uevavd ablate --preset` does; --set wins over it")
 
 

@@ -23,7 +23,7 @@ def add_train_classifier(p: argparse.ArgumentParser):
     d = ClassifierRecipe()
     p.add_argument("data", help="dataset root (UEVAVD layout) holding the train_605 scene")
     p.add_argument("--preset", default=None,
-                   help="a preset (quick, paper) or its TOML path: its [classifier] recipe gives the defaults of "
+                   help="a preset (quick, paper64, paper) or its TOML path: its [classifier] recipe gives the defaults of "
                         "the options below (arch, init, epochs, ...), as `uevavd ablate --preset` trains it")
     p.add_argument("--out", default=None,
                    help="output .safetensors (default: <cache>/classifiers/<data hash>.safetensors, "
