@@ -36,7 +36,10 @@ def parse_contexts(text: str) -> list[int]:
 
 def add_synth(parser: argparse.ArgumentParser):
     parser.add_argument("--out", type=Path, required=True, help="output folder (resumed if it exists)")
-    parser.add_argument("--preset", default="quick", help="preset naming seed, size and contexts (quick|paper)")
+    from ...presets import known_presets
+
+    parser.add_argument("--preset", default="quick",
+                        help=f"preset naming seed, size and contexts: one of {known_presets()} or a TOML path")
     parser.add_argument("--contexts", help="context ids, e.g. 1-4,21,26 (default: the preset's)")
     parser.add_argument("--size", type=int, help="crop size in pixels (default: the preset's)")
     parser.add_argument("--seed", type=int, help="world seed (default: the preset's)")
