@@ -31,7 +31,9 @@ def test_make_vec_is_the_batched_env_step_for_step(table):
         actions = np.stack([rng.integers(0, 7, 6), rng.integers(0, 4, 6)], 1)
         obs, reward, term, trunc, infos = venv.step(actions)
         robs, rreward, rdone, rinfo = ref.step(torch.as_tensor(actions[:, 0]), torch.as_tensor(actions[:, 1]))
-        np.testing.assert_array_equal(reward, rreward.numpy())
+        # float64, as Gymnasium's sync mode gives it (the batched env's float32 for training)
+        assert reward.dtype == np.float64
+        np.testing.assert_array_equal(reward.astype(np.float32), rreward.numpy())
         np.testing.assert_array_equal(term, rdone.numpy())
         assert not trunc.any()
         for i in np.flatnonzero(term):  # same-step autoreset: the last observation in infos
@@ -178,3 +180,86 @@ def test_the_vector_env_states_its_autoreset_mode_and_refuses_use_after_close(ta
         env.step(np.zeros((4, 2), np.int64))
     with pytest.raises(RuntimeError, match="closed"):
         env.reset(seed=0)
+
+
+def test_the_vector_env_follows_gymnasium_1_conventions_like_the_single_env(table):
+    """Rewards equal the single env's (float64), float actions equal to integers are taken,
+    every step reports the single env's info (going-on envs at the top level, ended ones in
+    ``final_info`` with its masks), a list of seeds uses all its entries, no seed is not
+    always seed 0, and make_vec takes ``render_mode``."""
+    cfg = EnvConfig(t_max=3)
+    venv = _vec(table, n=4, split="train", config=cfg)
+    singles = [AODEnv(table, "train", cfg) for _ in range(4)]
+    obs, _ = venv.reset(seed=3)
+    scenes = venv.unwrapped._batched.tensors.scenes[venv.unwrapped._batched._scene].tolist()
+    views = venv.unwrapped._batched._view.tolist()
+    for env, s, v in zip(singles, scenes, views, strict=True):
+        env.reset(options={"scene": s, "view": v})
+    rng = np.random.default_rng(0)
+    seen_final = seen_going = 0
+    for _ in range(6):
+        actions = np.stack([rng.integers(0, 6, 4), rng.integers(0, 4, 4)], 1)
+        obs, reward, term, _, infos = venv.step(actions.astype(np.float32))  # floats equal to integers
+        for i, env in enumerate(singles):
+            _, r, done, _, info = env.step(actions[i])
+            assert reward[i] == r and term[i] == done  # float64, bit for bit
+            where = infos["final_info"] if done else infos
+            assert where["_return"][i] and where["return"][i] == info["return"]
+            for key in ("recognized", "correct", "stopped", "view", "t", "scene", "steps"):
+                assert where[key][i] == info[key], key
+            if done:
+                seen_final += 1
+                assert infos["_final_info"][i]
+                env.reset(options={"scene": int(obs_scene(venv, i)), "view": int(venv.unwrapped._batched._view[i])})
+            else:
+                seen_going += 1
+    assert seen_final and seen_going
+    with pytest.raises(ValueError, match="expected integers"):
+        venv.step(np.full((4, 2), 0.5))
+
+    def first_views(seed):
+        venv.reset(seed=seed)
+        return venv.unwrapped._batched._view.tolist()
+
+    assert first_views([1, 2, 3, 4]) == first_views([1, 2, 3, 4]) != first_views([1, 2, 3, 5])
+    with pytest.raises(ValueError, match="a list of 4"):
+        venv.reset(seed=[1, 2])
+    fresh = [_vec(table, n=8, split="train", config=cfg) for _ in range(2)]
+    starts = [(f.reset()[0], f.unwrapped._batched._view.tolist())[1] for f in fresh]
+    assert starts[0] != starts[1]  # seeded from the OS's entropy, as Gymnasium's envs are
+    frames = _vec(table, n=2, split="train", render_mode="rgb_array")
+    frames.reset(seed=0)
+    out = frames.render()
+    assert len(out) == 2 and out[0].dtype == np.uint8 and out[0].ndim == 3
+
+
+def obs_scene(venv, i):
+    b = venv.unwrapped._batched
+    return b.tensors.scenes[b._scene][i]
+
+
+def test_torchrl_and_gymnasiums_vector_wrappers_take_the_vector_env(table):
+    """TorchRL's GymWrapper over the vector env passes its spec check (it failed on the missing
+    ``autoreset_mode``); Gymnasium's RecordEpisodeStatistics reads its infos; FlattenObservation,
+    which needs next-step autoreset, runs through the documented sync-mode recipe."""
+    venv = _vec(table, n=4, split="train")
+    stats = gym.wrappers.vector.RecordEpisodeStatistics(venv)
+    stats.reset(seed=0)
+    for _ in range(8):
+        _, _, term, _, infos = stats.step(stats.action_space.sample())
+    assert "episode" in infos or len(stats.return_queue) > 0
+    with pytest.raises(ValueError, match="NEXT_STEP"):
+        gym.wrappers.vector.FlattenObservation(_vec(table, n=2, split="train"))
+    flat = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode="sync", wrappers=[gym.wrappers.FlattenObservation],
+                        table=table, split="train")
+    obs, _ = flat.reset(seed=0)
+    assert obs.ndim == 2 and obs.shape[0] == 2
+    flat.step(flat.action_space.sample())
+    pytest.importorskip("torchrl")
+    from torchrl.envs import GymWrapper
+    from torchrl.envs.utils import check_env_specs
+
+    env = GymWrapper(_vec(table, n=4, split="train"))
+    assert tuple(env.batch_size) == (4,)
+    check_env_specs(env)
+    assert env.rollout(12)["next", "done"].any()

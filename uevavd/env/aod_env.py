@@ -103,6 +103,22 @@ def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, 
 NO_VISIBLE = -1.0
 
 
+def integral_actions(action: Any) -> np.ndarray | None:
+    """``action`` as an int64 array where it holds integers, or floats equal to integers (a
+    library's float action buffer); None where it holds anything else. The single and the
+    vector env read actions through this one rule."""
+    a = np.asarray(action)
+    if a.dtype.kind in "iu":
+        return a.astype(np.int64, copy=False)
+    try:
+        f = np.asarray(action, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if not np.all(np.isfinite(f)) or not np.all(f == np.round(f)):
+        return None
+    return f.astype(np.int64)
+
+
 def _int_option(options: dict[str, Any], name: str) -> int:
     """A reset option that must be an integer (a Python or numpy int, not a bool, not a float
     that would be truncated), as an int; anything else is a ValueError naming the option."""
@@ -269,14 +285,9 @@ class AODEnv(gym.Env):
     def step(self, action: Any):
         if self._done:
             raise RuntimeError("step() called on a finished episode: call reset() first")
-        a = np.asarray(action)
-        if a.dtype.kind not in "iu":  # floats equal to integers are accepted, anything else not
-            try:
-                a = np.asarray(action, dtype=np.float64)
-            except (TypeError, ValueError):
-                a = np.zeros(0)
-            if not np.all(a == np.round(a)):
-                a = np.zeros(0)
+        a = integral_actions(action)
+        if a is None:
+            a = np.zeros(0)
         if a.shape == () and 0 <= int(a) < N_TYPES * self.config.max_range:
             # the flat Discrete(7 * A) index (type-major, as grid.flat_action), for libraries
             # that turn a MultiDiscrete space into one categorical (TorchRL's GymWrapper)

@@ -247,6 +247,7 @@ class BatchedAODEnv:
             "final_steps": self._steps.clone(),
             "final_decisions": self._t.clone(),
             "final_stopped": out["stopped"],
+            "reward64": out["reward"],  # the reward before the float32 cast (the vector env's, as sync mode's)
         }
         # auto-reset: sample for all (keeps RNG use independent of `done`), keep where not done
         scene, view = self._sample_starts()

@@ -55,8 +55,10 @@ class SB3VecEnv(VecEnv):
         obs, reward, terminated, truncated, infos = self.venv.step(self._actions)
         done = terminated | truncated
         out: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+        final = {k: v for k, v in infos.items() if k.startswith("final_") and k not in ("final_obs", "final_info")}
         for i in np.flatnonzero(done):
-            row = {k: v[i] for k, v in infos.items() if not k.startswith("_") and k != "final_obs"}
+            row = {k: v[i] for k, v in final.items()}
+            row.update((k, v[i]) for k, v in infos["final_info"].items() if not k.startswith("_"))
             row["terminal_observation"] = infos["final_obs"][i]
             row["TimeLimit.truncated"] = bool(truncated[i])
             out[i] = row

@@ -13,8 +13,10 @@ Observations are those of :class:`~uevavd.env.aod_env.AODEnv` batched: ``feature
 float32, ``box`` (N, 4) float32, ``action_mask`` (N, 7, A) int8 (or (N, 7 * A)), ``t`` (N,)
 int64. An episode always ends by termination (stop or T_max), never truncation; where it
 ends, the returned observation is the next episode's first and ``infos["final_obs"]`` holds
-the last one (Gymnasium's same-step convention), beside the ``final_*`` fields of
-``BatchedAODEnv`` (``final_return``, ``final_recognized``, ...), each with its ``_key`` mask.
+the last one, ``infos["final_info"]`` its step info (Gymnasium's same-step convention), beside
+the ``final_*`` fields of ``BatchedAODEnv`` (``final_return``, ``final_recognized``, ...), each
+with its ``_key`` mask; the envs going on get the single env's step info at the top level.
+Rewards are float64 and float actions equal to integers are taken, as the single env does.
 """
 
 from __future__ import annotations
@@ -28,23 +30,49 @@ from gymnasium import spaces
 from gymnasium.vector.utils import batch_space
 
 from ..data.grid import N_TYPES, STOP
-from .aod_env import AODEnv
+from .aod_env import AODEnv, integral_actions
 from .batched import BatchedAODEnv
 from .config import EnvConfig, make_config
 
 ACTION_FORMS = ("multi", "flat")
+#: The single env's per-step info keys the vector env reports at every step (``info[key]`` of
+#: the envs going on, ``info["final_info"][key]`` of those whose episode ended), and the
+#: BatchedAODEnv field each is read from.
+STEP_INFO = {"view": "final_view", "scene": "final_scene", "t": "final_decisions", "recognized": "final_recognized",
+             "correct": "final_correct", "stopped": "final_stopped", "return": "final_return",
+             "steps": "final_steps", "distance_m": "final_distance_m"}
+
+
+def _one_seed(seed: Any, n: int) -> int | None:
+    """The shared generator's seed from ``reset(seed=...)``: None, an int, or a list of ``n``
+    ints (or Nones: all None is no seed) combined by numpy's SeedSequence."""
+    if seed is None:
+        return None
+    if isinstance(seed, list | tuple | np.ndarray):
+        seeds = list(seed)
+        if all(s is None for s in seeds):
+            return None
+        if len(seeds) != n or not all(isinstance(s, int | np.integer) and s >= 0 for s in seeds):
+            raise ValueError(f"reset(seed={seeds!r}): expected an int >= 0, or a list of {n} of them")
+        return int(np.random.SeedSequence([int(s) for s in seeds]).generate_state(1, np.uint64)[0] >> 1)
+    if not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"reset(seed={seed!r}): expected an int >= 0, or a list of {n} of them")
+    return int(seed)
 
 
 class AODVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` AOD episodes in lockstep (see the module doc)."""
 
-    metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": []}
+    metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
 
     def __init__(self, table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
                  num_envs: int = 1, actions: str = "multi", device: str | torch.device = "cpu",
-                 contexts: Any = None, **overrides: Any) -> None:
+                 contexts: Any = None, render_mode: str | None = None, **overrides: Any) -> None:
         if actions not in ACTION_FORMS:
             raise ValueError(f"actions={actions!r}: expected one of {ACTION_FORMS}")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode={render_mode!r}: expected None or one of {self.metadata['render_modes']}")
+        self.render_mode = render_mode
         cfg = make_config(config, **overrides)
         self._batched = BatchedAODEnv(table, split, num_envs, cfg, device=device, contexts=contexts)
         single = AODEnv(self._batched.table, split, cfg, contexts=contexts)  # the spaces, one definition
@@ -64,17 +92,24 @@ class AODVectorEnv(gym.vector.VectorEnv):
         self.config = cfg
         self.table = self._batched.table
         self._obs: dict[str, torch.Tensor] | None = None
+        self._seeded = False
 
     # -- gymnasium API ------------------------------------------------------------------------
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
-        """New episodes everywhere. ``seed`` reseeds the start sampler (an int, or a list whose
-        first entry is used: the envs share one generator); ``options`` may give ``scenes``
-        (table scene indices) and ``views`` (N,) as BatchedAODEnv.reset does."""
+        """New episodes everywhere. ``seed`` reseeds the start sampler, which the envs share: an
+        int seeds it with itself, a list of ``num_envs`` ints with all of them (numpy's
+        ``SeedSequence`` of the list: ``[1, 2]`` and ``[1, 3]`` sample other episodes; the
+        envs draw from one stream, not one each). Without a seed the first reset seeds it
+        from the OS's entropy, as Gymnasium's envs do (it used to be seed 0 every time).
+        ``options`` may give ``scenes`` (table scene indices) and ``views`` (N,) as
+        BatchedAODEnv.reset does."""
         self._check_open("reset")
+        seed = _one_seed(seed, self.num_envs)
+        if seed is None and not self._seeded:
+            seed = int(np.random.SeedSequence().generate_state(1, np.uint64)[0] >> 1)
         if seed is not None:
-            first = seed[0] if isinstance(seed, list | tuple) else seed
-            if first is not None:
-                self._batched.generator.manual_seed(int(first))
+            self._batched.generator.manual_seed(seed)
+            self._seeded = True
         options = dict(options or {})
         unknown = sorted(set(options) - {"scenes", "views"})
         if unknown:
@@ -85,18 +120,42 @@ class AODVectorEnv(gym.vector.VectorEnv):
     def step(self, actions: Any):
         self._check_open("step")
         a_type, a_range = self._split_actions(actions)
-        obs, reward, done, info = self._batched.step(a_type, a_range)
+        obs, _, done, info = self._batched.step(a_type, a_range)
         self._obs = obs
-        infos: dict[str, Any] = {}
-        if bool(done.any()):
-            mask = done.cpu().numpy()
-            for key, value in info.items():
-                infos[key] = value.cpu().numpy()
-                infos["_" + key] = mask
-            infos["final_obs"] = self._final_obs(info, mask)
-            infos["_final_obs"] = mask
+        reward = info.pop("reward64").cpu().numpy()  # float64, as Gymnasium's sync mode gives it
         terminated = done.cpu().numpy()
-        return (self._numpy(obs), reward.cpu().numpy(), terminated, np.zeros_like(terminated), infos)
+        going = ~terminated
+        # the single env's per-step info, for the envs whose episode goes on (where one ended,
+        # the observation is the next episode's first: its step info is in final_info)
+        step_info = {key: info[field].cpu().numpy() for key, field in STEP_INFO.items()}
+        infos: dict[str, Any] = {}
+        if going.any():
+            for key, value in step_info.items():
+                infos[key], infos["_" + key] = value, going
+        if terminated.any():
+            for key, value in info.items():  # the final_* fields, as before
+                infos[key] = value.cpu().numpy()
+                infos["_" + key] = terminated
+            infos["final_obs"] = self._final_obs(info, terminated)
+            infos["_final_obs"] = terminated
+            infos["final_info"] = {**step_info, **{"_" + k: terminated for k in step_info}}
+            infos["_final_info"] = terminated
+        return (self._numpy(obs), reward, terminated, np.zeros_like(terminated), infos)
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        """With ``render_mode="rgb_array"``: one frame per env (:func:`~uevavd.env.render.render_frame`
+        of its current view; the vector env keeps no path, so each map shows the current view
+        only). Otherwise None."""
+        if self.render_mode != "rgb_array":
+            return None
+        if self._obs is None:
+            raise RuntimeError("render() before reset()")
+        from .render import render_frame
+
+        b = self._batched
+        scenes = b.tensors.scenes[b._scene].tolist()
+        views, ts = b._view.tolist(), b._t.tolist()
+        return tuple(render_frame(self.table, s, [v], t) for s, v, t in zip(scenes, views, ts, strict=True))
 
     def action_masks(self) -> np.ndarray:
         """The allowed actions at every env's current view, shaped for the action space:
@@ -125,10 +184,10 @@ class AODVectorEnv(gym.vector.VectorEnv):
             raise RuntimeError(f"{what}() on a closed AODVectorEnv: make a new one")
 
     def _split_actions(self, actions: Any) -> tuple[torch.Tensor, torch.Tensor]:
-        a = np.asarray(actions)
+        a = integral_actions(actions)  # integers, or floats equal to them, as the single env
         n = self.num_envs
-        if a.dtype.kind not in "iu":
-            raise ValueError(f"actions of dtype {a.dtype}: expected integers")
+        if a is None:
+            raise ValueError(f"actions of dtype {np.asarray(actions).dtype}: expected integers (or floats equal to them)")
         if self.actions == "flat":
             if a.shape != (n,) or bool(((a < 0) | (a >= N_TYPES * self._a)).any()):
                 raise ValueError(f"actions {a.tolist()[:8]} (shape {a.shape}): expected ({n},) indices of "
