@@ -40,6 +40,7 @@ from gymnasium import spaces
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
 from ..data.splits import VALIDATION, first_per_block
+from ..paths import tables_dir
 from ..table import ObservationTable, TableError
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
@@ -49,11 +50,16 @@ F16_MAX = float(np.finfo(np.float16).max)
 
 
 def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationTable:
-    """An :class:`ObservationTable`, or one loaded (and checked, NaN refused) from a folder."""
+    """An :class:`ObservationTable`, or one loaded (and checked, NaN refused) from a folder, or
+    by its key from ``$UEVAVD_CACHE/tables`` where no such folder exists (a portable name:
+    Minari datasets' environment specs hold the key, not a machine's path)."""
     if isinstance(table, ObservationTable):
         return table
     if isinstance(table, str | os.PathLike):
-        return ObservationTable.load(Path(table))
+        path = Path(table)
+        if not path.exists() and len(path.parts) == 1 and (tables_dir() / path).is_dir():
+            path = tables_dir() / path
+        return ObservationTable.load(path)
     raise TypeError(f"table={table!r}: expected an ObservationTable or the path of a table folder")
 
 

@@ -1,0 +1,191 @@
+"""Offline-RL and imitation datasets: a policy's episodes on a table's split as a Minari dataset.
+
+    uevavd export-minari TABLE --split hard --policy oracle --episodes 1000 --id uevavd/quick-hard-oracle-v0
+
+The episodes are :class:`~uevavd.env.aod_env.AODEnv`'s, step for step (its observations,
+``MultiDiscrete([7, A])`` actions, float rewards, terminations and the same info keys at
+every step, so ``minari.load_dataset`` reads them and ``record_infos`` data is there), from
+starts drawn uniformly over the split's contexts and views with ``seed``. The policy is one of
+the baselines (``oracle``: the class-knowing oracle, ``visibility_oracle``, ``passive``,
+``random``) or a trained run's folder (its greedy policy), acting through the same batched
+interface as in evaluation.
+
+Portable: the dataset's environment spec names the table by its key, not its path
+(``table="<key>"``, which :func:`~uevavd.env.aod_env.load_table` finds under
+``$UEVAVD_CACHE/tables``), so ``minari.load_dataset(id).recover_environment()`` gives a working
+env on any machine whose cache holds the table (``uevavd prepare`` builds the same key from the
+same data and method), and the dataset itself loads anywhere. Needs ``minari`` (``pip install
+"uevavd[clients]"``).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .aod_env import AODEnv, load_table
+from .config import EnvConfig
+
+BASELINES = ("oracle", "visibility_oracle", "passive", "random")
+
+
+def make_policy(name_or_run: str, table: Any, config: EnvConfig, seed: int = 0) -> Any:
+    """A baseline by name, or the greedy policy of a trained run's folder."""
+    if name_or_run == "oracle":
+        from .oracle import OraclePolicy
+
+        return OraclePolicy(table, config)
+    if name_or_run == "visibility_oracle":
+        from .visibility_oracle import VisibilityOraclePolicy
+
+        return VisibilityOraclePolicy(table, config)
+    if name_or_run == "passive":
+        from .baselines import PassivePolicy
+
+        return PassivePolicy()
+    if name_or_run == "random":
+        from .baselines import RandomPolicy
+
+        return RandomPolicy(seed)
+    path = Path(name_or_run)
+    if not (path / "settings.json").is_file():
+        raise ValueError(f"--policy {name_or_run!r}: expected one of {list(BASELINES)} or a trained run's folder "
+                         "(one holding settings.json)")
+    from ..policy.acting import load_policy
+
+    return load_policy(path, device="cpu")
+
+
+def _batched_obs(obs: dict[str, Any], info: dict[str, Any]) -> dict[str, torch.Tensor]:
+    """One env's observation as the batched interface a policy acts on (a batch of 1)."""
+    return {
+        "features": torch.as_tensor(obs["features"])[None],
+        "box": torch.as_tensor(obs["box"])[None],
+        "mask": torch.as_tensor(obs["action_mask"].astype(bool))[None],
+        "t": torch.tensor([int(obs["t"])]),
+        "scene": torch.tensor([int(info["scene"])]),
+        "view": torch.tensor([int(info["view"])]),
+        "done": torch.tensor([False]),
+    }
+
+
+def collect_episodes(table: Any, split: str, policy: Any, *, episodes: int, seed: int = 0,
+                     config: EnvConfig | None = None, progress: bool = True) -> tuple[list[Any], AODEnv]:
+    """``episodes`` of ``policy`` on ``split`` as Minari ``EpisodeBuffer`` s, and the env."""
+    from minari.data_collector import EpisodeBuffer
+    from tqdm.auto import tqdm
+
+    config = config or EnvConfig()
+    env = AODEnv(table, split, config)
+    rng = np.random.default_rng(seed)
+    buffers = []
+    for i in tqdm(range(episodes), desc="episodes", disable=not progress):
+        scene = int(rng.choice(env.scenes))
+        view = int(rng.integers(len(env.table.features[scene])))
+        obs, info = env.reset(options={"scene": scene, "view": view})
+        observations, actions, rewards, infos = [obs], [], [], [info]
+        policy.reset(1)
+        done = False
+        while not done:
+            a_type, a_range = policy.act(_batched_obs(obs, info))
+            action = np.array([int(a_type[0]), int(a_range[0])], np.int64)
+            obs, reward, done, _, info = env.step(action)
+            observations.append(obs)
+            actions.append(action)
+            rewards.append(reward)
+            infos.append(info)
+        buffers.append(EpisodeBuffer(
+            id=i, options={"scene": scene, "view": view},
+            observations={k: np.stack([o[k] for o in observations]) for k in observations[0]},
+            actions=np.stack(actions), rewards=rewards, terminations=[False] * (len(rewards) - 1) + [True],
+            truncations=[False] * len(rewards),
+            infos={k: np.stack([np.asarray(x[k]) for x in infos]) for k in infos[0]},
+        ))
+    return buffers, env
+
+
+@contextmanager
+def _datasets_path(out: str | os.PathLike[str] | None):
+    """Minari writes under ``$MINARI_DATASETS_PATH``: ``out`` there for the call."""
+    if out is None:
+        yield
+        return
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(Path(out).resolve())
+    try:
+        yield
+    finally:
+        if old is None:
+            del os.environ["MINARI_DATASETS_PATH"]
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
+
+
+def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episodes: int = 1000, seed: int = 0,
+                  config: EnvConfig | None = None, out: str | os.PathLike[str] | None = None,
+                  progress: bool = True) -> Any:
+    """Write ``dataset_id`` (``namespace/name-v0``) of ``policy``'s episodes; returns the
+    ``MinariDataset``. ``out``: the datasets folder (default Minari's, ``$MINARI_DATASETS_PATH``
+    or ``~/.minari/datasets``)."""
+    import gymnasium as gym
+    import minari
+
+    from .. import __version__
+    from . import ENV_ID
+
+    table = load_table(table)
+    if not table.key:
+        raise ValueError("the table has no key (it was not written by `uevavd prepare`): a portable dataset names "
+                         "its table by key; save it with `uevavd prepare` first")
+    config = config or EnvConfig()
+    pol = make_policy(policy, table, config, seed)
+    buffers, env = collect_episodes(table, split, pol, episodes=episodes, seed=seed, config=config,
+                                    progress=progress)
+    spec = gym.spec(ENV_ID)
+    portable = gym.envs.registration.EnvSpec(
+        id=spec.id, entry_point=spec.entry_point, max_episode_steps=None,
+        kwargs={"table": table.key, "split": split, "config": config.to_dict()},
+    )
+    with _datasets_path(out), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="`author_email` is set to None", category=UserWarning)
+        return minari.create_dataset_from_buffers(
+            dataset_id=dataset_id, buffer=buffers, env=portable, eval_env=portable, author="uevavd export-minari",
+            code_permalink=f"uevavd {__version__}",
+            algorithm_name=f"uevavd {policy if policy in BASELINES else 'trained run ' + Path(policy).name}",
+            observation_space=env.observation_space, action_space=env.action_space,
+            description=f"{episodes} episodes of {policy} on the {split} split of table {table.key} "
+                        f"(starts uniform over its contexts and views, seed {seed})",
+        )
+
+
+def add_export_minari(p: Any):
+    p.add_argument("table", help="an observation table's folder (`uevavd prepare` writes it)")
+    p.add_argument("--split", default="hard", help="train, simple, hard or test (default: hard)")
+    p.add_argument("--policy", default="oracle",
+                   help=f"one of {list(BASELINES)} or a trained run's folder (default: oracle)")
+    p.add_argument("--episodes", type=int, default=1000, help="episodes to record (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the starts (and of the random policy)")
+    p.add_argument("--id", required=True, dest="dataset_id", help="Minari dataset id, e.g. uevavd/quick-hard-oracle-v0")
+    p.add_argument("--out", default=None, help="datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
+
+    def run(args) -> int:
+        from ..config_rules import check_count
+
+        check_count("--episodes", args.episodes)
+        check_count("--seed", args.seed, low=0)
+        try:
+            import minari  # noqa: F401
+        except ImportError:
+            raise ValueError("export-minari needs minari: pip install \"uevavd[clients]\"") from None
+        ds = export_minari(args.table, args.split, args.policy, args.dataset_id, episodes=args.episodes,
+                           seed=args.seed, out=args.out)
+        print(f"wrote {ds.spec.dataset_id}: {ds.total_episodes} episodes, {ds.total_steps} steps")
+        return 0
+
+    return run
