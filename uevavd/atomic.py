@@ -57,6 +57,27 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
     return path
 
 
+@contextmanager
+def folder_lock(folder: str | os.PathLike[str], busy: Callable[[str], Exception]) -> Iterator[Path]:
+    """Hold ``folder`` for one process: a second process writing into it is refused with
+    ``busy(lock file)`` at once, instead of interleaving its files with the first's. The lock
+    is a file beside the folder (``.NAME.lock``, so the folder holds its own files only); the
+    OS releases it when its process ends, however it ends. Yields the lock file's path."""
+    from filelock import FileLock, Timeout
+
+    out = Path(folder).resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lock = FileLock(str(out.parent / f".{out.name}.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        raise busy(str(lock.lock_file)) from None
+    try:
+        yield Path(lock.lock_file)
+    finally:
+        lock.release()
+
+
 def check_writable(path: str | os.PathLike[str]) -> Path:
     """Make ``path``'s folder and prove a file can be written in it (a temporary one, removed),
     so work whose result goes to ``path`` fails before it starts, not after (an unwritable

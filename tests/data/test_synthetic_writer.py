@@ -147,6 +147,43 @@ def test_cli_refuses_empty_contexts_negative_seeds_and_no_workers_before_writing
     assert not (tmp_path / "w").exists()
 
 
+SYNTH_HOLDER = """
+import sys, time
+from pathlib import Path
+from filelock import FileLock
+out = Path(sys.argv[1])
+with FileLock(str(out.parent / f".{out.name}.lock")):
+    Path(sys.argv[2]).touch()
+    time.sleep(60)
+"""
+
+
+def test_a_second_synth_into_the_same_folder_is_refused(tmp_path, capsys, monkeypatch):
+    """Two `uevavd synth` into one folder (seeds 0 and 1) both exited 0, the seed-0 one
+    printing "wrote ... (seed 0)" over a folder holding seed 1; the second is refused now."""
+    import subprocess
+    import sys
+    import time
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    out, ready = tmp_path / "w", tmp_path / "holding"
+    holder = subprocess.Popen([sys.executable, "-c", SYNTH_HOLDER, str(out), str(ready)])
+    try:
+        end = time.monotonic() + 60
+        while not ready.exists():
+            assert time.monotonic() < end and holder.poll() is None
+            time.sleep(0.01)
+        assert main(["synth", "--out", str(out), "--contexts", "1", "--size", "16", "--no-unoccluded",
+                     "--quiet", "--seed", "1"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "is being written by another uevavd synth" in err, err
+        assert not out.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(["synth", "--out", str(out), "--contexts", "1", "--size", "16", "--no-unoccluded", "--quiet"]) == 0
+
+
 def test_cli_starts_no_more_processes_than_scenes(tmp_path, monkeypatch):
     """--workers 1000 for one scene used to fork 1000 processes."""
     import uevavd.data.synthetic.writer as writer

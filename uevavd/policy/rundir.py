@@ -25,8 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from filelock import FileLock, Timeout
-
+from ..atomic import folder_lock
 from ..config import MethodSpec, load_method
 from ..env.config import LEGACY_ENV
 from .config import LEGACY_TRAIN
@@ -95,18 +94,12 @@ def run_lock(run_dir: str | os.PathLike[str]) -> Iterator[Path]:
     first's. The lock is a file beside the directory (``.NAME.lock``), so that the run
     directory holds the run's files only, and the OS releases it when its process ends,
     however it ends. Yields the lock file's path."""
-    out = Path(run_dir).resolve()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    lock = FileLock(str(out.parent / f".{out.name}.lock"))
-    try:
-        lock.acquire(timeout=0)
-    except Timeout:
-        raise RunDirError(f"{run_dir} is being trained by another process (it holds {lock.lock_file}); "
-                          "wait for that run to finish, or train into another --out") from None
-    try:
-        yield Path(lock.lock_file)
-    finally:
-        lock.release()
+    def busy(lock_file: str) -> RunDirError:
+        return RunDirError(f"{run_dir} is being trained by another process (it holds {lock_file}); "
+                           "wait for that run to finish, or train into another --out")
+
+    with folder_lock(run_dir, busy) as lock:
+        yield lock
 
 
 def read_settings(run_dir: str | Path) -> dict[str, Any]:

@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ...atomic import atomic_write
+from ...atomic import atomic_write, folder_lock
 from ...hashing import sha256_hex
 from ...runtime import WorkerPool, single_threaded_worker
 from .. import layout
@@ -227,15 +227,28 @@ def write_world(
     ``include_unoccluded``, at ``size`` x ``size`` px into ``out``; returns ``out``.
 
     Resumable: scenes already complete and verified are skipped. ``workers`` > 1 renders
-    scenes in that many processes. Writes ``uevavd.json`` and ``manifest.json`` last."""
-    from tqdm.auto import tqdm
-
+    scenes in that many processes. Writes ``uevavd.json`` and ``manifest.json`` last. A second
+    process writing into the same folder is refused at once (two seeds into one folder both
+    "succeeded" over each other's scenes)."""
     root = Path(out)
     if size < 16:
         raise ValueError(f"size={size}: expected a crop size of at least 16 px")
     if workers < 1:
         raise ValueError(f"workers={workers}: expected at least 1")
     contexts = sorted({check_context(c) for c in contexts})
+
+    def busy(lock_file: str) -> ValueError:
+        return ValueError(f"{root} is being written by another uevavd synth (it holds {lock_file}); wait for it, "
+                          "or write into another --out")
+
+    with folder_lock(root, busy):
+        return _write_world(root, contexts, size, seed, include_unoccluded, workers, progress)
+
+
+def _write_world(root: Path, contexts: list[int], size: int, seed: int, include_unoccluded: bool, workers: int,
+                 progress: bool) -> Path:
+    from tqdm.auto import tqdm
+
     root.mkdir(parents=True, exist_ok=True)
     _check_card(root, size, seed)
     names = _scene_jobs(contexts, include_unoccluded)
