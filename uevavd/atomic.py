@@ -58,11 +58,13 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
 
 
 @contextmanager
-def folder_lock(folder: str | os.PathLike[str], busy: Callable[[str], Exception]) -> Iterator[Path]:
-    """Hold ``folder`` for one process: a second process writing into it is refused with
-    ``busy(lock file)`` at once, instead of interleaving its files with the first's. The lock
-    is a file beside the folder (``.NAME.lock``, so the folder holds its own files only); the
-    OS releases it when its process ends, however it ends. Yields the lock file's path."""
+def folder_lock(folder: str | os.PathLike[str], busy: Callable[[str], Exception], *,
+                wait: Callable[[str], None] | None = None) -> Iterator[Path]:
+    """Hold ``folder`` for one process, so a second process never interleaves its files with
+    the first's: it is refused with ``busy(lock file)`` at once, or, given ``wait``, calls
+    ``wait(lock file)`` (to say so) and waits its turn. The lock is a file beside the folder
+    (``.NAME.lock``, so the folder holds its own files only); the OS releases it when its
+    process ends, however it ends. Yields the lock file's path."""
     from filelock import FileLock, Timeout
 
     out = Path(folder).resolve()
@@ -71,7 +73,10 @@ def folder_lock(folder: str | os.PathLike[str], busy: Callable[[str], Exception]
     try:
         lock.acquire(timeout=0)
     except Timeout:
-        raise busy(str(lock.lock_file)) from None
+        if wait is None:
+            raise busy(str(lock.lock_file)) from None
+        wait(str(lock.lock_file))
+        lock.acquire()
     try:
         yield Path(lock.lock_file)
     finally:

@@ -151,16 +151,20 @@ SYNTH_HOLDER = """
 import sys, time
 from pathlib import Path
 from filelock import FileLock
+from uevavd.data.synthetic.writer import _write_world
 out = Path(sys.argv[1])
-with FileLock(str(out.parent / f".{out.name}.lock")):
+with FileLock(str(out.parent / f".{out.name}.lock")):  # a synth of seed 0, holding the folder
     Path(sys.argv[2]).touch()
-    time.sleep(60)
+    time.sleep(1.0)
+    _write_world(out, [1], 16, 0, False, 1, False)
 """
 
 
-def test_a_second_synth_into_the_same_folder_is_refused(tmp_path, capsys, monkeypatch):
-    """Two `uevavd synth` into one folder (seeds 0 and 1) both exited 0, the seed-0 one
-    printing "wrote ... (seed 0)" over a folder holding seed 1; the second is refused now."""
+def test_a_second_synth_into_the_same_folder_waits_then_checks_the_seed(tmp_path, capsys, monkeypatch):
+    """Two `uevavd synth` into one folder (seeds 0 and 1) both exited 0, the seed-1 one
+    printing "wrote ... (seed 1)" over a folder holding seed 0. The second now waits for the
+    first (two ablations sharing a cache verify one world), then its card check refuses the
+    other seed."""
     import subprocess
     import sys
     import time
@@ -175,13 +179,12 @@ def test_a_second_synth_into_the_same_folder_is_refused(tmp_path, capsys, monkey
             time.sleep(0.01)
         assert main(["synth", "--out", str(out), "--contexts", "1", "--size", "16", "--no-unoccluded",
                      "--quiet", "--seed", "1"]) == 2
-        err = capsys.readouterr().err.strip()
-        assert err.count("\n") == 0 and "is being written by another uevavd synth" in err, err
-        assert not out.exists()
     finally:
-        holder.kill()
-        holder.wait()
-    assert main(["synth", "--out", str(out), "--contexts", "1", "--size", "16", "--no-unoccluded", "--quiet"]) == 0
+        holder.wait(timeout=120)
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "holds a synthetic world with size=16, seed=0, not size=16, seed=1" in err, err
+    assert main(["synth", "--out", str(out), "--contexts", "1", "--size", "16", "--no-unoccluded", "--quiet",
+                 "--seed", "0"]) == 0  # the same world again: verified, kept
 
 
 def test_cli_starts_no_more_processes_than_scenes(tmp_path, monkeypatch):

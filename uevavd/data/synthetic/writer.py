@@ -20,6 +20,7 @@ the same (seed, context, size) gives identical bytes.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import as_completed
@@ -48,6 +49,8 @@ from .world import (
     training_stages,
     with_target,
 )
+
+log = logging.getLogger(__name__)
 
 FORMAT = "uevavd-synthetic"
 _PNG = [cv2.IMWRITE_PNG_COMPRESSION, 3]
@@ -228,8 +231,8 @@ def write_world(
 
     Resumable: scenes already complete and verified are skipped. ``workers`` > 1 renders
     scenes in that many processes. Writes ``uevavd.json`` and ``manifest.json`` last. A second
-    process writing into the same folder is refused at once (two seeds into one folder both
-    "succeeded" over each other's scenes)."""
+    process writing into the same folder waits for the first, then checks its card (two seeds
+    into one folder both "succeeded" over each other's scenes)."""
     root = Path(out)
     if size < 16:
         raise ValueError(f"size={size}: expected a crop size of at least 16 px")
@@ -237,11 +240,12 @@ def write_world(
         raise ValueError(f"workers={workers}: expected at least 1")
     contexts = sorted({check_context(c) for c in contexts})
 
-    def busy(lock_file: str) -> ValueError:
-        return ValueError(f"{root} is being written by another uevavd synth (it holds {lock_file}); wait for it, "
-                          "or write into another --out")
+    def waiting(lock_file: str) -> None:
+        log.warning("%s is being written by another process (it holds %s): waiting for it", root, lock_file)
 
-    with folder_lock(root, busy):
+    # another writer of the same world (two ablations sharing a cache) is waited for, then its
+    # scenes are verified and kept; one of another seed or size is refused by the card after it
+    with folder_lock(root, ValueError, wait=waiting):
         return _write_world(root, contexts, size, seed, include_unoccluded, workers, progress)
 
 
