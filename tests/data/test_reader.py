@@ -443,3 +443,28 @@ def test_an_odd_sized_first_image_is_named_not_the_healthy_ones(tmp_path):
     kinds = [p.kind for p in problems]
     assert "box_outside" not in kinds
     assert [p.path for p in problems if p.kind == "mixed_sizes"] == [first]
+
+
+def test_self_links_in_a_dataset_root_are_walked_once(tmp_path, monkeypatch):
+    """`ln -s . D/a; ln -s a D/027` made the tree signature walk D/a/a/a/... to the longest
+    path the OS takes (minutes in `prepare`); each folder is walked once now."""
+    import os
+
+    from uevavd.data import reader
+    from uevavd.testing.worlds import write_tiny_world
+
+    root = write_tiny_world(tmp_path / "w", contexts=(1,), train605=False)
+    (root / "a").symlink_to(".")
+    (root / "027").symlink_to("a")
+    real_dirs = sum(1 for _, dirs, _ in os.walk(root) for _ in dirs) + 1
+    calls = []
+    scandir = os.scandir
+
+    def counting(path):
+        calls.append(path)
+        assert len(calls) <= real_dirs + 2, f"walked {len(calls)} folders, e.g. {calls[-1]}"
+        return scandir(path)
+
+    monkeypatch.setattr(reader.os, "scandir", counting)
+    reader._tree_signature(root)
+    assert len(calls) <= real_dirs

@@ -26,6 +26,7 @@ others, and any that gives another box, or does not parse, is a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -191,18 +192,25 @@ _READ_CACHE_SIZE = 4
 
 def _tree_signature(root: Path) -> str:
     """A digest of (path, inode, size, mtime, ctime) of every entry under ``root``: it
-    changes when a file is added, removed, replaced, renamed, resized or written."""
+    changes when a file is added, removed, replaced, renamed, resized or written. Symlinked
+    folders are followed (a scene may live elsewhere), each folder once: two self-links hung
+    `prepare` for minutes, walking a/a/a/... to the longest path the OS takes."""
     import hashlib
 
     entries = []
     stack = [str(root)]
+    seen = set()  # (device, inode) of the folders walked: a symlink back up (`ln -s . D/a`) is walked once
+    with contextlib.suppress(OSError):
+        st = os.stat(root)
+        seen.add((st.st_dev, st.st_ino))
     while stack:
         folder = stack.pop()
         try:
             with os.scandir(folder) as it:
                 for e in it:
                     st = e.stat()
-                    if e.is_dir():
+                    if e.is_dir() and (st.st_dev, st.st_ino) not in seen:
+                        seen.add((st.st_dev, st.st_ino))
                         stack.append(e.path)
                     entries.append(f"{e.path}\0{st.st_ino}\0{st.st_size}\0{st.st_mtime_ns}\0{st.st_ctime_ns}")
         except OSError as err:  # unreadable folder: no caching, the scan reports it
