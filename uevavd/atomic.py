@@ -16,6 +16,7 @@ import shutil
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import IO, Any
 
@@ -55,6 +56,25 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def remove_temporaries(folder: str | os.PathLike[str], name: str | None = None) -> list[Path]:
+    """Remove what a killed :func:`atomic_write`, :func:`atomic_save` or :func:`atomic_dir`
+    leaves in ``folder``: the temporaries of ``name`` (``.NAME.*.tmp*``, and ``.NAME.old-PID``
+    folders moved aside), or of every name when None. Call it only while holding the lock of
+    whatever writes there: a live writer's temporaries look the same. Returns what it removed."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    stem = "*" if name is None else glob_escape(name)
+    gone = []
+    for p in [*folder.glob(f".{stem}.*.tmp*"), *folder.glob(f".{stem}.old-*")]:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        gone.append(p)
+    return gone
 
 
 @contextmanager

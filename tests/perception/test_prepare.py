@@ -564,3 +564,37 @@ def test_two_prepares_of_one_key_at_once_both_get_the_table(tiny_world, tiny_cla
     assert len(paths) == 1
     path = Path(paths.pop())
     assert ObservationTable.load(path).verify().key == path.name
+
+
+def test_what_a_killed_build_leaves_is_removed_by_the_next(built, tiny_world, tiny_classifier, tmp_path,
+                                                         monkeypatch):
+    """A build killed inside the table's atomic folder write leaves ``.KEY.*.tmp`` (full table
+    size), one killed between its renames ``.KEY.old-PID``, one killed after the save
+    ``KEY.partial``: none was ever removed. The next prepare of the key, holding its lock, does."""
+    method, path = built
+    out = tmp_path / "out"
+    shutil.copytree(path, out / path.name)
+    key = path.name
+    litter = [out / f".{key}.k3j2.tmp", out / f".{key}.old-99999", out / f"{key}.partial"]
+    for d in litter:
+        d.mkdir()
+        (d / "features.npy").write_bytes(b"x" * 1000)
+    other = out / ".otherkey.abcd.tmp"  # another table's: not this build's to remove
+    other.mkdir()
+    monkeypatch.setattr(prep, "_compute_scene", lambda *a, **k: pytest.fail("recomputed a finished table"))
+    assert prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False) \
+        == out / key
+    assert not any(d.exists() for d in litter) and other.is_dir()
+
+
+def test_a_killed_policy_save_leaves_no_temporary_after_the_resume(tmp_path):
+    """``.policy.safetensors.*.tmp.safetensors`` (a policy save killed mid-write) was never
+    removed: the trainer's sweep matched ``.*.tmp`` only."""
+    from uevavd.atomic import remove_temporaries
+
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in (".policy.safetensors.ab12.tmp.safetensors", ".checkpoint.pt.cd34.tmp", "checkpoint.pt"):
+        (run / name).write_bytes(b"x")
+    remove_temporaries(run)
+    assert sorted(p.name for p in run.iterdir()) == ["checkpoint.pt"]

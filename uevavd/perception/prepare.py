@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from filelock import FileLock
 
+from ..atomic import remove_temporaries
 from ..config import Component, MethodSpec, PerceptionSection, as_method
 from ..data.grid import N_VIEWS
 from ..data.reader import read_dataset
@@ -334,10 +335,15 @@ def prepare_table(
     lock = FileLock(str(out_dir / f".{key}.lock")) if only_scenes is None and assemble else nullcontext()
     with lock:
         final = out_dir / key
+        if only_scenes is None and assemble:  # the lock's holder: what a killed build left is stale
+            for stale in remove_temporaries(out_dir, key):
+                log.info("prepare: removed %s, left by a killed build", stale)
         if final.is_dir():
             try:
                 ObservationTable.load(final, expect_key=key)
                 log.info("prepare: table %s already built", final)
+                if only_scenes is None and assemble and (out_dir / f"{key}.partial").is_dir():
+                    shutil.rmtree(out_dir / f"{key}.partial", ignore_errors=True)  # a build killed after the save
                 return final
             except TableError as exc:
                 log.warning("prepare: existing table %s is unusable (%s); rebuilding", final, exc)

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import atomic_write, atomic_write_json
+from ..atomic import atomic_write, atomic_write_json, remove_temporaries
 from ..config import ConfigError, MethodSpec, PerceptionSection
 from ..env.aod_env import load_table, select_scenes
 from ..env.batched import BatchedAODEnv, EnvTensors
@@ -169,8 +169,8 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     check_run_dir(out, settings)
     if RunDir(out).finished:
         return out
-    for stale in out.glob(".*.tmp") if out.is_dir() else ():
-        stale.unlink(missing_ok=True)  # a killed save's temp file (a checkpoint's is full size)
+    # a killed save's temp files (a checkpoint's is full size; the policy's ends .tmp.safetensors)
+    remove_temporaries(out)
 
     # -- seeding and setup (everything that can refuse the input, before the run directory
     # is written: a table without the train or an eval split leaves no half-made run) --------
