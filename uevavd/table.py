@@ -266,7 +266,8 @@ class ObservationTable:
                 st = f.stat()
                 os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns - _BACKDATE_NS))
                 st = f.stat()
-                files[f.name] = {"bytes": st.st_size, "mtime_ns": st.st_mtime_ns, "sha256": file_sha256(f)}
+                files[f.name] = {"bytes": st.st_size, "mtime_ns": st.st_mtime_ns, "ctime_ns": st.st_ctime_ns,
+                                 "sha256": file_sha256(f)}
             meta = dict(self.meta)
             meta.update(
                 scenes=list(self.scenes),
@@ -300,7 +301,7 @@ class ObservationTable:
             )
         try:
             meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
+        except ValueError as exc:  # not JSON, or not UTF-8
             raise TableError(f"{meta_path}: unreadable metadata ({exc}); rebuild the table") from None
         if not isinstance(meta, dict):
             raise TableError(f"{meta_path}: expected a JSON object; rebuild the table")
@@ -311,9 +312,13 @@ class ObservationTable:
                 "rebuild it with `uevavd prepare`"
             )
         digest = meta.pop("meta_sha256", None)
-        if digest is not None and digest != _meta_digest(meta):
+        if digest is None or digest != _meta_digest(meta):  # every table of this schema is written with one
             raise TableError(f"{meta_path} was changed after the table was written (its scenes, targets, splits or "
-                             "config no longer match their checksum): rebuild the table with `uevavd prepare`")
+                             "config no longer match their checksum, or the checksum was removed): rebuild the "
+                             "table with `uevavd prepare`")
+        missing = [k for k in ("scenes", "contexts", "targets", "splits") if k not in meta]
+        if missing:
+            raise TableError(f"{meta_path}: no {', '.join(missing)}; rebuild the table with `uevavd prepare`")
         if expect_key is not None and meta.get("key") != expect_key:
             raise TableError(
                 f"{path}: table key {meta.get('key')} does not match the expected {expect_key} "
@@ -344,17 +349,23 @@ class ObservationTable:
         table._check_values(str(path), SMALL_ARRAYS)
         records = meta.get("integrity", {}).get("files", {})
         for name in ARRAYS:
-            if name in SMALL_ARRAYS:
-                continue
             f = path / f"{name}.npy"
             rec = records.get(f.name)
+            if name in SMALL_ARRAYS:  # a few MB: their digest, on every load (values in range can be wrong)
+                if rec is not None and file_sha256(f) != rec["sha256"]:
+                    raise TableError(f"{f}: changed since the table was written (sha256 differs from {META_FILE}); "
+                                     "rebuild the table, or write changed arrays with from_arrays(...).save()")
+                continue
             if rec is not None:
                 st = f.stat()
                 if st.st_size != rec["bytes"]:
                     raise TableError(f"{f}: {st.st_size} bytes but {rec['bytes']} when the table was written; "
                                      "the file was truncated or replaced: rebuild the table")
-                if st.st_mtime_ns == rec["mtime_ns"]:
-                    continue  # untouched since save, which checked its values
+                # untouched since save, which checked its values: its mtime, and its ctime, which no
+                # one can set back (a write with the mtime restored changes it); a copied table is
+                # hashed once per load
+                if st.st_mtime_ns == rec["mtime_ns"] and st.st_ctime_ns == rec.get("ctime_ns", st.st_ctime_ns):
+                    continue
             # No record (an older table) or changed since written: scan it, then compare its hash.
             table._check_values(str(path), (name,))
             if rec is not None and file_sha256(f) != rec["sha256"]:

@@ -394,12 +394,12 @@ def test_table_written_by_hand_is_refused(tmp_path):
     _poke(feats, 7.0)
     with pytest.raises(TableError, match="changed since the table was written"):
         ObservationTable.load(path)
-    # ... unless the editor also restores the timestamp: then only verify() sees it
+    # ... also when the editor restores the timestamp (the file's ctime, which no one can set
+    # back, moved: it used to be served, only verify() saw it)
     rec = json.loads((path / "meta.json").read_text())["integrity"]["files"]["features.npy"]
     os.utime(feats, ns=(rec["mtime_ns"], rec["mtime_ns"]))
-    t = ObservationTable.load(path)
     with pytest.raises(TableError, match="sha256 differs"):
-        t.verify()
+        ObservationTable.load(path)
     # a truncated file
     feats.write_bytes(feats.read_bytes()[:-10])
     with pytest.raises(TableError):
@@ -409,14 +409,42 @@ def test_table_written_by_hand_is_refused(tmp_path):
     copy = tmp_path / "copy"
     shutil.copytree(good, copy, copy_function=shutil.copyfile)
     assert ObservationTable.load(copy).verify().key == ObservationTable.load(good).key
-    # a table without the record (an older uevavd) is scanned in full at load
+    # a meta.json edited after its checksum was removed was served: a table is written with one
     meta = json.loads((copy / "meta.json").read_text())
-    del meta["integrity"], meta["meta_sha256"]  # neither existed then
+    del meta["meta_sha256"]
+    meta["splits"][0] = "hard"
     (copy / "meta.json").write_text(json.dumps(meta))
-    _poke(copy / "features.npy", np.inf)
-    os.utime(copy / "features.npy", ns=(0, 0))
-    with pytest.raises(TableError, match="NaN or inf"):
+    with pytest.raises(TableError, match="the checksum was removed"):
         ObservationTable.load(copy)
+
+
+@pytest.mark.parametrize("damage", ["visible", "probs", "utf8", "no_scenes"])
+def test_a_damaged_small_array_or_meta_json_is_refused_naming_the_file(tmp_path, damage):
+    """visible.npy values of 7.0 (the visibility oracle moved 0.25 -> 0.21), permuted probs
+    rows, invalid UTF-8 in meta.json (a UnicodeDecodeError), a meta.json without its scenes
+    (a KeyError): each was served or a traceback naming no file."""
+    path = _small_table().save(tmp_path / "t")
+    if damage == "visible":
+        v = np.load(path / "visible.npy")
+        v[0, :3] = [0.9, 0.1, 0.5] if v[0, 0] != 0.9 else [0.1, 0.9, 0.5]
+        np.save(path / "visible.npy", v)
+    elif damage == "probs":
+        p = np.load(path / "probs.npy")
+        np.save(path / "probs.npy", p[::-1].copy())
+    elif damage == "utf8":
+        raw = (path / "meta.json").read_bytes()
+        (path / "meta.json").write_bytes(raw[:40] + b"\xff\xfe" + raw[42:])
+    else:
+        meta = json.loads((path / "meta.json").read_text())
+        del meta["scenes"]
+        from uevavd.table import _meta_digest
+
+        meta.pop("meta_sha256")
+        meta["meta_sha256"] = _meta_digest(meta)
+        (path / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(TableError) as err:
+        ObservationTable.load(path)
+    assert str(path) in str(err.value) and "rebuild" in str(err.value)
 
 
 def test_classifier_backbone_encoder_shares_one_forward(tiny_world, tiny_classifier, tmp_path, monkeypatch):
