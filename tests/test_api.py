@@ -67,3 +67,21 @@ def test_a_misspelled_recipe_setting_is_named_before_any_work(tmp_path):
     # another thread count trains other weights: never under the cache name `ablate` reuses
     with pytest.raises(ValueError, match="threads=4: the cache holds recognizers trained on 2 threads"):
         uevavd.train_classifier(tmp_path / "no-data", threads=4)
+
+
+def test_a_run_trained_on_a_table_in_memory_evaluates(tmp_path):
+    """`uevavd.train(method, table_in_memory)` then `run.evaluate()` was a TypeError (the run
+    kept no table path); the Run keeps the table, and a Run loaded later says what to do."""
+    import pytest
+
+    import uevavd
+    from uevavd.testing.policy import toy_table
+
+    table = toy_table(n_train=4, n_hard=2, feature_dim=16)
+    run = uevavd.train("map", table, out=tmp_path / "run", episodes=120, device="cpu", progress=False,
+                       overrides={"train.learning_starts": 40, "train.epoch_episodes": 120, "train.eval_contexts": 1,
+                                  "train.n_envs": 16, "train.batch_size": 16})
+    df = run.evaluate("hard")
+    assert {"map", "passive", "oracle"} <= set(df.index if "method" not in df else df["method"])
+    with pytest.raises(ValueError, match="trained on a table in memory"):
+        uevavd.load_run(tmp_path / "run").evaluate("hard")

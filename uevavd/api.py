@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -72,8 +72,12 @@ def train(method: Any, table: Any, *, out: str | os.PathLike[str], episodes: int
     from .config import as_method
     from .policy.trainer import train as _train
 
+    from .table import ObservationTable
+
     spec = as_method(method, dict(overrides or {}) or None)
-    return Run(_train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress))
+    path = _train(spec, table, out=Path(out), episodes=episodes, seed=seed, device=device, progress=progress)
+    # a table in memory has no folder to load again: the Run keeps it (run.evaluate() failed)
+    return Run(path, loaded=table if isinstance(table, ObservationTable) else None)
 
 
 def load_run(path: str | os.PathLike[str]) -> Run:
@@ -89,6 +93,8 @@ class Run:
     """A training run directory: its settings, its policy, its evaluation."""
 
     path: Path
+    #: the table the run was trained on, when given in memory (no folder to load it from)
+    loaded: Any = field(default=None, repr=False, compare=False)
 
     @cached_property
     def settings(self) -> dict[str, Any]:
@@ -108,9 +114,16 @@ class Run:
         return RunDir(self.path).finished
 
     def table(self):
-        """The run's observation table (from the path it was trained on)."""
+        """The run's observation table: the one it was trained on, when given in memory to
+        :func:`train`, else loaded from the folder it was trained on."""
         from .table import ObservationTable
 
+        if self.loaded is not None and self.loaded.key == self.settings["table_key"]:
+            return self.loaded
+        if not self.settings.get("table_path"):
+            raise ValueError(f"{self.path} was trained on a table in memory, which has no folder to load it from: "
+                             "save the table (table.save(folder)) and train on the folder, or keep the Run "
+                             "that uevavd.train returned")
         table = ObservationTable.load(self.settings["table_path"])
         if table.key != self.settings["table_key"]:
             raise ValueError(f"{self.settings['table_path']} now holds table {table.key}, but {self.path} was "

@@ -633,3 +633,21 @@ def test_data_without_a_split_the_runs_are_evaluated_on_is_refused_before_any_wo
     assert err.count("\n") == 0 and "['simple']" in err, err
     assert not list((tmp_path / "b").glob("runs/*")) and not (tmp_path / "b" / "specs").exists()
     stage_world(_plan(tiny, "ok", methods=["map"]), print)  # train and hard only: accepted
+
+
+def test_a_truncated_evals_jsonl_is_one_line_naming_it(ablation, tmp_path, capsys, monkeypatch):
+    """A truncated `evals.jsonl` in a finished run made the rerun of `ablate` end in a JSON
+    error naming no file."""
+    import dataclasses
+    import shutil
+
+    from uevavd.experiments.results import run_rows
+
+    job = ablation["jobs"][0]
+    copy = tmp_path / "run"
+    shutil.copytree(job.out, copy)
+    evals = copy / "evals.jsonl"
+    evals.write_text(evals.read_text()[:-25])
+    damaged = dataclasses.replace(job, out=str(copy))
+    with pytest.raises(ValueError, match=r"evals.jsonl, line \d+: damaged .*remove the run's folder"):
+        run_rows(damaged, {})

@@ -144,10 +144,15 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
     rows = []
     base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting, **setting}
     if path.is_file():
-        for line in path.read_text().splitlines():
+        for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
             if not line.strip():
                 continue
-            r = json.loads(line)
+            try:
+                r = json.loads(line)
+                int(r["episodes"]), r["split"]
+            except (ValueError, KeyError, TypeError) as exc:
+                raise ValueError(f"{path}, line {n}: damaged ({type(exc).__name__}: {exc}); remove the run's folder "
+                                 f"{job.out} and run the ablation again with the same --out to retrain it") from None
             rows.append({**base, "episodes": int(r["episodes"]), "final": False, "split": r["split"],
                          "eval_contexts": _contexts(r), **_metric_row(r),
                          "wall_s": float(r.get("wall_s", float("nan")))})
