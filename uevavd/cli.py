@@ -34,9 +34,9 @@ def bad_input_types() -> tuple[type[BaseException], ...]:
     """Exceptions that mean bad input rather than a bug: every ``ValueError`` subclass the
     library raises for a value it refuses (ConfigError, WeightsError, TableError,
     DatasetError, AblationError, ...), a missing file, an unknown component name."""
-    from .plugins.registry import UnknownComponentError
+    from .plugins.registry import StrictPluginError, UnknownComponentError
 
-    return (ValueError, FileNotFoundError, UnknownComponentError)
+    return (ValueError, FileNotFoundError, UnknownComponentError, StrictPluginError)
 
 
 _FILE_FOR_FOLDER = "a file stands where a folder is expected: choose another path, or move the file"

@@ -154,6 +154,20 @@ def test_broken_plugin_is_fatal_in_strict_mode(site, monkeypatch):
         manager.ensure_loaded()
 
 
+def test_a_strict_failure_is_one_line_from_the_command_line(site, monkeypatch, capsys):
+    """`UEVAVD_STRICT_PLUGINS=1` with a broken plugin ended a command in a traceback, exit 1;
+    the README promises one line, exit 2."""
+    from uevavd.cli import main
+
+    make_dist(site, "fake-broken", "0.9", "fakeplug_broken", BROKEN_IMPORT)
+    monkeypatch.setenv("UEVAVD_STRICT_PLUGINS", "1")
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main(["plugins"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "fake-broken" in err and "boom at import" in err, err
+    assert "UEVAVD_STRICT_PLUGINS is set" in err
+
+
 def test_manager_recovers_after_a_strict_failure(site, monkeypatch):
     make_dist(site, "fake-broken", "0.9", "fakeplug_broken", BROKEN_IMPORT)
     make_dist(site, "fake-good", "1.2.3", "fakeplug_good", GOOD)

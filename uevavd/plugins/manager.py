@@ -21,7 +21,7 @@ from typing import Any
 import pluggy
 
 from . import ENTRY_POINT_GROUP, PROJECT, hookspecs
-from .registry import KINDS, Entry, KindRegistry, PluginError, Registry
+from .registry import KINDS, Entry, KindRegistry, PluginError, Registry, StrictPluginError
 
 #: Built-in components register through the same hooks as third-party ones.
 DEFAULT_PLUGINS: tuple[str, ...] = (
@@ -208,10 +208,10 @@ class PluginManager:
     ) -> PluginInfo:
         message = f"uevavd plugin {name!r} (version {version}, from {source}) failed and was skipped: {error}"
         if strict or builtin:
-            hint = ""
-            if not builtin and source != "code":
-                hint = " (UEVAVD_STRICT_PLUGINS is set; unset it to skip broken plugins)"
-            raise PluginError(message.replace(" and was skipped", "") + hint)
+            if builtin:  # a broken built-in is a bug in uevavd: its traceback is wanted
+                raise PluginError(message.replace(" and was skipped", ""))
+            hint = " (UEVAVD_STRICT_PLUGINS is set; unset it to skip broken plugins)" if source != "code" else ""
+            raise StrictPluginError(message.replace(" and was skipped", "") + hint)
         warnings.warn(
             message + ". Block it with UEVAVD_DISABLED_PLUGINS or make this fatal with UEVAVD_STRICT_PLUGINS=1",
             PluginWarning,

@@ -30,6 +30,11 @@ class PluginError(RuntimeError):
     """A plugin could not be loaded, or registered something invalid."""
 
 
+class StrictPluginError(PluginError):
+    """A third-party plugin failed while ``UEVAVD_STRICT_PLUGINS=1`` makes that fatal: the
+    installation's state, not a bug of uevavd, so a command reports it in one line (exit 2)."""
+
+
 class DuplicateComponentError(PluginError):
     """Two providers registered the same (kind, name)."""
 
