@@ -146,6 +146,10 @@ def test_unknown_component_and_missing_file(base, tmp_path):
         load_method(tmp_path / "nope.toml")
     with pytest.raises(ConfigError, match="unknown method"):
         load_method("no_such_method")
+    # a missing _base_ names the file holding it (it named only the missing method)
+    write(tmp_path, "child", '_base_ = "missing.toml"\nname = "child"\n')
+    with pytest.raises(ConfigError, match=r"child.toml: _base_ = 'missing.toml': method file .*missing.toml does not"):
+        load_method(tmp_path / "child.toml")
 
 
 def test_inheritance_loop_and_bad_toml(tmp_path, components):

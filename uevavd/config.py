@@ -122,7 +122,11 @@ def _resolve_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
         return data
     if not isinstance(base_name, str):
         raise ConfigError(f"{path}: _base_ must be a method name or path, got {base_name!r}")
-    base = _resolve_file(_method_path(base_name, path.parent), (*seen, path))
+    try:
+        base_path = _method_path(base_name, path.parent)
+    except (ConfigError, FileNotFoundError) as exc:  # name the file that holds the _base_
+        raise ConfigError(f"{path}: _base_ = {base_name!r}: {exc}") from None
+    base = _resolve_file(base_path, (*seen, path))
     base.pop("description", None)
     return _merge(base, data)
 
