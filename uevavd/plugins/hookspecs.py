@@ -57,8 +57,16 @@ def register_classifiers(registry: KindRegistry) -> None:
 def register_state_estimators(registry: KindRegistry) -> None:
     """Register state estimators (kind ``"state"``).
 
-    A builder returns a ``torch.nn.Module`` mapping per-step inputs g_t (B, T, G) and a
-    validity mask (B, T) to states s_t (B, T, S), see :mod:`uevavd.state.base`. Example::
+    A builder is called with keyword ``feature_dim`` (D, the table's feature size: the
+    trainer passes it) beside the method file's keys (the presets set ``input_dim`` and
+    ``state_dim``: accept them, or refuse them by name), and returns a ``torch.nn.Module``
+    following :class:`uevavd.state.base.StateEstimator`: ``forward(features (B, T, D), boxes
+    (B, T, 4)) -> s_t (B, T, state_dim)``, causal (position t reads no later position);
+    ``initial_hidden(n)`` the (n, H) memory at an episode start and ``step(features (N, D),
+    boxes (N, 4), hidden (N, H)) -> (s_t, new hidden)``, with attributes ``feature_dim``,
+    ``state_dim`` and ``recurrent``. The memory is one 2-D tensor; training and evaluation
+    start each episode from ``initial_hidden``'s zeros (a memory whose start is learned is
+    not honoured). Example::
 
         registry.add("gru", "uevavd.state.gru:build_gru", summary="GRU over the episode")
     """
@@ -68,8 +76,9 @@ def register_state_estimators(registry: KindRegistry) -> None:
 def register_heads(registry: KindRegistry) -> None:
     """Register Q-value heads (kind ``"head"``).
 
-    A builder returns a ``torch.nn.Module`` mapping states (..., S) to Q-values over the
-    action space, see :mod:`uevavd.policy.heads`.
+    A builder is called with keywords ``state_dim``, ``n_types`` (7) and ``n_ranges`` (A)
+    beside the method file's keys, and returns a ``torch.nn.Module`` mapping states
+    (..., state_dim) to Q-values over the action space, see :mod:`uevavd.policy.heads`.
     """
 
 
@@ -90,8 +99,9 @@ def register_baselines(registry: KindRegistry) -> None:
     and ablation shows beside the learned methods, and which the report and the claims
     never count as learned.
 
-    A builder takes keyword arguments ``table`` (the ObservationTable), ``config`` (the
-    run's EnvConfig) and ``seed`` and returns a policy under the protocol of
+    A builder takes keyword arguments ``table`` (the ObservationTable: the recognizer's
+    probabilities per view are ``table.probs`` (S, 605, 5), the features ``table.features``),
+    ``config`` (the run's EnvConfig) and ``seed`` and returns a policy under the protocol of
     :mod:`uevavd.env.evaluate` (``reset(n)``, ``act(obs)``), or None where it does not
     apply (the visibility oracle on a table without visible fractions). Tag it
     ``"seeded"`` when it differs per seed: ablations then run it once per RL seed. Example::
