@@ -71,7 +71,6 @@ def train(method: Any, table: Any, *, out: str | os.PathLike[str], episodes: int
     resumes an unfinished run of the same settings. Returns the :class:`Run`."""
     from .config import as_method
     from .policy.trainer import train as _train
-
     from .table import ObservationTable
 
     spec = as_method(method, dict(overrides or {}) or None)

@@ -108,6 +108,12 @@ def read_classifier_file(path: str | os.PathLike[str]) -> tuple[dict[str, torch.
             f"{path}: no uevavd classifier metadata (arch, classes, mean, std) in its header; "
             "it was not written by `uevavd train-classifier`"
         )
+    # the weights against the hash written with them: a cached recognizer with one flipped
+    # exponent bit was reused (train accuracy 0.78 -> 0.92)
+    written = (meta.get("train") or {}).get("weights_hash") if isinstance(meta.get("train"), dict) else None
+    if written is not None and state_dict_hash(sd) != written:
+        raise WeightsError(f"{path}: damaged (its weights no longer match the weights_hash written with them); "
+                           "delete it: the pipeline trains it again (or `uevavd zoo check` restores the zoo's)")
     return sd, meta
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,15 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint there (train first with `uevavd train`)")
+    # torch.load ignores the zip records' CRCs: a flipped bit resumed to other weights
+    try:
+        with zipfile.ZipFile(path) as zf:
+            bad = zf.testzip()
+    except (zipfile.BadZipFile, OSError) as exc:
+        bad = f"({exc})"
+    if bad is not None:
+        raise CheckpointError(f"{path}: damaged checkpoint (record {bad} fails its CRC); delete it to start the run "
+                              "over, or restore it from a copy")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure means unreadable
@@ -90,9 +100,12 @@ def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Te
     :data:`POLICY_KEYS` in its header, written atomically."""
     from safetensors.torch import save_file
 
+    from ..perception.weights import state_dict_hash
+
     tensors = {k: v.detach().cpu().contiguous() for k, v in net_state.items()}
     meta = {"format": POLICY_FORMAT, "method_toml": method_toml,
-            "settings": json.dumps({k: settings.get(k) for k in POLICY_KEYS})}
+            "settings": json.dumps({k: settings.get(k) for k in POLICY_KEYS}),
+            "weights_hash": state_dict_hash(tensors)}  # checked on read: a flipped bit is refused
     return atomic_save(Path(path), lambda tmp: save_file(tensors, tmp, metadata=meta))
 
 
@@ -114,6 +127,11 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any],
     if meta.get("format") != POLICY_FORMAT:
         raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected "
                               f"{POLICY_FORMAT!r})")
+    from ..perception.weights import state_dict_hash
+
+    if "weights_hash" in meta and state_dict_hash(state) != meta["weights_hash"]:  # files before 2026-11-25 have none
+        raise CheckpointError(f"{path}: damaged (its weights no longer match the weights_hash written with them); "
+                              "copy it again, or evaluate the run's checkpoint")
     return meta["method_toml"], json.loads(meta["settings"]), state
 
 
