@@ -62,6 +62,22 @@ def test_an_altered_or_stale_zoo_is_refused_naming_the_file(tmp_path):
         evaluate_pretrained("ibe_map", "hard", zoo=stale, progress=False)
 
 
+def test_zoo_check_names_a_damaged_file(tmp_path, capsys):
+    """`uevavd zoo check` printed that the shipped models match while a zoo file failed its
+    sha256; it lists the file and exits 1 now."""
+    from uevavd.cli import main
+
+    root = tmp_path / "zoo"
+    shutil.copytree(Zoo.load("quick").root, root)
+    victim = root / "map.safetensors"
+    data = bytearray(victim.read_bytes())
+    data[-100] ^= 1
+    victim.write_bytes(bytes(data))
+    assert main(["zoo", "check", "--zoo", str(root)]) == 1
+    out = capsys.readouterr().out
+    assert "map.safetensors: sha256" in out and "does not match the manifest" in out and "match the world" not in out
+
+
 def test_zoo_check_render_compares_the_world_rendered_here_with_the_records(tmp_path, capsys, monkeypatch):
     """`uevavd zoo check --render` tells a user whether this machine renders the zoo's world
     byte for byte (the world's bytes are numpy's arithmetic, which a CPU can change)."""

@@ -152,6 +152,11 @@ class Zoo:
 
         preset = preset or load_preset(self.manifest["preset"])
         out = []
+        for name in self.manifest["files"]:  # a damaged file is a problem too (it printed "match")
+            try:
+                self.verified(name)
+            except ZooError as exc:
+                out.append(str(exc))
         want = world_identity(preset)
         if self.manifest["world"]["generator_version"] != want["generator_version"]:
             out.append(f"built for world generator version {self.manifest['world']['generator_version']}, "
