@@ -127,6 +127,35 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any, *, sort_keys: bool
     return atomic_write(path, json_text(obj, sort_keys=sort_keys), fsync=fsync)
 
 
+#: The key of a sealed JSON file's digest (:func:`write_sealed_json`).
+SEAL = "sha256"
+
+
+def write_sealed_json(path: str | os.PathLike[str], obj: dict[str, Any], *, fsync: bool = False) -> Path:
+    """:func:`atomic_write_json` of ``obj`` with the sha256 of its JSON under :data:`SEAL`:
+    a cache of numbers (a run's final evaluation, the baselines') that a later reader checks
+    with :func:`read_sealed_json`, so a hand-edited value never reaches a result."""
+    from .hashing import json_digest
+
+    plain = json.loads(json_text(obj))  # what a reader gets back
+    return atomic_write_json(path, {**plain, SEAL: json_digest(plain)}, fsync=fsync)
+
+
+def read_sealed_json(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """A :func:`write_sealed_json` file's object, or None where it is missing, unreadable,
+    unsealed or edited since it was written (a cache is then recomputed)."""
+    from .hashing import json_digest
+
+    try:
+        obj = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(obj, dict) or SEAL not in obj:
+        return None
+    seal = obj.pop(SEAL)
+    return obj if seal == json_digest(obj) else None
+
+
 def atomic_save(path: str | os.PathLike[str], save: Callable[[str], None]) -> Path:
     """For libraries that write by file name (safetensors' ``save_file``, matplotlib's
     ``savefig``): ``save(tmp_name)``, then the rename of :func:`atomic_write`."""

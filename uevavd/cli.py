@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "validate": ("uevavd.data.validate:add_validate", "check a dataset root: names, annotations, views, images; exit 1 on problems"),
     "train-classifier": ("uevavd.perception.cli:add_train_classifier", "train the recognizer (the paper's ResNet18, or a preset's recipe) on train_605"),
     "prepare": ("uevavd.perception.cli:add_prepare", "build the observation table of a dataset for a method"),
-    "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map) on an observation table"),
+    "train": ("uevavd.policy.cli:add_train", "train a method (map, memo_map, ibe_map or a plugin's) on an observation table"),
     "evaluate": ("uevavd.policy.cli:add_evaluate", "evaluate a run, or a model zoo policy (--pretrained), beside the baselines"),
     "train-sam-small": ("uevavd.perception.training.sam.cli:add_train_small", "train the small SAM from scratch on a world's ground truth"),
     "finetune-sam": ("uevavd.perception.training.sam.cli:add_finetune", "fine-tune a SAM checkpoint's mask decoder on ground-truth target masks"),

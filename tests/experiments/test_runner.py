@@ -490,7 +490,8 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
 
     @hookimpl
     def register_baselines(registry):
-        registry.add("first_range_up", f"{__name__}:build_first_range_up", summary="one move up, then stop")
+        registry.add("first_range_up", f"{__name__}:build_first_range_up", summary="one move up, then stop",
+                     label="One move up")
 
     manager.register_plugin(types.SimpleNamespace(register_baselines=register_baselines), name="baseline-test")
     try:
@@ -503,7 +504,7 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
         assert sorted(rows["split"]) == ["hard", "train"] and (rows["episodes"] == -1).all()
         assert (rows["steps"] == 2.0).all()  # it really flew once and stopped
         assert learned(df["method"].unique()) == ["map", "ibe_map"]
-        assert "first_range_up" in (out / "report" / "report.md").read_text()
+        assert "One move up" in (out / "report" / "report.md").read_text()  # its registered label
         from uevavd.api import load_run
 
         run = load_run(ablation["plan"].out / "runs" / "map" / "default" / "rec0" / "seed0")
@@ -518,12 +519,35 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
     # first_range_up still a reference and never a learned method whose claims are judged
     from uevavd.experiments.report import write_report
 
-    assert "first_range_up" in json.loads((out / "ablation.json").read_text())["roles"]["baselines"]
+    roles = json.loads((out / "ablation.json").read_text())["roles"]
+    assert "first_range_up" in roles["baselines"] and roles["labels"]["first_range_up"] == "One move up"
     again = write_report(out).read_text()
+    assert "One move up" in again  # the recorded label, the plugin gone
     # every section after Setup (whose stage timings now include the first report's) is the same
     assert again.split("\n## ")[2:] == report.split("\n## ")[2:]
     setup = again.split("\n## ")[1]
-    assert "references: " in setup and "first_range_up" in setup.split("references: ")[1].splitlines()[0]
+    assert "references: " in setup and "One move up" in setup.split("references: ")[1].splitlines()[0]
+
+
+def test_learned_methods_stay_together_in_the_report_order():
+    """A plugin's learned method was sorted after the oracles, and every plugin baseline was
+    drawn in the same dark gray; learned methods now come together, other baselines after
+    them, the oracles last, each baseline in its own colour."""
+    from uevavd.experiments.figures import baseline_colour
+    from uevavd.experiments.report_data import order_methods, recorded_roles
+
+    meta = {"roles": {"baselines": ["random", "passive", "visibility_oracle", "oracle", "my_ref", "a_ref"],
+                      "deterministic": ["passive"], "labels": {"my_lstm": "LSTM-MAP"}}}
+    with recorded_roles(meta):
+        got = order_methods(["oracle", "my_ref", "my_lstm", "ibe_map", "a_ref", "random", "map", "visibility_oracle",
+                             "passive"])
+        from uevavd.experiments.report_data import label
+
+        assert label("my_lstm") == "LSTM-MAP" and label("map") == "MAP" and label("a_ref") == "a_ref"
+    assert got == ["random", "passive", "map", "ibe_map", "my_lstm", "a_ref", "my_ref", "visibility_oracle", "oracle"]
+    others = ["a_ref", "my_ref"]
+    assert baseline_colour("a_ref", others) != baseline_colour("my_ref", others)
+    assert baseline_colour("passive", others) == "tab:brown"
 
 
 def test_the_training_bar_counts_episodes_from_the_runs_files(ablation, tmp_path):
@@ -651,3 +675,35 @@ def test_a_truncated_evals_jsonl_is_one_line_naming_it(ablation, tmp_path, capsy
     damaged = dataclasses.replace(job, out=str(copy))
     with pytest.raises(ValueError, match=r"evals.jsonl, line \d+: damaged .*remove the run's folder"):
         run_rows(damaged, {})
+
+
+def test_an_edited_final_eval_or_baselines_cache_is_not_used(ablation, tmp_path):
+    """Values edited in a run's final_eval.json or in baselines.json went straight into
+    results.csv; both are sealed with the sha256 of their JSON now, and an edited one is
+    evaluated again."""
+    import dataclasses
+    import shutil
+
+    from uevavd.atomic import read_sealed_json
+    from uevavd.experiments.results import final_eval
+
+    job = ablation["jobs"][0]
+    copy = tmp_path / "run"
+    shutil.copytree(job.out, copy)
+    moved = dataclasses.replace(job, out=str(copy))
+    true = final_eval(moved)["splits"]["hard"]["mean_return"]
+    path = RunDir(copy).final_eval
+    edited = json.loads(path.read_text())
+    edited["splits"]["hard"]["mean_return"] = 0.99
+    path.write_text(json.dumps(edited))
+    assert final_eval(moved)["splits"]["hard"]["mean_return"] == true  # evaluated again, not 0.99
+    assert read_sealed_json(path) is not None  # and sealed again
+    baselines = ablation["plan"].out / "baselines.json"
+    sealed = read_sealed_json(baselines)
+    assert sealed is not None and any("|passive|" in k for k in sealed)
+    data = json.loads(baselines.read_text())
+    key = next(k for k in data if "|passive|" in k)
+    data[key]["mean_return"] = 0.99
+    shutil.copy(baselines, tmp_path / "baselines.json")
+    (tmp_path / "baselines.json").write_text(json.dumps(data))
+    assert read_sealed_json(tmp_path / "baselines.json") is None  # the edit is seen

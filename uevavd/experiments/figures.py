@@ -33,6 +33,18 @@ CURVE_METRICS: tuple[tuple[str, str], ...] = (
 CURVE_SPLITS: tuple[tuple[str, str], ...] = (("train", "training contexts"), ("hard", "hard-test contexts"))
 _BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "visibility_oracle": "tab:purple",
                      "oracle": "black", "sb3_dqn": "tab:olive", "sb3_ppo": "tab:cyan"}
+#: Colours of other baselines (a plugin's), in order of their names: each its own.
+_MORE_COLOURS = ("tab:pink", "tab:gray", "darkgoldenrod", "teal", "indigo", "firebrick")
+
+
+def baseline_colour(method: str, others: list[str] | None = None) -> str:
+    """A baseline's line colour: uevavd's own, else one of :data:`_MORE_COLOURS` by its
+    place among ``others`` (the figure's other baselines, sorted), so no two share one."""
+    if method in _BASELINE_COLOURS:
+        return _BASELINE_COLOURS[method]
+    rest = sorted(m for m in (others or [method]) if m not in _BASELINE_COLOURS)
+    i = rest.index(method) if method in rest else 0
+    return _MORE_COLOURS[i % len(_MORE_COLOURS)]
 
 
 #: Resolution of the PNG copy of a figure (the PDF beside it is vector).
@@ -131,14 +143,14 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
             for m in reference_names():
                 vals = base.loc[base["method"] == m, col]
                 if len(vals):
-                    ax.axhline(float(vals.mean()), ls="--", lw=1.2, color=_BASELINE_COLOURS.get(m, "0.3"))
+                    ax.axhline(float(vals.mean()), ls="--", lw=1.2, color=baseline_colour(m, reference_names()))
             ax.set_xlabel("training episodes")
             ax.set_ylabel(ylabel)
             ax.set_title(f"({'abc'[i]}) {ylabel}, {title}", fontsize=10)
             ax.grid(alpha=0.3)
     handles = [plt.Line2D([], [], color=palette[h], lw=2, label=h) for h in hue_order]
     present = set(baselines["method"])
-    handles += [plt.Line2D([], [], color=_BASELINE_COLOURS.get(m, "0.3"), ls="--", label=label(m))
+    handles += [plt.Line2D([], [], color=baseline_colour(m, reference_names()), ls="--", label=label(m))
                 for m in reference_names() if m in present]
     fig.legend(handles=handles, loc="lower center", ncol=max(1, len(handles)), frameon=False,
                bbox_to_anchor=(0.5, -0.01))
@@ -185,7 +197,7 @@ def plot_context_axis(table: pd.DataFrame, path: Path) -> Path:
                 if ok.any():
                     ax.fill_between(x, lo, hi, where=ok, color=palette[m], alpha=0.2, linewidth=0)
             else:
-                ax.plot(x, y, "--", color=_BASELINE_COLOURS.get(m, "0.3"), lw=1.2, label=label(m))
+                ax.plot(x, y, "--", color=baseline_colour(m, sorted(refs)), lw=1.2, label=label(m))
         ax.set_xlabel("training contexts")
         ax.set_ylabel(ylabel)
         ax.set_xticks(sorted(table["contexts"].unique()))

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..atomic import atomic_write_json
+from ..atomic import read_sealed_json, write_sealed_json
 from ..config import load_method
 from ..env.aod_env import AODEnv
 from ..env.evaluate import evaluate_policy
@@ -46,14 +46,13 @@ def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], 
             for seed in plan.seeds:
                 out = plan.out / "runs" / agent / "default" / f"rec{r}" / f"seed{seed}"
                 cache = RunDir(out).final_eval
-                if cache.is_file():
-                    done = json.loads(cache.read_text(encoding="utf-8"))
-                else:
+                done = read_sealed_json(cache)  # None where missing, damaged or edited: trained again
+                if done is None:
                     job = runs[(r, seed)]
                     steps = int(json.loads(RunDir(job.out).done.read_text(encoding="utf-8"))["env_steps"])
                     log(f"  {agent} rec{r} seed{seed}: {steps:,} env steps on {first}'s table")
                     done = _train_and_evaluate(agent, job, tables[r], config, steps, seed, splits)
-                    atomic_write_json(cache, done)
+                    write_sealed_json(cache, done)
                 base = {"method": agent, "recognizer": r, "seed": seed, "setting": "default"}
                 for split, summary in done["splits"].items():
                     rows.append({**base, **DEFAULT_SETTING, "episodes": -1, "final": True, "split": split,

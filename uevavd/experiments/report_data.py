@@ -68,10 +68,12 @@ def deterministic() -> tuple[str, ...]:
     return tuple(e.name for e in manager.registry.in_order("baseline") if "seeded" not in e.tags)
 
 
-def roles_now() -> dict[str, list[str]]:
+def roles_now() -> dict[str, Any]:
     """What :func:`recorded_roles` reads back: the baselines and deterministic baselines of
-    the registry now (the runner records them in ``ablation.json``)."""
-    return {"baselines": list(baselines()), "deterministic": list(deterministic())}
+    the registry now, and the display label of every registered method and baseline (the
+    runner records them in ``ablation.json``)."""
+    labels = {e.name: e.label for kind in ("method", "baseline") for e in manager.registry.in_order(kind) if e.label}
+    return {"baselines": list(baselines()), "deterministic": list(deterministic()), "labels": {**labels, **LABELS}}
 
 
 #: Display order and names of the methods (unknown methods follow, by name).
@@ -115,15 +117,41 @@ def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
 
 
 def label(method: str) -> str:
-    """Display name of a method ("ibe_map" -> "IBE-MAP")."""
-    return LABELS.get(method, method)
+    """Display name of a method ("ibe_map" -> "IBE-MAP"): as the ablation recorded it, else
+    uevavd's own, else the one a plugin registered with it, else the name."""
+    recorded = _RECORDED.get()
+    if recorded is not None and isinstance(recorded.get("labels"), dict) and method in recorded["labels"]:
+        return str(recorded["labels"][method])
+    if method in LABELS:
+        return LABELS[method]
+    for kind in ("method", "baseline"):
+        entry = manager.registry.entries.get(kind, {}).get(method)
+        if entry is not None and entry.label:
+            return entry.label
+    return method
+
+
+#: Baselines drawn first (the floor) and last (the ceilings); other baselines sit between the
+#: learned methods and these.
+_FIRST, _LAST = ("random", "passive"), ("visibility_oracle", "oracle")
 
 
 def order_methods(methods) -> list[str]:
-    """Methods in report order: known ones as :data:`METHOD_ORDER`, then others sorted."""
+    """Methods in report order: random and passive, the learned methods (uevavd's in
+    :data:`METHOD_ORDER`, then others by name), the other baselines (SB3 references, a
+    plugin's), then the two oracles: learned methods stay together whatever is installed."""
     ms = list(dict.fromkeys(methods))
-    known = [m for m in METHOD_ORDER if m in ms]
-    return known + sorted(m for m in ms if m not in METHOD_ORDER)
+    refs = set(baselines())
+
+    def rank(m: str) -> tuple[int, int, str]:
+        known = METHOD_ORDER.index(m) if m in METHOD_ORDER else len(METHOD_ORDER)
+        if m in _FIRST:
+            return 0, _FIRST.index(m), m
+        if m in _LAST:
+            return 3, _LAST.index(m), m
+        return (2 if m in refs else 1), known, m
+
+    return sorted(ms, key=rank)
 
 
 def learned(methods) -> list[str]:

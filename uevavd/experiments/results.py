@@ -4,13 +4,14 @@ per-epoch rows, the registered baselines under every setting, and per-context ro
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..atomic import atomic_write_json
+from ..atomic import read_sealed_json, write_sealed_json
 from ..data.grid import N_VIEWS
 from ..env.baselines import baseline_entries
 from ..env.config import make_config
@@ -19,6 +20,8 @@ from ..policy.acting import load_policy
 from ..policy.rundir import RunDir, read_settings
 from ..table import ObservationTable
 from .plan import AblationError, Plan, env_config
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # pragma: no cover
     from .jobs import Job
@@ -69,10 +72,9 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
     key = json.loads(json.dumps(_final_eval_key(run)))  # as it reads back from JSON
     path = RunDir(run).final_eval
     if path.is_file():
-        try:
-            cached = json.loads(path.read_text(encoding="utf-8"))
-        except ValueError:
-            cached = None  # a damaged cache is recomputed
+        cached = read_sealed_json(path)  # None where damaged or edited: recomputed
+        if cached is None:
+            log.warning("%s is damaged or was edited since it was written: evaluating the run again", path)
         if isinstance(cached, dict) and cached.get("key") == key and all(
                 "per_context" in v for v in cached.get("splits", {}).values()):
             return cached
@@ -89,7 +91,7 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
         splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
                          "per_context": _per_context(res)}
     out = {"key": key, "splits": splits}
-    atomic_write_json(path, out, fsync=True)
+    write_sealed_json(path, out, fsync=True)
     return out
 
 def _per_context(res) -> list[dict[str, Any]]:
@@ -172,7 +174,10 @@ def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], lo
     recognizer's table. Returns (result rows, per-context rows)."""
 
     cache = plan.out / "baselines.json"
-    done = json.loads(cache.read_text()) if cache.is_file() else {}
+    done = read_sealed_json(cache) if cache.is_file() else {}
+    if done is None:  # damaged, or edited since written: its numbers are not used
+        log.warning("%s is damaged or was edited since it was written: evaluating the baselines again", cache)
+        done = {}
     entries = baseline_entries()
     rows, ctx_rows = [], []
     for r, table in tables.items():
@@ -195,5 +200,5 @@ def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], lo
                     rows.append({**base, **setting, "episodes": -1, "final": True, "split": split,
                                  "eval_contexts": _contexts(done[key]), **_metric_row(done[key]), "wall_s": 0.0})
                     ctx_rows += [{**base, "split": split, **c} for c in done[key]["per_context"]]
-    atomic_write_json(cache, done, fsync=True)
+    write_sealed_json(cache, done, fsync=True)
     return rows, ctx_rows

@@ -59,6 +59,8 @@ class Entry:
     #: traits the host reads without building the component, e.g. a baseline's "seeded"
     #: (it differs per seed, so ablations run it once per RL seed)
     tags: tuple[str, ...] = ()
+    #: display name in reports, tables and figures ("" : the name itself)
+    label: str = ""
 
     def load(self) -> Any:
         """Import and return the builder (or, for methods, the TOML path)."""
@@ -159,11 +161,12 @@ class KindRegistry:
         self._version = plugin_version
         self._staged = staged
 
-    def add(self, name: str, target: str, *, summary: str = "", tags: tuple[str, ...] = ()) -> None:
+    def add(self, name: str, target: str, *, summary: str = "", tags: tuple[str, ...] = (), label: str = "") -> None:
         """Register component ``name`` built by ``target`` ("module:attr"); ``tags``: traits
-        the host reads without building it (see the kind's hook)."""
+        the host reads without building it (see the kind's hook); ``label``: its display
+        name in reports (methods and baselines; an ablation records it when it runs)."""
         self._staged.append(
-            Entry(self.kind, name, target, summary, self._plugin, self._version, tuple(tags))
+            Entry(self.kind, name, target, summary, self._plugin, self._version, tuple(tags), str(label))
         )
 
     def __repr__(self) -> str:

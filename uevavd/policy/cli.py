@@ -70,7 +70,10 @@ def _with_preset_hint(args: argparse.Namespace, exc: BaseException) -> BaseExcep
 
 
 def add_train(p: argparse.ArgumentParser):
-    p.add_argument("--method", required=True, help="registered method (map, memo_map, ibe_map) or a TOML path")
+    from ..config import known_methods
+
+    p.add_argument("--method", required=True,
+                   help=f"a registered method (one of {known_methods()}: plugins' included) or a TOML path")
     p.add_argument("--preset", default=None, help=PRESET_HELP)
     p.add_argument("--table", required=True, type=Path, help="observation table folder (from `uevavd prepare`)")
     p.add_argument("--out", required=True, type=Path, help="run directory (resumed when it holds this run)")
