@@ -1,6 +1,6 @@
 """Stage times of a paper64 ablation, and what the paper preset (256 px) would take on this machine.
 
-    python benchmarks/paper_projection.py --ablation DIR [--threads 2]
+    python benchmarks/paper_projection.py --ablation DIR [--stage-from STAGE=DIR2 ...] [--threads 2]
 
 DIR is a finished ``uevavd ablate --preset paper64`` folder: its ``ablation.json`` holds the
 wall time of each stage (world, classifier, tables, training, evaluation, report). Each stage
@@ -15,10 +15,15 @@ unit of its work, both units timed here in the same run, one after the other:
 * classifier  one training step (batch 64, forward and backward) of a Lite0 at 64 px against
               a ResNet18 at 256 px, times the epochs (30 against paper64's);
 * training    one training episode in the learning phase, each preset's networks and update
-              schedule on a stand-in table of its feature size (1280-d, 2048-d): the
+              schedule on a stand-in table of its feature size (1280-d, 2048-d), on one
+              thread as each of an ablation's runs: the
               difference of two short runs (``--short`` and ``--long`` episodes) over the
               difference of their lengths, times the episodes (300,000 against paper64's);
 * evaluation, report: as measured (the same contexts and runs).
+
+``--stage-from world=DIR2`` takes a stage's measured time from another ablation's
+``ablation.json`` (an ablation that found the world or tables cached measured a few seconds
+for them: take those stages from one that built them, on the same world).
 
 Weights are random: speed does not depend on them. The projection assumes the paper preset
 runs as paper64 did (same workers, same number of runs); it is a projection, printed beside
@@ -56,7 +61,7 @@ def render_unit(size: int, views: int = 12) -> float:
     from uevavd.data.synthetic import build_context, render_view
     from uevavd.data.synthetic.render import _Prep
 
-    scene = build_context(0, seed=0)
+    scene = build_context(1, seed=0)  # a training context
     prep = _Prep(scene)
     picks = np.linspace(0, N_VIEWS - 1, views).astype(int)
     for v in picks:  # shadow tiles and caches built before timing
@@ -101,7 +106,7 @@ def episode_unit(preset: str, feature_dim: int, short: int, long: int) -> float:
     from uevavd.testing.policy import toy_table
 
     over = preset_overrides(load_preset(preset))
-    over.update({"train.eval_splits": ["train"], "train.eval_contexts": 4, "train.threads": torch.get_num_threads(),
+    over.update({"train.eval_splits": ["train"], "train.eval_contexts": 4, "train.threads": 1,  # as an ablation's runs
                  "train.learning_starts": 500, "train.eps_fraction": 0.05})
     with tempfile.TemporaryDirectory() as tmp:
         table = toy_table(n_train=20, n_hard=2, feature_dim=feature_dim)
@@ -117,6 +122,8 @@ def episode_unit(preset: str, feature_dim: int, short: int, long: int) -> float:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ablation", required=True, type=Path, help="a finished `uevavd ablate --preset paper64` folder")
+    ap.add_argument("--stage-from", action="append", default=[], metavar="STAGE=DIR",
+                    help="a stage's measured time from another ablation's ablation.json (repeatable)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads for the model units (default 2)")
     ap.add_argument("--short", type=int, default=1_000, help="episodes of the short training run")
     ap.add_argument("--long", type=int, default=2_500, help="episodes of the long training run")
@@ -129,6 +136,16 @@ def main() -> int:
         print(f"paper_projection: {meta_path}: expected a finished ablation's ablation.json ({e}); "
               "run `uevavd ablate --preset paper64 --out DIR` first", file=sys.stderr)
         return 2
+    source = {stage: "" for stage in stages}
+    for item in args.stage_from:
+        stage, _, other = item.partition("=")
+        try:
+            stages[stage] = json.loads((Path(other) / "ablation.json").read_text())["stages"][stage]
+        except (OSError, ValueError, KeyError) as e:
+            print(f"paper_projection: --stage-from {item}: expected STAGE=DIR of an ablation recording that stage "
+                  f"({e})", file=sys.stderr)
+            return 2
+        source[stage] = f" ({Path(other).name})"
     from uevavd.presets import load_preset
 
     p64, paper = load_preset(meta.get("preset", "paper64")), load_preset("paper")
@@ -160,7 +177,8 @@ def main() -> int:
         ratio = unit256 / unit64
         proj = secs * ratio * count
         total64, total256 = total64 + secs, total256 + proj
-        print(f"{stage:<12}{secs / 60:>17.1f} min{ratio:>12.1f}{count:>13.1f}{proj / 3600:>16.1f} h")
+        print(f"{stage:<12}{secs / 60:>17.1f} min{ratio:>12.1f}{count:>13.1f}{proj / 3600:>16.1f} h"
+              f"{source.get(stage, '')}")
     print(f"{'total':<12}{total64 / 60:>17.1f} min{'':>25}{total256 / 3600:>16.1f} h")
     return 0
 

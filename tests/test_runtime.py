@@ -264,7 +264,9 @@ from uevavd.runtime import WorkerPool
 
 def job(folder, i):
     try:
-        Path(folder, f"started-{i}").write_text(str(os.getpid()))
+        tmp = Path(folder, f".started-{i}")  # renamed whole: the test never reads a half-written pid
+        tmp.write_text(str(os.getpid()))
+        tmp.rename(Path(folder, f"started-{i}"))
         time.sleep(60)
     finally:
         Path(folder, f"cleaned-{i}").touch()

@@ -20,6 +20,8 @@ from glob import escape as glob_escape
 from pathlib import Path
 from typing import IO, Any
 
+from .hashing import json_digest
+
 
 def _umask() -> int:
     mask = os.umask(0o022)  # reading the umask means setting it; restored at once
@@ -135,8 +137,6 @@ def write_sealed_json(path: str | os.PathLike[str], obj: dict[str, Any], *, fsyn
     """:func:`atomic_write_json` of ``obj`` with the sha256 of its JSON under :data:`SEAL`:
     a cache of numbers (a run's final evaluation, the baselines') that a later reader checks
     with :func:`read_sealed_json`, so a hand-edited value never reaches a result."""
-    from .hashing import json_digest
-
     plain = json.loads(json_text(obj))  # what a reader gets back
     return atomic_write_json(path, {**plain, SEAL: json_digest(plain)}, fsync=fsync)
 
@@ -144,8 +144,6 @@ def write_sealed_json(path: str | os.PathLike[str], obj: dict[str, Any], *, fsyn
 def read_sealed_json(path: str | os.PathLike[str]) -> dict[str, Any] | None:
     """A :func:`write_sealed_json` file's object, or None where it is missing, unreadable,
     unsealed or edited since it was written (a cache is then recomputed)."""
-    from .hashing import json_digest
-
     try:
         obj = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError):

@@ -165,7 +165,11 @@ class WorkerPool:
                         os.kill(p.pid, signal.SIGINT)
                     except ProcessLookupError:  # it ended in the meantime (a broken pool ends them all)
                         pass
-            wait(self._futures, timeout=self.grace)
+            # in slices: a signal the kernel hands to another thread than this one does not
+            # wake a blocked wait, so a second Ctrl-C was seen only when the jobs ended
+            deadline = time.monotonic() + self.grace
+            while not all(f.done() for f in self._futures) and (left := deadline - time.monotonic()) > 0:
+                wait(self._futures, timeout=min(0.1, left))
         except KeyboardInterrupt:  # a second Ctrl-C: wait no longer
             pass
         finally:
@@ -226,6 +230,8 @@ def _worker_init(stop: Any, initializer: Callable[..., None] | None, initargs: t
     _stop_event = stop
     _die_with_parent()
     signal.signal(signal.SIGINT, _worker_interrupt)
+    # a forked worker inherits the parent's SIGTERM handler (the pool's own): terminate() must end it
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     if initializer is not None:
         initializer(*initargs)
 

@@ -84,14 +84,13 @@ def test_key_changes_with_every_input(built, tiny_world, tiny_classifier, tmp_pa
         m.setattr(GroundTruthSegmenter, "identity", lambda self: "segmenter:gt:v999")
         variants.append(key())
     other_clf = tmp_path / "other.safetensors"
-    from safetensors.torch import load_file, save_file
+    from uevavd.perception.classifier import read_classifier_file, write_classifier_file
+    from uevavd.perception.weights import state_dict_hash
 
-    sd = load_file(str(tiny_classifier))
-    sd["fc.bias"] = sd["fc.bias"] + 0.1
-    from safetensors import safe_open
-
-    with safe_open(str(tiny_classifier), "pt") as fh:
-        save_file(sd, str(other_clf), metadata=fh.metadata())
+    sd, meta = read_classifier_file(tiny_classifier)
+    sd["fc.bias"] = sd["fc.bias"] + 0.1  # other weights, written as a classifier file is (with their hash)
+    meta["train"]["weights_hash"] = state_dict_hash(sd)
+    write_classifier_file(other_clf, sd, meta)
     variants.append(prep.plan_table(tiny_world, method, classifier_path=other_clf).key)
     assert len({base, *variants}) == len(variants) + 1
     # the dataset: one image rewritten (same bytes, new mtime) changes the key

@@ -119,8 +119,8 @@ def test_train_with_a_preset_and_the_preset_a_table_fits(table, tmp_path, capsys
             "--device", "cpu", *_sets(), "--set", 'train.eval_splits=["train", "hard"]']
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     assert main([*argv, "--out", str(tmp_path / "plain")]) == 2
-    _one_line_error(capsys, "built for another perception config", "the preset 'quick' fits this table: "
-                    "pass --preset quick")
+    _one_line_error(capsys, "built for another perception config", "the presets 'paper64', 'quick' fit this table: "
+                    "pass --preset with one of them")
     assert not (tmp_path / "plain" / "done.json").exists()
     assert main([*argv, "--preset", "nosuch", "--out", str(tmp_path / "x")]) == 2
     _one_line_error(capsys, "unknown preset 'nosuch'")

@@ -29,8 +29,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..config_rules import check_count
+from ..policy.acting import load_policy
 from .aod_env import AODEnv, load_table
+from .baselines import PassivePolicy, RandomPolicy
 from .config import EnvConfig
+from .oracle import OraclePolicy
+from .visibility_oracle import VisibilityOraclePolicy
 
 BASELINES = ("oracle", "visibility_oracle", "passive", "random")
 
@@ -38,27 +43,17 @@ BASELINES = ("oracle", "visibility_oracle", "passive", "random")
 def make_policy(name_or_run: str, table: Any, config: EnvConfig, seed: int = 0) -> Any:
     """A baseline by name, or the greedy policy of a trained run's folder."""
     if name_or_run == "oracle":
-        from .oracle import OraclePolicy
-
         return OraclePolicy(table, config)
     if name_or_run == "visibility_oracle":
-        from .visibility_oracle import VisibilityOraclePolicy
-
         return VisibilityOraclePolicy(table, config)
     if name_or_run == "passive":
-        from .baselines import PassivePolicy
-
         return PassivePolicy()
     if name_or_run == "random":
-        from .baselines import RandomPolicy
-
         return RandomPolicy(seed)
     path = Path(name_or_run)
     if not (path / "settings.json").is_file():
         raise ValueError(f"--policy {name_or_run!r}: expected one of {list(BASELINES)} or a trained run's folder "
                          "(one holding settings.json)")
-    from ..policy.acting import load_policy
-
     return load_policy(path, device="cpu")
 
 
@@ -175,8 +170,6 @@ def add_export_minari(p: Any):
     p.add_argument("--out", default=None, help="datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
 
     def run(args) -> int:
-        from ..config_rules import check_count
-
         check_count("--episodes", args.episodes)
         check_count("--seed", args.seed, low=0)
         try:

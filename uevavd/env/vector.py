@@ -33,6 +33,7 @@ from ..data.grid import N_TYPES, STOP
 from .aod_env import AODEnv, integral_actions
 from .batched import BatchedAODEnv
 from .config import EnvConfig, make_config
+from .render import render_frame
 
 ACTION_FORMS = ("multi", "flat")
 #: The single env's per-step info keys the vector env reports at every step (``info[key]`` of
@@ -150,8 +151,6 @@ class AODVectorEnv(gym.vector.VectorEnv):
             return None
         if self._obs is None:
             raise RuntimeError("render() before reset()")
-        from .render import render_frame
-
         b = self._batched
         scenes = b.tensors.scenes[b._scene].tolist()
         views, ts = b._view.tolist(), b._t.tolist()

@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from ..atomic import atomic_save, atomic_write
+from ..perception.weights import state_dict_hash
 from .rundir import RunDir, with_legacy_settings
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
@@ -100,8 +101,6 @@ def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Te
     :data:`POLICY_KEYS` in its header, written atomically."""
     from safetensors.torch import save_file
 
-    from ..perception.weights import state_dict_hash
-
     tensors = {k: v.detach().cpu().contiguous() for k, v in net_state.items()}
     meta = {"format": POLICY_FORMAT, "method_toml": method_toml,
             "settings": json.dumps({k: settings.get(k) for k in POLICY_KEYS}),
@@ -127,8 +126,6 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any],
     if meta.get("format") != POLICY_FORMAT:
         raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected "
                               f"{POLICY_FORMAT!r})")
-    from ..perception.weights import state_dict_hash
-
     if "weights_hash" in meta and state_dict_hash(state) != meta["weights_hash"]:  # files before 2026-11-25 have none
         raise CheckpointError(f"{path}: damaged (its weights no longer match the weights_hash written with them); "
                               "copy it again, or evaluate the run's checkpoint")

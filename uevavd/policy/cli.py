@@ -66,7 +66,14 @@ def _with_preset_hint(args: argparse.Namespace, exc: BaseException) -> BaseExcep
             fits.append(name)
     except (OSError, ValueError):
         return exc
-    return PerceptionMismatch(f"{exc}; the preset {fits[0]!r} fits this table: pass --preset {fits[0]}") if fits else exc
+    if not fits:
+        return exc
+    if len(fits) == 1:
+        return PerceptionMismatch(f"{exc}; the preset {fits[0]!r} fits this table: pass --preset {fits[0]}")
+    # several share the perception (quick and paper64): name them all, so the user picks the
+    # one whose training settings they meant
+    names = ", ".join(repr(f) for f in fits)
+    return PerceptionMismatch(f"{exc}; the presets {names} fit this table: pass --preset with one of them")
 
 
 def add_train(p: argparse.ArgumentParser):
