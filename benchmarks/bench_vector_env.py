@@ -4,7 +4,7 @@ against another checkout's in the same process.
     python benchmarks/bench_vector_env.py --against /tmp/old [--envs 1024] [--steps 200] [--repeat 5]
 
 ``--against DIR`` loads the ``uevavd`` package under DIR (e.g. ``mkdir /tmp/old && git archive
-6fd496c^ uevavd | tar -x -C /tmp/old``) beside this checkout's, and the two step the same
+60955f2^ uevavd | tar -x -C /tmp/old``) beside this checkout's, and the two step the same
 stand-in table (25 contexts, 544-d float features) with the same random actions, taking turns
 round by round, so the machine's load hits both alike. Prints env-steps/s of each (best of
 ``--repeat`` rounds of ``--steps`` steps) and the ratio. Without ``--against``, this checkout only.
