@@ -58,3 +58,48 @@ def test_export_minari_refuses_an_unknown_policy_in_one_line(table, tmp_path, mo
                  "--out", str(tmp_path / "ds")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--policy 'orcale': expected one of" in err, err
+
+
+def test_a_trained_run_exports_like_a_baseline(table, tmp_path, monkeypatch):
+    """`--policy RUN_FOLDER`: a trained run's greedy policy, recorded step by step."""
+    from uevavd.config import load_method
+    from uevavd.env.minari_export import export_minari
+    from uevavd.policy.trainer import train
+
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    from uevavd.paths import tables_dir
+
+    folder = table.save(tables_dir() / table.key)
+    spec = load_method("map", overrides={"train.episodes": 120, "train.learning_starts": 40, "train.n_envs": 16,
+                                         "train.batch_size": 16, "train.epoch_episodes": 120,
+                                         "train.eval_contexts": 1, "state.input_dim": 64, "state.state_dim": 32,
+                                         "head.hidden": 32})
+    run = tmp_path / "run"
+    train(spec, table, out=run, device="cpu", progress=False)
+    trained = export_minari(folder, "train", str(run), "uevavd/trained-v0", episodes=8, progress=False)
+    assert trained.total_episodes == 8 and "trained run" in trained.storage.metadata["algorithm_name"]
+
+
+def test_minari_data_collector_records_infos_with_a_portable_spec(table, tmp_path, monkeypatch):
+    """`minari.DataCollector(env, record_infos=True)` failed (the info keys changed from step to
+    step); it records now, and with the table named by key the dataset's spec holds no path."""
+    pytest.importorskip("jax", reason="minari's DataCollector needs minari[create] (jax)")
+    import gymnasium as gym
+
+    import uevavd.env  # noqa: F401 - registers the env id
+
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    from uevavd.paths import tables_dir
+
+    table.save(tables_dir() / table.key)
+    env = minari.DataCollector(gym.make("uevavd/AOD-v0", table=table.key, split="train"), record_infos=True)
+    env.reset(seed=0)
+    for _ in range(40):
+        _, _, term, trunc, _ = env.step(env.action_space.sample())
+        if term or trunc:
+            env.reset()
+    ds = env.create_dataset("uevavd/collected-v0", algorithm_name="random")
+    assert ds.total_steps >= 40 and "return" in next(ds.iterate_episodes()).infos
+    assert ds.spec.env_spec.kwargs["table"] == table.key

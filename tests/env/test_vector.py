@@ -263,3 +263,27 @@ def test_torchrl_and_gymnasiums_vector_wrappers_take_the_vector_env(table):
     assert tuple(env.batch_size) == (4,)
     check_env_specs(env)
     assert env.rollout(12)["next", "done"].any()
+
+
+def _torchrl_env(path):
+    from torchrl.envs import GymEnv
+
+    return GymEnv(ENV_ID, table=path, split="train")
+
+
+def test_torchrl_parallel_env_runs_the_env_in_worker_processes(table, tmp_path):
+    """TorchRL's ParallelEnv over GymEnv("uevavd/AOD-v0", table=FOLDER): each worker process
+    loads the table from its folder; the spec check passes and episodes end."""
+    pytest.importorskip("torchrl")
+    import functools
+
+    from torchrl.envs import ParallelEnv
+    from torchrl.envs.utils import check_env_specs
+
+    path = table.save(tmp_path / "table")
+    env = ParallelEnv(2, functools.partial(_torchrl_env, str(path)), mp_start_method="spawn")
+    try:
+        check_env_specs(env)
+        assert env.rollout(12)["next", "done"].any()
+    finally:
+        env.close()
