@@ -67,3 +67,32 @@ def test_json_files_have_one_layout_and_the_shipped_records_are_in_it(tmp_path):
     assert json_text(json.loads(draws.read_text())) == draws.read_text()
     manifest = Zoo.load("quick").root / "manifest.json"
     assert json_text(json.loads(manifest.read_text()), sort_keys=True) == manifest.read_text()
+
+
+def test_a_short_write_on_a_full_disk_is_enospc_naming_the_folder(tmp_path, monkeypatch):
+    """numpy reports a full disk as a short write without an errno ("N requested and M
+    written"), a traceback from `prepare`; with the disk (nearly) full it is ENOSPC now, which
+    every command reports in one line. (No test machine can fill its disk: the free space is
+    what the check reads, so it is what the test sets.)"""
+    import errno
+    import shutil
+    from collections import namedtuple
+
+    import pytest
+
+    from uevavd.atomic import atomic_write
+
+    def short(fh):
+        fh.write(b"partial")
+        raise OSError("1048576 requested and 4096 written")
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 4096, 4096))
+    with pytest.raises(OSError) as err:
+        atomic_write(tmp_path / "a.npy", short)
+    assert err.value.errno == errno.ENOSPC and str(tmp_path) in str(err.value)
+    assert list(tmp_path.iterdir()) == []  # no temporary left
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**12, 0, 10**12))
+    with pytest.raises(OSError) as err:  # plenty of space: not taken for a full disk
+        atomic_write(tmp_path / "a.npy", short)
+    assert err.value.errno is None

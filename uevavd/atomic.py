@@ -10,6 +10,7 @@ cache, or a Ray worker running as another user, can read what uevavd wrote.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -54,10 +55,35 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
                 fh.flush()
                 os.fsync(fh.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        full = _short_write_on_full_disk(exc, path.parent)
+        Path(tmp).unlink(missing_ok=True)
+        if full is not None:
+            raise full from None
+        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+#: Free bytes under which an errno-less write failure is taken for a full disk.
+FULL_DISK_BYTES = 16 << 20
+
+
+def _short_write_on_full_disk(exc: OSError, folder: Path) -> OSError | None:
+    """numpy's writers report a full disk as a short write without an errno ("N requested and
+    M written"), which read as a traceback; with the folder's disk (nearly) full, the fault
+    it is: ``ENOSPC`` naming the folder, which every command reports in one line."""
+    if exc.errno is not None:
+        return None
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return None
+    if free >= FULL_DISK_BYTES:
+        return None
+    return OSError(errno.ENOSPC, f"{folder}: the write stopped short ({exc}): no space left on the device")
 
 
 def remove_temporaries(folder: str | os.PathLike[str], name: str | None = None) -> list[Path]:

@@ -625,3 +625,19 @@ def test_a_killed_policy_save_leaves_no_temporary_after_the_resume(tmp_path):
         (run / name).write_bytes(b"x")
     remove_temporaries(run)
     assert sorted(p.name for p in run.iterdir()) == ["checkpoint.pt"]
+
+
+def test_a_read_only_cache_serves_a_table_it_holds(built, tiny_world, tiny_classifier, monkeypatch):
+    """A read-only UEVAVD_CACHE that already held the table failed on the lock file; a built
+    table is served without the lock now. (The tests run as root, whom permissions do not stop:
+    the lock file's creation fails as it does on a read-only file system.)"""
+    method, path = built
+
+    class ReadOnlyLock:
+        def __init__(self, *a, **k):
+            raise OSError(30, "Read-only file system", str(path.parent / ".lock"))
+
+    monkeypatch.setattr(prep, "FileLock", ReadOnlyLock)
+    monkeypatch.setattr(prep, "_compute_scene", lambda *a, **k: pytest.fail("recomputed a finished table"))
+    assert prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=path.parent,
+                              progress=False) == path

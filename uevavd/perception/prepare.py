@@ -332,6 +332,14 @@ def prepare_table(
     # One build per key at a time: a second prepare of the same table (another ablation on the
     # same UEVAVD_CACHE) waits here, then finds the table built. Ray shards share the partial
     # folder on purpose and take no lock.
+    final = out_dir / key
+    if only_scenes is None and assemble and final.is_dir():  # built already: served without the lock,
+        try:                                                # so a read-only cache serves its tables
+            ObservationTable.load(final, expect_key=key)
+            log.info("prepare: table %s already built", final)
+            return final
+        except TableError:
+            pass  # rebuilt below, under the lock
     lock = FileLock(str(out_dir / f".{key}.lock")) if only_scenes is None and assemble else nullcontext()
     with lock:
         final = out_dir / key
