@@ -248,8 +248,12 @@ def test_worker_pool_takes_a_repeated_interrupt_as_one(tmp_path, repeat_s, clean
     script.write_text(TWICE_SCRIPT)
     marks = tmp_path / "marks"
     marks.mkdir()
-    out = subprocess.run([sys.executable, str(script), str(marks), str(repeat_s), str(cleanup_s)], capture_output=True,
-                         text=True, timeout=120, start_new_session=True)
+    try:  # generous: beside other work the two spawned workers start slowly (it timed out at 120 s once)
+        out = subprocess.run([sys.executable, str(script), str(marks), str(repeat_s), str(cleanup_s)],
+                             capture_output=True, text=True, timeout=600, start_new_session=True)
+    except subprocess.TimeoutExpired as exc:  # say how far it got
+        raise AssertionError(f"no end after 600 s; markers: {sorted(p.name for p in marks.iterdir())}; "
+                             f"stderr: {exc.stderr!r}") from None
     assert out.stdout.strip() == "interrupted", out.stderr
     started = _markers(marks, "started")
     assert len(started) == 2

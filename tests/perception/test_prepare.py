@@ -633,11 +633,12 @@ def test_a_read_only_cache_serves_a_table_it_holds(built, tiny_world, tiny_class
     the lock file's creation fails as it does on a read-only file system.)"""
     method, path = built
 
-    class ReadOnlyLock:
-        def __init__(self, *a, **k):
-            raise OSError(30, "Read-only file system", str(path.parent / ".lock"))
+    import filelock
 
-    monkeypatch.setattr(prep, "FileLock", ReadOnlyLock)
+    def read_only(self, *a, **k):
+        raise OSError(30, "Read-only file system", self.lock_file)
+
+    monkeypatch.setattr(filelock.FileLock, "acquire", read_only)
     monkeypatch.setattr(prep, "_compute_scene", lambda *a, **k: pytest.fail("recomputed a finished table"))
     assert prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=path.parent,
                               progress=False) == path

@@ -26,9 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from filelock import FileLock
 
-from ..atomic import remove_temporaries
 from ..config import Component, MethodSpec, PerceptionSection, as_method
 from ..data.grid import N_VIEWS
 from ..data.reader import read_dataset
@@ -47,6 +45,7 @@ from .shards import (
     _read_shard,
     _save_array,
     _write_shard,
+    build_lock,
 )
 
 log = logging.getLogger(__name__)
@@ -329,29 +328,20 @@ def prepare_table(
     parts, key = p.parts, p.key
     out_dir = Path(out_dir).expanduser() if out_dir is not None else tables_dir()
     out_dir.mkdir(parents=True, exist_ok=True)
-    # One build per key at a time: a second prepare of the same table (another ablation on the
-    # same UEVAVD_CACHE) waits here, then finds the table built. Ray shards share the partial
-    # folder on purpose and take no lock.
-    final = out_dir / key
-    if only_scenes is None and assemble and final.is_dir():  # built already: served without the lock,
-        try:                                                # so a read-only cache serves its tables
-            ObservationTable.load(final, expect_key=key)
-            log.info("prepare: table %s already built", final)
-            return final
-        except TableError:
-            pass  # rebuilt below, under the lock
-    lock = FileLock(str(out_dir / f".{key}.lock")) if only_scenes is None and assemble else nullcontext()
-    with lock:
+    def usable(folder: Path) -> bool:
+        try:
+            ObservationTable.load(folder, expect_key=key)
+            return True
+        except (TableError, OSError):
+            return False
+
+    # One build per key at a time; Ray shards share the partial folder on purpose and take no lock.
+    with build_lock(out_dir, key, usable) if only_scenes is None and assemble else nullcontext():
         final = out_dir / key
-        if only_scenes is None and assemble:  # the lock's holder: what a killed build left is stale
-            for stale in remove_temporaries(out_dir, key):
-                log.info("prepare: removed %s, left by a killed build", stale)
         if final.is_dir():
             try:
                 ObservationTable.load(final, expect_key=key)
                 log.info("prepare: table %s already built", final)
-                if only_scenes is None and assemble and (out_dir / f"{key}.partial").is_dir():
-                    shutil.rmtree(out_dir / f"{key}.partial", ignore_errors=True)  # a build killed after the save
                 return final
             except TableError as exc:
                 log.warning("prepare: existing table %s is unusable (%s); rebuilding", final, exc)
