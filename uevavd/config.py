@@ -82,9 +82,14 @@ def _method_path(name_or_path: str | os.PathLike[str], relative_to: Path | None 
     from .plugins.registry import UnknownComponentError
 
     try:
-        return manager.registry.get("method", s).load()
+        entry = manager.registry.get("method", s)
     except UnknownComponentError as exc:
         raise ConfigError(str(exc)) from None
+    path = entry.load()
+    if not path.is_file():  # a file left out of the plugin's wheel (package-data)
+        raise ConfigError(f"method {s!r} of plugin {entry.plugin!r} names {entry.target}, which is not installed "
+                          f"({path} does not exist): list the file in the plugin's package data and reinstall it")
+    return path
 
 
 def _read_toml(path: Path) -> dict[str, Any]:

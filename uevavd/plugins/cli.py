@@ -11,6 +11,10 @@ from typing import Any
 def add_plugins(parser: argparse.ArgumentParser):
     parser.add_argument("--all", action="store_true", help="also list blocked and failed plugins, with errors")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.add_argument("--check", metavar="MODULE",
+                        help="check the plugin whose hooks MODULE holds (its import name, e.g. my_plugin): every "
+                             "component built and run through its kind's rules, every method trained a few hundred "
+                             "toy episodes and evaluated (uevavd.testing.check_plugin); exit 1 listing what is wrong")
     return run_plugins
 
 
@@ -38,6 +42,9 @@ def plugin_rows(include_all: bool) -> list[dict[str, Any]]:
 def run_plugins(args: argparse.Namespace) -> int:
     import warnings
 
+    if args.check:
+        return _check(args.check)
+
     from .manager import PluginWarning
 
     with warnings.catch_warnings(record=True) as caught:
@@ -56,4 +63,34 @@ def run_plugins(args: argparse.Namespace) -> int:
             print(f"    {kind}: {', '.join(names)}")
     if failed and not args.all:
         print(f"\n{len(failed)} plugin(s) failed to load; `uevavd plugins --all` shows why", file=sys.stderr)
+    return 0
+
+
+def _check(module: str) -> int:
+    import importlib
+    import importlib.util
+
+    from .manager import manager
+
+    # an installed plugin's name (`uevavd plugins` lists it) stands for the module its entry point names
+    source = next((p.source for p in manager.plugins if p.name == module and not p.builtin), module)
+    try:
+        found = importlib.util.find_spec(source.partition(":")[0]) is not None
+    except ImportError:
+        found = False
+    if not found:
+        print(f"uevavd plugins --check: no module named {module!r} is importable and no installed plugin has that "
+              "name: give the import name of the module that holds the plugin's hooks (the value of its uevavd "
+              "entry point)", file=sys.stderr)
+        return 2
+    from ..plugins.registry import import_target
+    from ..testing.plugins import check_plugin
+
+    target = import_target(source) if ":" in source else importlib.import_module(source)
+    try:
+        report = check_plugin(target)
+    except AssertionError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    print(report)
     return 0

@@ -89,6 +89,13 @@ class PluginManager:
             self._extra.append((pname, plugin))
             return info
 
+    def name_of(self, plugin: ModuleType | object) -> str | None:
+        """The name ``plugin`` is registered under (an entry point's name, or the one given
+        to :meth:`register_plugin`), or None when it is not registered."""
+        self.ensure_loaded()
+        assert self._pm is not None
+        return self._pm.get_name(plugin) if self._pm.is_registered(plugin) else None
+
     def unregister_plugin(self, name: str) -> None:
         """Remove a plugin and everything it registered."""
         with self._lock:

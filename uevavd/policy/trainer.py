@@ -40,8 +40,8 @@ from .checkpoint import (
     save_policy_file,
 )
 from .config import TrainConfig
+from .contract import build_checked_network
 from .learner import FeatureLookup, Learner
-from .network import build_network
 from .replay import EpisodeReplay
 from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_lock, run_spec
 
@@ -181,7 +181,9 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     if dev.type == "cuda":
         with torch.cuda.device(dev):
             torch.cuda.manual_seed(cfg.seed)
-    net = build_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
+    # each component checked against its kind's rules (one line naming the broken one) before
+    # anything of the run is written
+    net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=cfg.seed + 1, sampling=cfg.replay_sampling, device=dev)

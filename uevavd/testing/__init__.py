@@ -1,7 +1,8 @@
 """Contract checks that plugin authors run in their own CI, like gymnasium's ``check_env``.
 
-    from uevavd.testing import check_encoder
+    from uevavd.testing import check_encoder, check_plugin
     check_encoder(my_pkg.build_vit(weights="random"))
+    check_plugin(my_pkg)   # every component and method of a plugin package, trained on a toy table
 
 Each check raises ``AssertionError`` with a message saying what is wrong.
 """
@@ -13,6 +14,8 @@ from typing import Any
 _CHECKS = {
     "check_registry_entry": "uevavd.testing.plugins",
     "check_plugin_module": "uevavd.testing.plugins",
+    "check_plugin": "uevavd.testing.plugins",
+    "check_baseline": "uevavd.testing.plugins",
     "check_segmenter": "uevavd.testing.perception",
     "check_encoder": "uevavd.testing.perception",
     "check_classifier": "uevavd.testing.perception",

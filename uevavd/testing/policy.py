@@ -10,65 +10,30 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..data.grid import N_VIEWS, view_coords
+from ..policy.contract import ComponentError, check_estimator_rules, check_head_rules
 from ..table import ObservationTable
 
 
 def check_state_estimator(est: Any, *, batch: int = 3, steps: int = 4) -> None:
-    """Shapes, causality (s_t never reads o_{>t}), and step() agreeing with forward()."""
-    for attr in ("feature_dim", "state_dim", "recurrent"):
-        assert hasattr(est, attr), f"state estimator {type(est).__name__} has no attribute {attr!r}"
-    assert isinstance(est, torch.nn.Module), f"state estimator {type(est).__name__} is not an nn.Module"
-    g = torch.Generator().manual_seed(0)
-    d = int(est.feature_dim)
-    f = torch.randn(batch, steps, d, generator=g)
-    b = torch.rand(batch, steps, 4, generator=g)
-    est.eval()
-    with torch.no_grad():
-        s = est(f, b)
-        assert tuple(s.shape) == (batch, steps, est.state_dim), (
-            f"forward returned {tuple(s.shape)}; expected (B, T, state_dim) = {(batch, steps, est.state_dim)}")
-        assert s.dtype == torch.float32, f"states are {s.dtype}; expected float32"
-        f2, b2 = f.clone(), b.clone()
-        f2[:, -1] += 5.0
-        b2[:, -1] = 1.0 - b2[:, -1]
-        s2 = est(f2, b2)
-        assert torch.allclose(s[:, :-1], s2[:, :-1], atol=1e-5), "s_t changed when a later observation changed"
-        h = est.initial_hidden(batch)
-        assert h.shape[0] == batch, f"initial_hidden({batch}) has shape {tuple(h.shape)}"
-        for t in range(steps):
-            st, h = est.step(f[:, t], b[:, t], h)
-            assert torch.allclose(st, s[:, t], atol=1e-4), f"step() at t={t} disagrees with forward()"
-        if est.recurrent:
-            f3 = f.clone()
-            f3[:, 0] += 5.0
-            assert not torch.allclose(est(f3, b)[:, -1], s[:, -1]), "a recurrent estimator ignores o_0"
-    est.train()
+    """Shapes, causality (s_t never reads o_{>t}), the memory at an episode start (zeros),
+    and step() agreeing with forward(): the rules `uevavd train` checks before a run
+    (:func:`uevavd.policy.contract.check_estimator_rules`), as an ``AssertionError``."""
+    try:
+        check_estimator_rules(est, batch=batch, steps=steps, what=f"state estimator {type(est).__name__}")
+    except ComponentError as exc:
+        raise AssertionError(str(exc)) from None
 
 
 def check_head(head: Any, *, state_dim: int | None = None, n_types: int = 7, n_ranges: int = 4) -> None:
-    """forward/greedy/taken/bootstrap/weights shapes, masks respected, gradients flow."""
-    state_dim = state_dim or int(head.state_dim)
-    k = int(head.n_branches)
-    g = torch.Generator().manual_seed(0)
-    s = torch.randn(5, 3, state_dim, generator=g, requires_grad=True)
-    q = head(s)
-    assert isinstance(q, tuple) and len(q) == k, f"head returned {type(q).__name__}; expected a {k}-tuple"
-    mask = torch.rand(5, 3, n_types, n_ranges, generator=g) > 0.5
-    mask[..., n_types - 1, :] = True
-    a_type, a_range = head.greedy(q, mask)
-    assert a_type.shape == a_range.shape == (5, 3), f"greedy returned shapes {a_type.shape}, {a_range.shape}"
-    assert bool(mask[..., :, :].reshape(-1, n_types, n_ranges)[
-        torch.arange(15), a_type.reshape(-1), a_range.reshape(-1)].all()), "greedy chose a masked action"
-    taken = head.taken(q, a_type, a_range)
-    assert taken.shape == (5, 3, k), f"taken has shape {tuple(taken.shape)}; expected (5, 3, {k})"
-    boot = head.bootstrap(tuple(x.detach() for x in q), tuple(x.detach() for x in q), mask)
-    assert boot.shape == (5, 3, k), f"bootstrap has shape {tuple(boot.shape)}; expected (5, 3, {k})"
-    assert head.weights(a_type).shape == (5, 3, k), "weights must be (..., K)"
-    taken.sum().backward()
-    assert s.grad is not None and torch.isfinite(s.grad).all(), "no finite gradient reaches the state"
+    """forward/greedy/taken/bootstrap/weights shapes, masks respected, gradients flow: the
+    rules `uevavd train` checks (:func:`uevavd.policy.contract.check_head_rules`)."""
+    try:
+        check_head_rules(head, state_dim=int(state_dim or head.state_dim), n_types=n_types, n_ranges=n_ranges,
+                         what=f"head {type(head).__name__}")
+    except ComponentError as exc:
+        raise AssertionError(str(exc)) from None
 
 
 def toy_table(n_train: int = 6, n_hard: int = 3, feature_dim: int = 16, *, seed: int = 0, n_simple: int = 0) -> Any:
