@@ -31,7 +31,7 @@ def installed(tmp_path_factory):
            "--no-index", "--target", str(target), str(source)]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
-    assert list(target.glob("uevavd_example_plugin-0.2.0.dist-info"))
+    assert list(target.glob("uevavd_example_plugin-0.3.0.dist-info"))
     assert _tree(EXAMPLE) == before, "installing the example wrote into examples/"
     return target
 
@@ -48,9 +48,10 @@ def example_loaded(installed, monkeypatch):
 def test_example_plugin_appears_through_its_entry_point(example_loaded):
     reg = example_loaded.registry
     assert reg.get("encoder", "color_hist").plugin == "example"
-    assert reg.get("encoder", "color_hist").plugin_version == "0.2.0"
+    assert reg.get("encoder", "color_hist").plugin_version == "0.3.0"
     assert "box" in reg.names("segmenter")
-    assert "memo_map_hist" in reg.names("method")
+    assert {"memo_map_hist", "memo_map_lstm"} <= set(reg.names("method"))
+    assert "lstm" in reg.names("state") and "confident_stop" in reg.names("baseline")
     info = next(p for p in example_loaded.plugins if p.name == "example")
     assert info.status == "loaded" and not info.builtin
 
@@ -61,7 +62,8 @@ def test_example_components_work_and_pass_the_contract(example_loaded):
     from uevavd.testing import check_plugin_module
 
     entries = check_plugin_module(uevavd_example_plugin, name="example-under-test")
-    assert {e.name for e in entries} == {"color_hist", "box", "memo_map_hist"}
+    assert {e.name for e in entries} == {"color_hist", "box", "lstm", "confident_stop", "memo_map_hist",
+                                         "memo_map_lstm"}
     enc = example_loaded.registry.build("encoder", "color_hist", bins=4)
     images = np.random.default_rng(0).integers(0, 256, (3, 16, 16, 3), dtype=np.uint8)
     feats = enc.encode(images)
@@ -81,3 +83,46 @@ def test_plugins_disabled_by_name(installed, monkeypatch):
         assert "color_hist" not in manager.registry.names("encoder")
     finally:
         manager.reset()
+
+
+def test_the_example_passes_check_plugin(example_loaded):
+    """Every component built and run through its kind's rules, both methods trained on a toy
+    table and evaluated beside the baselines (the plugin's own among them)."""
+    import uevavd_example_plugin
+
+    from uevavd.testing import check_plugin
+
+    report = check_plugin(uevavd_example_plugin)
+    assert report.plugin == "example"  # found under its entry point's name, not registered twice
+    checked = "\n".join(report.checked)
+    for needle in ("state lstm with preset paper64's ['input_dim', 'state_dim']", "baseline confident_stop",
+                   "method memo_map_lstm: trained 300 toy episodes", "method memo_map_hist loads with preset quick"):
+        assert needle in checked, (needle, checked)
+    assert "example" in {p.name for p in example_loaded.plugins}
+
+
+def test_a_tiny_ablation_with_the_example_from_the_command_line(installed, tmp_path):
+    """As a user who pip-installed the plugin runs it: its method trains beside MAP, its
+    baseline joins every evaluation, both under their registered labels."""
+    import json
+    import os
+
+    import pandas as pd
+
+    from uevavd.testing.worlds import tiny_preset, write_tiny_world
+
+    preset = tmp_path / "tiny.toml"
+    preset.write_text(tiny_preset(ablation='methods = ["map", "memo_map_lstm"]\nseeds = 1\nrecognizers = 1\n'))
+    world = write_tiny_world(tmp_path / "world", contexts=(1, 26, 31, 56), train605=True)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(installed), os.environ.get("PYTHONPATH", "")]),
+           "UEVAVD_DISABLE_PLUGIN_AUTOLOAD": "0", "UEVAVD_CACHE": str(tmp_path / "cache")}
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "uevavd.cli", "ablate", "--preset", str(preset), "--data", str(world),
+                           "--out", str(out), "--workers", "1"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    df = pd.read_csv(out / "results.csv")
+    assert {"map", "memo_map_lstm", "confident_stop"} <= set(df["method"])
+    roles = json.loads((out / "ablation.json").read_text())["roles"]
+    assert "confident_stop" in roles["baselines"] and "memo_map_lstm" not in roles["baselines"]
+    report = (out / "report" / "report.md").read_text()
+    assert "Memo-MAP (LSTM)" in report and "Confident stop" in report
