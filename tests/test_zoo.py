@@ -9,7 +9,8 @@ import shutil
 import pytest
 
 from uevavd.presets import load_preset, world_contexts
-from uevavd.zoo import MANIFEST, PUBLISHED, Zoo, ZooError, evaluate_pretrained, scene_digest
+from uevavd.pretrained import evaluate_pretrained
+from uevavd.zoo import MANIFEST, PUBLISHED, Zoo, ZooError, scene_digest
 
 
 def test_shipped_zoo_matches_the_world_generator_the_preset_and_the_methods():

@@ -159,8 +159,8 @@ class Run:
 def evaluate_pretrained(method: str, split: str = "hard", **kwargs: Any):
     """The model zoo's ``method`` policy evaluated on ``split`` of the quick world, beside the
     baselines, as ``uevavd evaluate --pretrained`` does: ``(DataFrame, published numbers,
-    per-context DataFrame)``. See :func:`uevavd.zoo.evaluate_pretrained` for the options."""
-    from .zoo import evaluate_pretrained as _evaluate_pretrained
+    per-context DataFrame)``. See :func:`uevavd.pretrained.evaluate_pretrained` for the options."""
+    from .pretrained import evaluate_pretrained as _evaluate_pretrained
 
     return _evaluate_pretrained(method, split, **kwargs)
 
@@ -168,29 +168,7 @@ def evaluate_pretrained(method: str, split: str = "hard", **kwargs: Any):
 def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, method: str | None = None,
                      device: str = "cpu"):
     """A policy saved by :meth:`Run.save_policy` (or shipped in the model zoo):
-    ``(GreedyPolicy, EnvConfig)``. With ``table`` (an ObservationTable or its folder), a
-    table of another perception config (segmenter, decomposition, encoder or classifier
-    weights) is refused naming what differs, and the policy reads the table's features for
-    fast evaluation; with ``method``, a file of another method is refused."""
-    from .config import loads_method
-    from .env.aod_env import load_table
-    from .env.config import make_config
-    from .policy.acting import GreedyPolicy
-    from .policy.checkpoint import check_policy_fits, load_net_state, read_policy_file
-    from .policy.network import build_network
+    ``(GreedyPolicy, EnvConfig)``; see :func:`uevavd.policy.acting.load_policy_file`."""
+    from .policy.acting import load_policy_file as _load_policy_file
 
-    path = Path(path)
-    method_toml, settings, state = read_policy_file(path)
-    cfg = make_config(settings["env"])
-    table = None if table is None else load_table(table)
-    check_policy_fits(path, settings, table=table, method=method, env=cfg)
-    spec = loads_method(method_toml, source=str(path))
-    net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
-    load_net_state(net, state, path)
-    features = None
-    if table is not None:
-        import numpy as np
-        import torch
-
-        features = torch.from_numpy(np.array(table.features))  # a copy: the table is memory-mapped read-only
-    return GreedyPolicy(net, device=device, features=features), cfg
+    return _load_policy_file(path, table=table, method=method, device=device)

@@ -6,9 +6,9 @@ pipeline, and ``manifest.json``: every file's sha256 and size, the world they be
 (generator version, the preset's ``[world]`` table, the hashes of its scenes' files), the
 recognizer's cache name and settings, each policy's method spec hash, and each policy's
 *published* numbers: its exhaustive evaluation on every split, computed by
-:func:`evaluate_pretrained`'s own code when the zoo was built.
+:func:`uevavd.pretrained.evaluate_pretrained`'s own code when the zoo was built.
 
-- ``uevavd evaluate --pretrained ibe_map --split hard`` (:func:`evaluate_pretrained`)
+- ``uevavd evaluate --pretrained ibe_map --split hard`` (:mod:`uevavd.pretrained`, above this store)
   generates only that split's contexts (no ``train_605``: the recognizer ships), builds
   their table with the shipped recognizer and evaluates the shipped policy beside the
   baselines, next to its published numbers.
@@ -32,21 +32,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .api import load_policy_file
-from .config import load_method, loads_method
+from .config import load_method
 from .data.reader import read_dataset
-from .data.splits import resolve_split, scene_name
 from .data.synthetic import write_world
 from .data.synthetic.writer import VERSION
-from .env.baselines import evaluate_beside_baselines
 from .hashing import file_sha256, json_digest
 from .perception.classifier import classifier_cache_path, data_hash, read_classifier_file, train_records
-from .perception.prepare import prepare_table
 from .perception.training.classifier import ClassifierRecipe, train_classifier
 from .perception.weights import state_dict_hash
-from .policy.checkpoint import read_policy_file
-from .presets import ZOO, load_preset, preset_overrides, world_contexts, world_root
-from .table import ObservationTable
+from .presets import ZOO, load_preset, preset_overrides
 
 FORMAT = "uevavd-zoo/1"
 MANIFEST = "manifest.json"
@@ -225,53 +219,3 @@ class Zoo:
 def recognizer_settings(preset: Mapping[str, Any], seed: int) -> dict[str, Any]:
     """The recognizer's training settings under a preset (``ClassifierRecipe`` as a dict)."""
     return json.loads(json.dumps(ClassifierRecipe.from_preset(preset, seed=seed).__dict__))
-
-
-def _world_of(preset: Mapping[str, Any], contexts: Sequence[int], label: str, *, workers: int,
-              progress: bool) -> Path:
-    """A dataset root holding ``contexts`` of the preset's world: the full world when the
-    cache holds them already, else just those contexts (no ``00``/``train_605``: the
-    recognizer ships) under ``<world root>-<label>``."""
-
-    full = world_root(preset)
-    try:
-        card = json.loads((full / "uevavd.json").read_text(encoding="utf-8"))
-        if {scene_name(c) for c in contexts} <= set(card.get("scenes", [])):
-            return full
-    except (OSError, ValueError):
-        pass
-    world = preset["world"]
-    return write_world(full.with_name(f"{full.name}-{label}"), contexts=contexts, size=int(world["size"]),
-                       seed=int(world["seed"]), workers=workers, include_unoccluded=False, progress=progress)
-
-
-def evaluate_pretrained(method: str, split: str = "hard", *, preset: str = "quick", workers: int = 2,
-                        device: str = "cpu", baselines: bool = True, progress: bool = True,
-                        contexts: Sequence[int] | None = None, zoo: Zoo | None = None):
-    """Evaluate the zoo's ``method`` policy on ``split`` of the preset's world (or on some
-    of its ``contexts``), beside the baselines: ``(DataFrame, published)``, where
-    ``published`` holds the numbers recorded when the zoo was built, for the same contexts
-    (None for a split it was not evaluated on), and the policy's per-context rows."""
-
-    resolve_split(split)  # an unknown split is refused before any work
-    zoo = zoo or Zoo.load(preset)
-    cfg_preset = load_preset(zoo.manifest["preset"])
-    zoo.check(cfg_preset)
-    path = zoo.policy(method)
-    recognizer = zoo.recognizer()
-    in_split = world_contexts(cfg_preset, split)
-    label = "+".join(resolve_split(split))
-    if contexts is not None:
-        outside = sorted(set(contexts) - set(in_split))
-        if outside or not contexts:
-            raise ZooError(f"contexts {outside or list(contexts)}: expected some of the {split} contexts of the "
-                           f"{zoo.manifest['preset']} world, {in_split}")
-        in_split, label = sorted(set(contexts)), "-".join(str(c) for c in sorted(set(contexts)))
-    spec = loads_method(read_policy_file(path)[0], source=str(path))
-    data = _world_of(cfg_preset, in_split, label, workers=workers, progress=progress)
-    table = ObservationTable.load(prepare_table(data, spec, classifier_path=recognizer, workers=workers,
-                                                progress=progress))
-    policy, cfg = load_policy_file(path, table=table, method=method, device=device)
-    frame, per_context = evaluate_beside_baselines(table, split, policy, method, cfg, device=device,
-                                                   baselines=baselines, contexts=None if contexts is None else in_split)
-    return frame, zoo.published(method, split, None if contexts is None else in_split), per_context

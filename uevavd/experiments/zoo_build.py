@@ -19,6 +19,7 @@ from ..perception.training.classifier import ClassifierRecipe
 from ..policy.checkpoint import read_policy_file
 from ..policy.rundir import RunDir
 from ..presets import world_contexts, world_root
+from ..pretrained import evaluate_pretrained
 from ..zoo import (
     FORMAT,
     MANIFEST,
@@ -26,7 +27,6 @@ from ..zoo import (
     REBUILD,
     RECOGNIZER,
     Zoo,
-    evaluate_pretrained,
     recognizer_settings,
     scene_digest,
     world_identity,

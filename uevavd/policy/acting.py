@@ -13,13 +13,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
+from ..config import loads_method
 from ..data.grid import N_VIEWS, STOP
+from ..env.aod_env import load_table
+from ..env.config import EnvConfig, make_config
 from ..state.base import InputGateCache
 from ..table import ObservationTable
 from . import targets as T
-from .checkpoint import ARCH_KEYS, load_checkpoint, load_net_state
+from .checkpoint import ARCH_KEYS, check_policy_fits, load_checkpoint, load_net_state, read_policy_file
 from .network import QNetwork, build_network
 from .rundir import RunDir, read_settings, run_spec
 
@@ -204,8 +208,6 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
 
 def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
     """The run's table features (S, 605, D) float16 (memory-mapped), or None if not on disk."""
-    import numpy as np
-
     path = settings.get("table_path")
     if not path or not Path(path).is_dir():
         return None
@@ -213,3 +215,23 @@ def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
     if table.key != settings.get("table_key"):
         return None
     return torch.from_numpy(np.array(table.features))
+
+
+def load_policy_file(path: str | Path, *, table: Any = None, method: str | None = None,
+                     device: str = "cpu") -> tuple[GreedyPolicy, EnvConfig]:
+    """A policy saved by ``Run.save_policy`` (or shipped in the model zoo):
+    ``(GreedyPolicy, EnvConfig)``. With ``table`` (an ObservationTable or its folder), a
+    table of another perception config (segmenter, decomposition, encoder or classifier
+    weights) is refused naming what differs, and the policy reads the table's features for
+    fast evaluation; with ``method``, a file of another method is refused."""
+    path = Path(path)
+    method_toml, settings, state = read_policy_file(path)
+    cfg = make_config(settings["env"])
+    table = None if table is None else load_table(table)
+    check_policy_fits(path, settings, table=table, method=method, env=cfg)
+    spec = loads_method(method_toml, source=str(path))
+    net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
+    load_net_state(net, state, path)
+    # a copy: the table is memory-mapped read-only
+    features = None if table is None else torch.from_numpy(np.array(table.features))
+    return GreedyPolicy(net, device=device, features=features), cfg

@@ -155,7 +155,8 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
 
     import pandas as pd
 
-    from ..zoo import PUBLISHED, evaluate_pretrained
+    from ..pretrained import evaluate_pretrained
+    from ..zoo import PUBLISHED
 
     t0 = time.perf_counter()
     frame, published, _ = evaluate_pretrained(args.pretrained, args.split, workers=args.workers or os.cpu_count() or 1,

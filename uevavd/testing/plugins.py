@@ -19,12 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from ..api import train
 from ..config import ConfigError, load_method
+from ..env.baselines import evaluate_beside_baselines
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
 from ..plugins.manager import PluginManager, manager
 from ..plugins.registry import KINDS, Entry
+from ..policy.acting import load_policy
 from ..policy.contract import (
     RUNTIME_ARGUMENTS,
     ComponentError,
@@ -32,6 +33,8 @@ from ..policy.contract import (
     check_head_rules,
     missing_runtime_arguments,
 )
+from ..policy.rundir import read_settings
+from ..policy.trainer import train
 from ..presets import load_preset, preset_overrides
 from . import perception
 from .policy import small_run, toy_table
@@ -232,8 +235,10 @@ def _check_method(entry: Entry, report: PluginReport, presets: tuple[str, ...], 
     table = toy_table(n_train=3, n_hard=2, feature_dim=8)
     uses_memory = load_method(entry.name).state.name != "single_view"
     over = {**small_run("memo_map" if uses_memory else "map"), "train.episodes": episodes}
-    with tempfile.TemporaryDirectory(prefix="uevavd-check-") as tmp:
-        run = train(entry.name, table, out=Path(tmp) / "run", overrides=over, device="cpu", progress=False)
-        frame = run.evaluate("hard")
+    with tempfile.TemporaryDirectory(prefix="uevavd-check-") as tmp:  # as uevavd train, then evaluate, do
+        run = train(load_method(entry.name, overrides=over), table, out=Path(tmp) / "run", device="cpu",
+                    progress=False)
+        frame, _ = evaluate_beside_baselines(table, "hard", load_policy(run), entry.name,
+                                             make_config(read_settings(run)["env"]))
     assert np.isfinite(frame.loc[entry.name, "mean_return"]), f"{what}: non-finite evaluation return"
     report.checked.append(f"{what}: trained {episodes} toy episodes and evaluated beside {len(frame) - 1} baselines")
