@@ -31,11 +31,11 @@ import numpy as np  # noqa: E402
 
 from uevavd.data.grid import N_VIEWS  # noqa: E402
 from uevavd.data.synthetic import build_context, render_view  # noqa: E402
-from uevavd.data.synthetic.render import _Prep  # noqa: E402
+from uevavd.data.synthetic.render import PreparedScene  # noqa: E402
 
 
 def _time(scene, views, size, cull=True) -> tuple[float, float]:
-    prep = _Prep(scene)
+    prep = PreparedScene(scene)
     render_view(scene, views[0], size, prep, cull=cull)  # warm-up (imports, first shadow tiles)
     w0, c0 = time.perf_counter(), time.process_time()
     for v in views:
@@ -45,14 +45,17 @@ def _time(scene, views, size, cull=True) -> tuple[float, float]:
 
 
 def _renderer_from(root: Path):
-    """(build_context, _Prep, render_view) of the ``uevavd`` package under ``root``, loaded
+    """(build_context, PreparedScene, render_view) of the ``uevavd`` package under ``root``, loaded
     beside this checkout's (which stays in ``sys.modules``)."""
     ours = {k: sys.modules.pop(k) for k in list(sys.modules) if k == "uevavd" or k.startswith("uevavd.")}
     sys.path.insert(0, str(root))
     try:
         import uevavd.data.synthetic as other
-        from uevavd.data.synthetic.render import _Prep as other_prep
+        import uevavd.data.synthetic.render as other_module
         from uevavd.data.synthetic.render import render_view as other_render
+
+        # the class was private (_Prep) before commit "no private name imported across modules"
+        other_prep = getattr(other_module, "PreparedScene", None) or other_module._Prep
 
         if not other.__file__.startswith(str(root.resolve())):
             raise SystemExit(f"--against {root}: no uevavd package there")
@@ -104,7 +107,7 @@ def main() -> None:
             _, ref = _time(scene, views[:: max(len(views) // 8, 1)], size, cull=False)
             print(f"{cid:>8} {size:>5} {wall:>13.1f} {cpu:>12.1f} {ref:>12.1f} {cpu / ref:>5.1f}x", flush=True)
     if args.against:
-        renderers = {"this": (build_context, _Prep, render_view), "against": against}
+        renderers = {"this": (build_context, PreparedScene, render_view), "against": against}
         print(f"\ninterleaved with {args.against}: views/s from the minimum CPU time of {args.repeats} renders per view")
         print(f"{'context':>8} {'size':>5} {'this':>8} {'against':>8} {'ratio':>6}")
         for cid in (int(c) for c in args.contexts.split(",")):

@@ -59,10 +59,10 @@ def _best(fn, repeats: int) -> float:
 def render_unit(size: int, views: int = 12) -> float:
     from uevavd.data.grid import N_VIEWS
     from uevavd.data.synthetic import build_context, render_view
-    from uevavd.data.synthetic.render import _Prep
+    from uevavd.data.synthetic.render import PreparedScene
 
     scene = build_context(1, seed=0)  # a training context
-    prep = _Prep(scene)
+    prep = PreparedScene(scene)
     picks = np.linspace(0, N_VIEWS - 1, views).astype(int)
     for v in picks:  # shadow tiles and caches built before timing
         render_view(scene, int(v), size, prep)

@@ -39,7 +39,7 @@ from uevavd.data.grid import NX, NY, view_index  # noqa: E402
 from uevavd.data.splits import N_CONTEXTS, SPLITS, TARGETS, split_of  # noqa: E402
 from uevavd.data.synthetic import build_context, build_unoccluded, render_context, render_view  # noqa: E402
 from uevavd.data.synthetic.cli import parse_contexts  # noqa: E402
-from uevavd.data.synthetic.render import _Prep  # noqa: E402
+from uevavd.data.synthetic.render import PreparedScene  # noqa: E402
 
 
 def visible_by_context(world: Path) -> dict[int, np.ndarray]:
@@ -161,7 +161,7 @@ def figures(out_dir: Path, seed: int, size: int) -> None:
     iz = 2  # z = 80 m
     for cid, name in ((1, "train"), (26, "hard"), (56, "hard")):
         scene = build_context(cid, seed=seed)
-        prep = _Prep(scene)
+        prep = PreparedScene(scene)
         # rows: north (y = +50) at the top; columns: west (x = -50) on the left
         tiles = [_with_box(render_view(scene, view_index(ix, iy, iz), size, prep))
                  for iy in reversed(range(NY)) for ix in range(NX)]
@@ -172,7 +172,7 @@ def figures(out_dir: Path, seed: int, size: int) -> None:
     tiles = []
     for t in TARGETS:
         scene = build_unoccluded(t, seed=seed)
-        prep = _Prep(scene)
+        prep = PreparedScene(scene)
         tiles += [render_view(scene, view_index(*p), 96, prep).rgb for p in picks]
     path = out_dir / "synthetic_classes.png"
     cv2.imwrite(str(path), cv2.cvtColor(_sheet(tiles, len(picks)), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])

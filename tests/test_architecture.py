@@ -101,3 +101,16 @@ def test_function_level_own_imports_only_where_the_map_allows():
                     unexplained.append(f"{rel}:{node.lineno} from {'.' * node.level}{mod}")
     assert not unexplained, ("imports of the package's own modules inside functions, not explained in "
                              f"docs/architecture.md: {unexplained}; import them at module level")
+
+
+def test_no_private_name_is_imported_across_modules():
+    """A name that starts with ``_`` is its module's own: another module that needs it gets
+    it public (issue 40 found 26 such names in 10 imports, left by 400-line splits)."""
+    leaks = []
+    for _name, (path, tree) in _modules().items():
+        for node in ast.walk(tree):
+            if _own_import(node):
+                private = [a.name for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+                if private:
+                    leaks.append(f"{path.relative_to(ROOT)}:{node.lineno} {private}")
+    assert not leaks, f"private names imported from other modules: {leaks}; make them public in their module"

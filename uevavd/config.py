@@ -44,12 +44,12 @@ from .config_rules import (
     TOP_KEYS,
     TOP_SECTIONS,
     ConfigError,
-    _freeze,
-    _get,
-    _thaw,
     apply_overrides,
     check_type,
+    dotted_get,
+    freeze,
     parse_override,
+    thaw,
     validate,
 )
 from .hashing import json_digest
@@ -150,7 +150,7 @@ class Component:
         """The component, built with its config arguments plus ``runtime`` ones."""
         from .plugins.manager import manager  # lazy: the registry loads plugins on first use
 
-        return manager.registry.build(self.kind, self.name, **{**_thaw(self.kwargs), **runtime})
+        return manager.registry.build(self.kind, self.name, **{**thaw(self.kwargs), **runtime})
 
     def accepts(self, argument: str) -> bool:
         """Whether the builder takes keyword ``argument``: a runtime value a host may offer
@@ -175,7 +175,7 @@ class PerceptionSection:
 
     def as_dict(self) -> dict[str, Any]:
         """The section as written, a plain dict (what tables record and their keys hash)."""
-        return _thaw(self.raw)
+        return thaw(self.raw)
 
 
 def _section_class(section: str) -> Any:
@@ -198,7 +198,7 @@ class MethodSpec:
         return json_digest(self.to_dict(), 16, compact=True)
 
     def to_dict(self) -> dict[str, Any]:
-        return _thaw(self.data)
+        return thaw(self.data)
 
     def with_overrides(self, overrides: Mapping[str, Any] | None) -> MethodSpec:
         """This spec with dotted ``overrides`` applied (order-independent, see
@@ -207,14 +207,14 @@ class MethodSpec:
             return self
         data = apply_overrides(self.to_dict(), overrides)
         validate(data, f"{self.source} with overrides {dict(overrides)}")
-        return MethodSpec(name=data["name"], data=_freeze(data), source=self.source)
+        return MethodSpec(name=data["name"], data=freeze(data), source=self.source)
 
     def get(self, dotted: str, default: Any = None) -> Any:
-        value = _get(self.data, dotted)
+        value = dotted_get(self.data, dotted)
         return default if value is None else value
 
     def __getitem__(self, dotted: str) -> Any:
-        value = _get(self.data, dotted)
+        value = dotted_get(self.data, dotted)
         if value is None:
             raise KeyError(f"method {self.name!r} has no key {dotted!r}")
         return value
@@ -223,23 +223,23 @@ class MethodSpec:
     @property
     def env(self) -> Any:
         """``[env]`` as an :class:`~uevavd.env.config.EnvConfig` (the paper's values where unset)."""
-        return _section_class("env")().replace(**_thaw(self.data.get("env", {})))
+        return _section_class("env")().replace(**thaw(self.data.get("env", {})))
 
     def train_config(self, **runtime: Any) -> Any:
         """``[train]`` as a :class:`~uevavd.policy.config.TrainConfig`, with the ``runtime``
         values a run adds (``seed``, ``episodes``) over the file's."""
-        return _section_class("train").from_dict({**_thaw(self.data.get("train", {})), **runtime})
+        return _section_class("train").from_dict({**thaw(self.data.get("train", {})), **runtime})
 
     @property
     def perception(self) -> PerceptionSection:
-        raw = _thaw(self.data.get("perception", {}))
+        raw = thaw(self.data.get("perception", {}))
 
         def comp(section: str) -> Component | None:
-            return self.section(section) if _get(self.data, section) is not None else None
+            return self.section(section) if dotted_get(self.data, section) is not None else None
 
         return PerceptionSection(segmenter=comp("perception.segmenter"), encoder=comp("perception.encoder"),
                                  classifier=comp("perception.classifier"), decompose=bool(raw.get("decompose", False)),
-                                 gray_seed=int(raw.get("gray_seed", 0)), raw=_freeze(raw))
+                                 gray_seed=int(raw.get("gray_seed", 0)), raw=freeze(raw))
 
     @property
     def state(self) -> Component:
@@ -252,13 +252,13 @@ class MethodSpec:
     def section(self, section: str) -> Component:
         """A component section (``"state"``, ``"perception.encoder"``, ...) as a :class:`Component`."""
         name, kwargs = self.component(section)
-        return Component(COMPONENT_SECTIONS[section], name, _freeze(kwargs))
+        return Component(COMPONENT_SECTIONS[section], name, freeze(kwargs))
 
     def component(self, section: str) -> tuple[str, dict[str, Any]]:
         """``(registry name, builder kwargs)`` of a component section, e.g. ``"state"``."""
         if section not in COMPONENT_SECTIONS:
             raise KeyError(f"{section!r} is not a component section: expected one of {list(COMPONENT_SECTIONS)}")
-        value = _thaw(_get(self.data, section) or {})
+        value = thaw(dotted_get(self.data, section) or {})
         if "name" not in value:
             raise KeyError(f"method {self.name!r} names no {section}")
         name = value.pop("name")
@@ -298,7 +298,7 @@ def load_method(
     apply_overrides(data, overrides)
     source = str(path) + (f" with overrides {dict(overrides)}" if overrides else "")
     validate(data, source)
-    return MethodSpec(name=data["name"], data=_freeze(data), source=str(path))
+    return MethodSpec(name=data["name"], data=freeze(data), source=str(path))
 
 
 def as_method(spec_or_method: MethodSpec | str | os.PathLike[str],
@@ -321,7 +321,7 @@ def loads_method(text: str, source: str = "<string>") -> MethodSpec:
     if "_base_" in data:
         raise ConfigError(f"{source}: a resolved method has no _base_; load a method file with load_method")
     validate(data, source)
-    return MethodSpec(name=data["name"], data=_freeze(data), source=source)
+    return MethodSpec(name=data["name"], data=freeze(data), source=source)
 
 
 def known_methods() -> list[str]:

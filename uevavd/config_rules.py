@@ -229,7 +229,7 @@ def validate(data: Mapping[str, Any], source: str = "<method>") -> None:
         if not check_type(value, PERCEPTION_KEYS[key]):
             raise ConfigError(f"{source}: perception.{key} = {value!r}: expected {_type_name(PERCEPTION_KEYS[key])}")
     for where, kind in COMPONENT_SECTIONS.items():
-        section = _get(data, where)
+        section = dotted_get(data, where)
         if section is None:
             continue
         if not isinstance(section, Mapping) or not isinstance(section.get("name"), str):
@@ -247,7 +247,7 @@ def validate(data: Mapping[str, Any], source: str = "<method>") -> None:
             _check_fields(where, section, _dataclass_fields(target), source)
 
 
-def _get(data: Mapping[str, Any], dotted: str) -> Any:
+def dotted_get(data: Mapping[str, Any], dotted: str) -> Any:
     node: Any = data
     for part in dotted.split("."):
         if not isinstance(node, Mapping) or part not in node:
@@ -256,18 +256,18 @@ def _get(data: Mapping[str, Any], dotted: str) -> Any:
     return node
 
 
-def _freeze(value: Any) -> Any:
+def freeze(value: Any) -> Any:
     if isinstance(value, Mapping):
-        return types.MappingProxyType({k: _freeze(v) for k, v in value.items()})
+        return types.MappingProxyType({k: freeze(v) for k, v in value.items()})
     if isinstance(value, list | tuple):
-        return tuple(_freeze(v) for v in value)
+        return tuple(freeze(v) for v in value)
     return value
 
 
-def _thaw(value: Any) -> Any:
+def thaw(value: Any) -> Any:
     if isinstance(value, Mapping):
-        return {k: _thaw(v) for k, v in value.items()}
+        return {k: thaw(v) for k, v in value.items()}
     if isinstance(value, tuple):
-        return [_thaw(v) for v in value]
+        return [thaw(v) for v in value]
     return value
 

@@ -220,7 +220,7 @@ def test_train_605_stages_cover_the_grid_and_both_terrains():
 
 
 def test_train_605_views_are_context_like_and_fully_visible():
-    from uevavd.data.synthetic.render import _Prep, render_unoccluded_view
+    from uevavd.data.synthetic.render import PreparedScene, render_unoccluded_view
     from uevavd.data.synthetic.world import build_training_stage, training_stages
 
     views = np.flatnonzero(training_stages(0) == 1)[::6]
@@ -236,7 +236,7 @@ def test_train_605_views_are_context_like_and_fully_visible():
     a, b = render_view(suv, 300, 32), render_view(scenes[1], 300, 32)
     assert ((a.seg == TARGET_ID) != (b.seg == TARGET_ID)).any()
     assert not np.array_equal(render_view(scenes[0], 300, 32).rgb, render_view(scenes[1], 300, 32).rgb)
-    scene, prep = scenes[1], _Prep(scenes[1])
+    scene, prep = scenes[1], PreparedScene(scenes[1])
     hidden = 0
     for v in views:
         plain = render_view(scene, int(v), 32, prep)
@@ -254,14 +254,14 @@ def test_train_605_views_are_context_like_and_fully_visible():
 
 
 def test_a_stage_shares_its_shadows_between_targets_and_renders_the_same_bits():
-    from uevavd.data.synthetic.render import SharedShadows, _Prep
+    from uevavd.data.synthetic.render import PreparedScene, SharedShadows
     from uevavd.data.synthetic.world import build_training_stage, training_stages
 
     views = [int(v) for v in np.flatnonzero(training_stages(0) == 2)[::3]]
     shared = SharedShadows()
     for target in ("sedan", "pickup"):  # the second casts only its own target over the first's tiles
         scene = build_training_stage(target, seed=0, stage=2)
-        own, with_shared = _Prep(scene), _Prep(scene, shared)
+        own, with_shared = PreparedScene(scene), PreparedScene(scene, shared)
         for v in views:
             a, b = render_view(scene, v, 48, own), render_view(scene, v, 48, with_shared)
             assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.seg, b.seg)
@@ -271,23 +271,23 @@ def test_a_stage_shares_its_shadows_between_targets_and_renders_the_same_bits():
         assert np.array_equal(mine.atlas[computed], theirs.atlas[computed])
     # the map beneath holds the others' shadows alone and the target's are cast on top: with a
     # canopy-like part of the target (ellipsoids cast shadows) the tiles are those of casting all
-    from uevavd.data.synthetic.shading import _ShadowMap
+    from uevavd.data.synthetic.shading import ShadowMap
 
     part = Primitives()
     part.add_ellipsoid((0.0, 0.0, 3.0), (2.0, 2.0, 1.0), 0, TARGET_ID, (0.2, 0.5, 0.2))
     extra = part.arrays()
     prims = {k: np.concatenate([extra[k], v]) if k.startswith("e_") else v for k, v in scene.prims.items()}
-    prep = _Prep(dataclasses.replace(scene, prims=prims))
-    whole = _ShadowMap(prep, scene.sun_dir, 0.125)
-    others = _ShadowMap(prep, scene.sun_dir, 0.125, cast="others")
-    on_top = _ShadowMap(prep, scene.sun_dir, 0.125, cast="target", under=others)
+    prep = PreparedScene(dataclasses.replace(scene, prims=prims))
+    whole = ShadowMap(prep, scene.sun_dir, 0.125)
+    others = ShadowMap(prep, scene.sun_dir, 0.125, cast="others")
+    on_top = ShadowMap(prep, scene.sun_dir, 0.125, cast="target", under=others)
     near = [(tu, tv) for tu in (-1, 0) for tv in (-1, 0)]
     assert all(np.array_equal(whole._tile(*at), on_top._tile(*at)) for at in near)
     assert any(not np.array_equal(others.tile(*at), on_top._tile(*at)) for at in near)
     # another stage's scene (another sun and background) cannot borrow these shadows
     other = build_training_stage("sedan", seed=0, stage=3)
     with pytest.raises(ValueError, match="differ from those of the scenes sharing"):
-        render_view(other, views[0], 48, _Prep(other, shared))
+        render_view(other, views[0], 48, PreparedScene(other, shared))
 
 
 def test_a_building_between_the_sun_and_the_target_shades_it():

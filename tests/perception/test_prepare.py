@@ -158,7 +158,7 @@ def test_killed_while_writing_a_shard(built, tiny_world, tiny_classifier, tmp_pa
     method, path = built
     out = tmp_path / "out"
     partial = out / f"{path.name}.partial"
-    real_write = prep._write_shard
+    real_write = prep.write_shard
 
     def dies_mid_write(target, arrays):
         if target.stem != "031":
@@ -170,16 +170,16 @@ def test_killed_while_writing_a_shard(built, tiny_world, tiny_classifier, tmp_pa
         (target.parent / f".{target.name}.k1ll3d.tmp").write_bytes(data[: len(data) // 3])
         raise _Killed
 
-    monkeypatch.setattr(prep, "_write_shard", dies_mid_write)
+    monkeypatch.setattr(prep, "write_shard", dies_mid_write)
     with pytest.raises(_Killed):
         prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
     assert not (out / path.name).exists()
     assert (partial / "031.npz").stat().st_size > 0  # the half file is there, under the shard's name
-    assert prep._read_shard(partial / "031.npz", 512, 5) is None  # and is not taken for a finished shard
-    assert prep._read_shard(partial / "001.npz", 512, 5) is not None
+    assert prep.read_shard(partial / "031.npz", 512, 5) is None  # and is not taken for a finished shard
+    assert prep.read_shard(partial / "001.npz", 512, 5) is not None
     with pytest.raises(TableError):
         ObservationTable.load(partial)
-    monkeypatch.setattr(prep, "_write_shard", real_write)
+    monkeypatch.setattr(prep, "write_shard", real_write)
     calls = []
     real_compute = prep._compute_scene
     monkeypatch.setattr(prep, "_compute_scene", lambda scene, *a, **k: calls.append(scene) or real_compute(scene, *a, **k))

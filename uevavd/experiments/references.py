@@ -31,7 +31,7 @@ from ..policy.rundir import RunDir
 from ..runtime import torch_threads
 from ..table import ObservationTable
 from .plan import DEFAULT_SETTING, SB3_AGENTS, env_config
-from .results import _contexts, _metric_row, _per_context
+from .results import contexts_covered, metric_row, per_context_rows
 
 
 def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], log
@@ -56,7 +56,7 @@ def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], 
                 base = {"method": agent, "recognizer": r, "seed": seed, "setting": "default"}
                 for split, summary in done["splits"].items():
                     rows.append({**base, **DEFAULT_SETTING, "episodes": -1, "final": True, "split": split,
-                                 "eval_contexts": _contexts(summary), **_metric_row(summary),
+                                 "eval_contexts": contexts_covered(summary), **metric_row(summary),
                                  "wall_s": done["wall_s"]})
                     ctx_rows += [{**base, "split": split, **c} for c in summary["per_context"]]
     return rows, ctx_rows
@@ -91,5 +91,5 @@ def _train_and_evaluate(agent: str, job: Any, table_path: Path, config: Any, ste
         for split in splits:
             res = evaluate_policy(table, split, policy, config)
             out["splits"][split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
-                                    "per_context": _per_context(res)}
+                                    "per_context": per_context_rows(res)}
     return out

@@ -89,15 +89,15 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
     for split in key["splits"]:
         res = evaluate_policy(table, split, policy, config, device=dev)
         splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
-                         "per_context": _per_context(res)}
+                         "per_context": per_context_rows(res)}
     out = {"key": key, "splits": splits}
     write_sealed_json(path, out, fsync=True)
     return out
 
-def _per_context(res) -> list[dict[str, Any]]:
+def per_context_rows(res) -> list[dict[str, Any]]:
     """One record per context of an evaluation: context, target and the summary's means."""
     df = res.per_context()
-    return [{"context": int(r["context"]), "target": str(r["target"]), **_metric_row(r)}
+    return [{"context": int(r["context"]), "target": str(r["target"]), **metric_row(r)}
             for r in df.to_dict(orient="records")]
 
 
@@ -117,7 +117,7 @@ def context_terrains(data: Path | None) -> dict[int, str]:
     return out
 
 
-def _metric_row(summary: dict[str, Any]) -> dict[str, Any]:
+def metric_row(summary: dict[str, Any]) -> dict[str, Any]:
     return {
         "return": summary["mean_return"],
         "accuracy": summary["accuracy"],
@@ -129,7 +129,7 @@ def _metric_row(summary: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def _contexts(summary: dict[str, Any]) -> int:
+def contexts_covered(summary: dict[str, Any]) -> int:
     """Contexts an evaluation covered (each from all 605 start views); -1 if unknown."""
     if "contexts" in summary:
         return int(summary["contexts"])
@@ -156,13 +156,13 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
                 raise ValueError(f"{path}, line {n}: damaged ({type(exc).__name__}: {exc}); remove the run's folder "
                                  f"{job.out} and run the ablation again with the same --out to retrain it") from None
             rows.append({**base, "episodes": int(r["episodes"]), "final": False, "split": r["split"],
-                         "eval_contexts": _contexts(r), **_metric_row(r),
+                         "eval_contexts": contexts_covered(r), **metric_row(r),
                          "wall_s": float(r.get("wall_s", float("nan")))})
     final = final_eval(job, device=device)
     if final is not None:
         for split, summary in final["splits"].items():
             rows.append({**base, "episodes": int(final["key"]["episodes"]), "final": True, "split": split,
-                         "eval_contexts": _contexts(summary), **_metric_row(summary),
+                         "eval_contexts": contexts_covered(summary), **metric_row(summary),
                          "wall_s": float(final["key"]["wall_s"])})
     return rows
 
@@ -195,10 +195,10 @@ def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], lo
                             continue
                         res = evaluate_policy(tbl, split, policy, config)
                         done[key] = {**res.summary(), "contexts": int(np.unique(res.context).size),
-                                     "per_context": _per_context(res)}
+                                     "per_context": per_context_rows(res)}
                     base = {"method": entry.name, "recognizer": r, "seed": seed, "setting": setting_name}
                     rows.append({**base, **setting, "episodes": -1, "final": True, "split": split,
-                                 "eval_contexts": _contexts(done[key]), **_metric_row(done[key]), "wall_s": 0.0})
+                                 "eval_contexts": contexts_covered(done[key]), **metric_row(done[key]), "wall_s": 0.0})
                     ctx_rows += [{**base, "split": split, **c} for c in done[key]["per_context"]]
     write_sealed_json(cache, done, fsync=True)
     return rows, ctx_rows

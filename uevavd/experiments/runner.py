@@ -38,7 +38,7 @@ from .results import (
     is_done,
     run_rows,
 )
-from .stages import _Stage, stage_classifier, stage_tables, stage_world
+from .stages import Stage, stage_classifier, stage_tables, stage_world
 from .trajectories import trajectory_rows
 
 
@@ -117,20 +117,20 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
     check_out_dir(plan)
     plan.out.mkdir(parents=True, exist_ok=True)
     write_meta(plan, None, "running")
-    with _Stage(plan, "world", log):
+    with Stage(plan, "world", log):
         data = stage_world(plan, log)
-    with _Stage(plan, "classifier", log):
+    with Stage(plan, "classifier", log):
         classifiers = stage_classifier(plan, data, log)
-    with _Stage(plan, "tables", log):
+    with Stage(plan, "tables", log):
         tables = stage_tables(plan, data, classifiers, log)
     write_meta(plan, data, "training")
     jobs = plan_jobs(plan, tables)
-    with _Stage(plan, "training", log):
+    with Stage(plan, "training", log):
         todo = [j for j in jobs if not is_done(j)]
         log(f"  {len(jobs)} runs, {len(jobs) - len(todo)} finished already, {len(todo)} to run "
             f"on the {plan.backend} backend with {plan.workers} worker(s)")
         run_jobs(todo, backend=plan.backend, workers=plan.workers, log=log, gpus_per_job=plan.gpus_per_run)
-    with _Stage(plan, "evaluation", log):
+    with Stage(plan, "evaluation", log):
         rows, ctx_rows = [], []
         for job in jobs:
             setting = dict(plan.settings(job.method))[job.setting]
@@ -158,7 +158,7 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
         traj = trajectory_rows(plan, jobs, tables[plan.recognizers[0]])
         atomic_write_json(plan.out / "trajectories.json", traj, fsync=True)
     write_meta(plan, data, "reporting")
-    with _Stage(plan, "report", log):
+    with Stage(plan, "report", log):
         write_meta(plan, data, "done")
         report = write_report(plan.out)
         log(f"  report: {report}")

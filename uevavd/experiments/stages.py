@@ -23,7 +23,7 @@ from ..zoo import Zoo
 from .plan import DEFAULT_SETTING, AblationError, Plan, method_overrides
 
 
-class _Stage:
+class Stage:
     def __init__(self, plan: Plan, name: str, log):
         self.plan, self.name, self.log = plan, name, log
 

@@ -39,13 +39,13 @@ from .decompose import decompose, view_seed
 from .images import Decoder
 from .shards import (
     SHARD_ARRAYS,
-    _cached_array,
-    _cached_probs,
-    _features_dir,
-    _read_shard,
-    _save_array,
-    _write_shard,
     build_lock,
+    cached_array,
+    cached_probs,
+    features_folder,
+    read_shard,
+    save_array,
+    write_shard,
 )
 
 log = logging.getLogger(__name__)
@@ -191,13 +191,13 @@ def _probs_path(probs_dir: Path | None, scene: str, fingerprint: str) -> Path | 
 
 def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw,
                    probs_path: Path | None = None, features_path: Path | None = None):
-    features = _cached_array(features_path, (N_VIEWS, encoder.feature_dim), np.float16)
+    features = cached_array(features_path, (N_VIEWS, encoder.feature_dim), np.float16)
     if features is not None:
-        probs = _cached_probs(probs_path, len(classifier.classes))
+        probs = cached_probs(probs_path, len(classifier.classes))
         if probs is None:
             probs = classifier.predict_proba(loaded[0]).astype(np.float32)
             if probs_path is not None:
-                _save_array(probs_path, probs)
+                save_array(probs_path, probs)
         return _scene_arrays(recs, features, probs, image_hw)
     images, decomposed, maps, cats = loaded
     boxes_px = np.array([r.box for r in recs], np.float32).reshape(-1, 4)
@@ -214,13 +214,13 @@ def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_
         probs = classifier.proba_from_features(features)
     else:
         features = encoder.encode(enc_in)
-        probs = _cached_probs(probs_path, len(classifier.classes))
+        probs = cached_probs(probs_path, len(classifier.classes))
         if probs is None:
             probs = classifier.predict_proba(images).astype(np.float32)
     if probs_path is not None and not probs_path.is_file():
-        _save_array(probs_path, probs.astype(np.float32))
+        save_array(probs_path, probs.astype(np.float32))
     if features_path is not None and not features_path.is_file():
-        _save_array(features_path, features.astype(np.float16))
+        save_array(features_path, features.astype(np.float16))
     return _scene_arrays(recs, features, probs, image_hw)
 
 
@@ -348,13 +348,13 @@ def prepare_table(
         partial = out_dir / f"{key}.partial"
         partial.mkdir(parents=True, exist_ok=True)
         probs_dir = out_dir / "probs" / sha256_hex(classifier.identity(), 16)
-        features_dir = _features_dir(out_dir, parts)
+        features_dir = features_folder(out_dir, parts)
         (partial / "key.json").write_text(json.dumps(parts, indent=1, sort_keys=True), encoding="utf-8")
         k = len(TARGETS)
         shards: dict[str, dict[str, np.ndarray]] = {}
         todo = []
         for scene, recs in scenes:
-            done = _read_shard(partial / f"{scene}.npz", encoder.feature_dim, k)
+            done = read_shard(partial / f"{scene}.npz", encoder.feature_dim, k)
             if done is None:
                 if only_scenes is None or scene in only_scenes:
                     todo.append((scene, recs))
@@ -371,7 +371,7 @@ def prepare_table(
                                         classifier=classifier, gray_seed=gray_seed, image_hw=manifest.image_size,
                                         probs_path=_probs_path(probs_dir, scene, p.scene_fingerprints[scene]),
                                         features_path=_probs_path(features_dir, scene, p.scene_fingerprints[scene]))
-                _write_shard(partial / f"{scene}.npz", arrays)
+                write_shard(partial / f"{scene}.npz", arrays)
                 shards[scene] = arrays
                 bar.update(N_VIEWS)
         bar.close()

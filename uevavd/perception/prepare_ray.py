@@ -15,7 +15,7 @@ from ..data.splits import TARGETS
 from ..paths import tables_dir
 from ..table import ObservationTable, TableError
 from .prepare import plan_table, prepare_table
-from .shards import _read_shard
+from .shards import read_shard
 
 
 def _prepare_shards(data_root: str, spec_path: str, classifier_path: str | None, out_dir: str,
@@ -72,7 +72,7 @@ def prepare_table_ray(
     spec_path = partial / "method.toml"  # the resolved spec, so every task builds the same components
     spec.save(spec_path)
     k = len(TARGETS)
-    todo = [s for s, _ in p.scenes if _read_shard(partial / f"{s}.npz", p.encoder.feature_dim, k) is None]
+    todo = [s for s, _ in p.scenes if read_shard(partial / f"{s}.npz", p.encoder.feature_dim, k) is None]
     del p  # the driver's models are not needed while the tasks run
     if todo:
         started = not ray.is_initialized()

@@ -21,11 +21,11 @@ log = logging.getLogger("uevavd.perception.prepare")
 SHARD_ARRAYS = ("features", "probs", "boxes", "visible")
 
 
-def _write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+def write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
     atomic_write(path, lambda fh: np.savez(fh, **arrays), fsync=True)
 
 
-def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.ndarray] | None:
+def read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.ndarray] | None:
     """A complete shard's arrays, or None when it is absent or unusable (then redone)."""
     if not path.is_file():
         return None
@@ -42,7 +42,7 @@ def _read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.nd
     return arrays
 
 
-def _features_dir(out_dir: Path, parts: Mapping[str, Any]) -> Path:
+def features_folder(out_dir: Path, parts: Mapping[str, Any]) -> Path:
     """Where encoder features of scenes are cached: keyed by everything that makes them
     (segmenter, decomposition, gray seed, encoder; not the classifier), so the tables of
     several recognizers over the same views encode each view once."""
@@ -50,7 +50,7 @@ def _features_dir(out_dir: Path, parts: Mapping[str, Any]) -> Path:
     return out_dir / "features" / json_digest(keep, 16)
 
 
-def _cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarray | None:
+def cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarray | None:
     if path is None or not path.is_file():
         return None
     try:
@@ -61,11 +61,11 @@ def _cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarra
     return arr if ok else None
 
 
-def _cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
-    return _cached_array(path, (N_VIEWS, n_classes), np.float32)
+def cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
+    return cached_array(path, (N_VIEWS, n_classes), np.float32)
 
 
-def _save_array(path: Path, array: np.ndarray) -> None:
+def save_array(path: Path, array: np.ndarray) -> None:
     """``np.save`` written atomically (temp file, then rename)."""
     atomic_write(path, lambda fh: np.save(fh, array))
 

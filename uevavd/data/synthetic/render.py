@@ -11,7 +11,7 @@ sphere lies outside the view frustum are dropped; the others are projected to th
 the pixel rectangle it covers, so the narrow frustum culls almost the whole world. The
 ground plane is intersected analytically for every pixel. Shadows: one lookup per pixel in
 a shadow map cast from the sun, built tile by tile the first time a view needs a tile and
-kept for the scene (see :class:`_ShadowMap`). Per-pixel shading works on index arrays
+kept for the scene (see :class:`ShadowMap`). Per-pixel shading works on index arrays
 (``take`` / ``put``), and each texture only on the pixels it applies to.
 Shading: Lambert with the sun (coloured) and a sky-weighted ambient term, procedural
 textures for facades (windows), canopies (leaf clumps), glass and the ground map.
@@ -25,9 +25,9 @@ import numpy as np
 
 from ..grid import N_VIEWS, view_coords
 from .ground import lookup
-from .raycast import _INF, _ellipsoid_cast, _hull_cast
+from .raycast import INF, ellipsoid_cast, hull_cast
 from .scenes import TARGET_ID, Scene
-from .shading import _shade, _ShadowMap
+from .shading import ShadowMap, shade_points
 from .world import build_context
 
 
@@ -78,7 +78,7 @@ def camera_basis(position: np.ndarray, look_at: np.ndarray) -> np.ndarray:
     return np.stack([f, right, up])
 
 
-class _Prep:
+class PreparedScene:
     """Per-scene precomputation: float32 copies of the primitives, bounding spheres (frustum
     culling), real plane counts, lookup tables for shading, ellipsoid corner boxes."""
 
@@ -109,16 +109,16 @@ class _Prep:
         self.e_corners = self.e_c[:, None, :] + signs[None] * p["e_radii"][:, None, :]
         self._shadow: dict = {}
 
-    def shadow_map(self, sun: np.ndarray, size: int) -> _ShadowMap:
+    def shadow_map(self, sun: np.ndarray, size: int) -> ShadowMap:
         """The scene's cached shadow map for crops of ``size`` px (cells ~0.8 of the pixel
         footprint at the nearest viewpoint, 60 m)."""
         key = (size, *np.round(sun, 9))
         if key not in self._shadow:
             cell = 0.8 * 60.0 / focal_px(size)
             if self._shared is None:
-                self._shadow[key] = _ShadowMap(self, sun, cell)
+                self._shadow[key] = ShadowMap(self, sun, cell)
             else:
-                self._shadow[key] = _ShadowMap(self, sun, cell, cast="target",
+                self._shadow[key] = ShadowMap(self, sun, cell, cast="target",
                                                under=self._shared.others(self, key, sun, cell))
         return self._shadow[key]
 
@@ -142,15 +142,15 @@ class _Prep:
 class SharedShadows:
     """The shadow map of everything but the target, cast once for the scenes that differ only
     in their target (the five of a ``train_605`` stage, :func:`world.with_target`): give it to
-    each one's ``_Prep``, whose own map then casts the target alone over its tiles. The maps
-    are the same bit for bit as each scene's own (see ``_ShadowMap._tile``); a scene whose
+    each one's ``PreparedScene``, whose own map then casts the target alone over its tiles. The maps
+    are the same bit for bit as each scene's own (see ``ShadowMap._tile``); a scene whose
     other primitives or sun differ from the first one's is refused."""
 
     def __init__(self) -> None:
-        self._maps: dict[tuple, _ShadowMap] = {}
+        self._maps: dict[tuple, ShadowMap] = {}
         self._scene: list[np.ndarray] | None = None
 
-    def others(self, prep: _Prep, key: tuple, sun: np.ndarray, cell: float) -> _ShadowMap:
+    def others(self, prep: PreparedScene, key: tuple, sun: np.ndarray, cell: float) -> ShadowMap:
         p = prep.p
         h, e = p["h_inst"] != TARGET_ID, p["e_inst"] != TARGET_ID
         scene = [np.asarray(sun), p["h_planes"][h], p["h_verts"][h], p["e_centre"][e], p["e_radii"][e]]
@@ -158,9 +158,9 @@ class SharedShadows:
             self._scene = scene
         elif not all(np.array_equal(a, b) for a, b in zip(self._scene, scene, strict=True)):
             raise ValueError("SharedShadows: this scene's sun or primitives other than the target differ from "
-                             "those of the scenes sharing its shadows: give it a _Prep of its own")
+                             "those of the scenes sharing its shadows: give it a PreparedScene of its own")
         if key not in self._maps:
-            self._maps[key] = _ShadowMap(prep, sun, cell, cast="others")
+            self._maps[key] = ShadowMap(prep, sun, cell, cast="others")
         return self._maps[key]
 
 
@@ -205,7 +205,7 @@ def _pixel_dirs(size: int, basis: np.ndarray) -> np.ndarray:
     return out
 
 
-def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *, cull: bool = True,
+def render_view(scene: Scene, view: int, size: int, prep: PreparedScene | None = None, *, cull: bool = True,
                 exclude: tuple[int, ...] = (), shade: bool = True) -> View:
     """Render one viewpoint (grid index 0..604) of ``scene`` at ``size`` x ``size`` px.
 
@@ -214,7 +214,7 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     camera does not see (they still cast their shadows). ``shade=False`` skips the colours
     (``rgb`` is then all zeros; segmentation, box and visible fraction are unchanged): the
     validity rule needs only the visible fractions."""
-    prep = prep or _Prep(scene)
+    prep = prep or PreparedScene(scene)
     p = prep.p
     origin = view_coords(view)
     basis = camera_basis(origin, scene.look_at)
@@ -225,7 +225,7 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     kind = np.zeros((size, size), np.int8)  # 0 ground, 1 hull, 2 ellipsoid
     pid = np.zeros((size, size), np.int64)
     face = np.zeros((size, size), np.int8)  # hulls: the plane the ray enters through
-    ttar = np.full((size, size), _INF, np.float32)
+    ttar = np.full((size, size), INF, np.float32)
     h_rects, e_rects = prep.rects(origin, basis, size, fpx, cull)
     if len(exclude):
         h_rects[np.isin(p["h_inst"], exclude)] = 0
@@ -239,7 +239,7 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
         d = dirs[y0:y1, x0:x1]
         hh, ww = y1 - y0, x1 - x0
         den = p["h_planes"][i, :k, :3] @ d.reshape(-1, 3).T  # (K, M)
-        t, cand = _hull_cast(h_ot[i, :k, None], den)  # (M,), (K, M)
+        t, cand = hull_cast(h_ot[i, :k, None], den)  # (M,), (K, M)
         t2 = t.reshape(hh, ww)
         if prep.h_target[i]:
             np.minimum(ttar[y0:y1, x0:x1], t2, out=ttar[y0:y1, x0:x1])
@@ -256,7 +256,7 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
         face_f.put((m // ww + y0) * size + (m % ww + x0), faces)
     for i in np.flatnonzero((e_rects[:, 0] < e_rects[:, 1]) & (e_rects[:, 2] < e_rects[:, 3])).tolist():
         y0, y1, x0, x1 = e_rects[i].tolist()
-        t = _ellipsoid_cast(origin, dirs[y0:y1, x0:x1], p["e_centre"][i], p["e_radii"][i])
+        t = ellipsoid_cast(origin, dirs[y0:y1, x0:x1], p["e_centre"][i], p["e_radii"][i])
         better = t < tbest[y0:y1, x0:x1]
         np.copyto(tbest[y0:y1, x0:x1], t, where=better)
         np.copyto(kind[y0:y1, x0:x1], 2, where=better)
@@ -267,7 +267,7 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     seg.put(h, p["h_inst"].take(pid_f.take(h)))
     seg.put(e, p["e_inst"].take(pid_f.take(e)))
     seg = seg.reshape(size, size)
-    rgb = (_shade(scene, prep, pts, ground_rgb, h, e, pid_f, face_f).reshape(size, size, 3) if shade
+    rgb = (shade_points(scene, prep, pts, ground_rgb, h, e, pid_f, face_f).reshape(size, size, 3) if shade
            else np.zeros((size, size, 3), np.uint8))
     vis = seg == TARGET_ID
     whole = np.isfinite(ttar)
@@ -282,13 +282,13 @@ def render_view(scene: Scene, view: int, size: int, prep: _Prep | None = None, *
     return View(rgb=rgb, seg=seg, box=bx, visible=float(n_vis / full) if full else 0.0, occluders=occluders)
 
 
-def render_unoccluded_view(scene: Scene, view: int, size: int, prep: _Prep | None = None) -> View:
+def render_unoccluded_view(scene: Scene, view: int, size: int, prep: PreparedScene | None = None) -> View:
     """Render a view with every object that would hide part of the target left out of it
     (their shadows stay, as those of objects just outside the crop would): the target is
     fully visible, the rest of the scene as it is. One render when nothing hides the
     target; otherwise the objects drawn over it are left out and the view rendered again,
     until none is (an object behind a removed one may show up in its place)."""
-    prep = prep or _Prep(scene)
+    prep = prep or PreparedScene(scene)
     v = render_view(scene, view, size, prep)
     exclude: tuple[int, ...] = ()
     while v.occluders:
@@ -301,7 +301,7 @@ def render_views(scene: Scene, size: int, views=None, *, shade: bool = True) -> 
     """Render ``views`` (default: all 605, in grid order) of a scene (``shade``: see
     :func:`render_view`)."""
     views = range(N_VIEWS) if views is None else views
-    prep = _Prep(scene)
+    prep = PreparedScene(scene)
     out = [render_view(scene, v, size, prep, shade=shade) for v in views]
     return ContextViews(
         rgb=np.stack([o.rgb for o in out]),

@@ -8,13 +8,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .geometry import M_CABIN, M_CANOPY, M_FACADE
-from .raycast import _INF, _ellipsoid_t, _hull_t, _put_rows, _rows
+from .raycast import INF, ellipsoid_t, hull_t, put_rows, take_rows
 from .scenes import TARGET_ID, Scene
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .render import _Prep
+    from .render import PreparedScene
 
-class _ShadowMap:
+class ShadowMap:
     """Lazily built, cached shadow map of a scene (the sun and the geometry are static).
 
     Frame (u, v, a) with a along the sun. The (u, v) plane is cut into tiles of ``TILE`` x
@@ -25,8 +25,8 @@ class _ShadowMap:
 
     TILE = 128
 
-    def __init__(self, prep: _Prep, sun: np.ndarray, cell: float, *, cast: str = "all",
-                 under: _ShadowMap | None = None):
+    def __init__(self, prep: PreparedScene, sun: np.ndarray, cell: float, *, cast: str = "all",
+                 under: ShadowMap | None = None):
         """``cast``: the primitives that cast shadows here, "all", "target" (the target's
         alone, on top of the tiles of ``under``, the map of the others) or "others"."""
         if cast not in ("all", "target", "others") or (under is None) == (cast == "target"):
@@ -63,7 +63,7 @@ class _ShadowMap:
         cv = v0 + (np.arange(self.TILE) + 0.5) * self.cell
         top = 200.0  # sun rays start above everything (a < 200 m for every primitive)
         if self.under is None:
-            depth = np.full((self.TILE, self.TILE), -_INF, np.float32)
+            depth = np.full((self.TILE, self.TILE), -INF, np.float32)
         else:  # a cell holds the maximum over primitives, so casting the rest on top of the
             # others' tile gives the depths of casting all, bit for bit (float32 rounding is monotonic)
             depth = self.under.tile(tu, tv).copy()
@@ -80,12 +80,12 @@ class _ShadowMap:
                 if kind == "h":
                     pl = self.p["h_planes"][i].astype(np.float64)
                     # + 0.0: a hull's padding planes (0 . p <= 1) give -(0 . sun) = -0.0, which
-                    # _hull_t would read as a plane the ray leaves at -inf, so no sun ray would hit
+                    # hull_t would read as a plane the ray leaves at -inf, so no sun ray would hit
                     # any hull (world versions <= 4 cast only the ellipsoids' shadows)
                     den = -(pl[:, :3] @ sun)[:, None] + 0.0
-                    t = _hull_t(pl[:, 3, None] - pl[:, :3] @ o.T, den, 0)
+                    t = hull_t(pl[:, 3, None] - pl[:, :3] @ o.T, den, 0)
                 else:
-                    t = _ellipsoid_t(o, -sun, self.p["e_centre"][i], self.p["e_radii"][i])
+                    t = ellipsoid_t(o, -sun, self.p["e_centre"][i], self.p["e_radii"][i])
                 sub = depth[j0:j1, i0:i1]
                 np.maximum(sub, (top - t).reshape(sub.shape), out=sub)
         return depth
@@ -146,7 +146,7 @@ def _wave_noise(pts: np.ndarray, freq: float, comps: tuple[int, ...] = (0, 1, 2)
     return np.stack([f[c]() for c in comps], 1)
 
 
-def _shade(scene: Scene, prep: _Prep, pts, ground_rgb, h, e, pid, face) -> np.ndarray:
+def shade_points(scene: Scene, prep: PreparedScene, pts, ground_rgb, h, e, pid, face) -> np.ndarray:
     """(N, 3) uint8 colours of hit points ``pts`` (N, 3); ``h`` / ``e``: indices of pixels that
     hit a hull / an ellipsoid (the rest hit the ground, coloured ``ground_rgb``); ``pid`` (N,)
     the primitive hit and ``face`` (N,) the plane of its hull the ray entered through."""
@@ -158,33 +158,33 @@ def _shade(scene: Scene, prep: _Prep, pts, ground_rgb, h, e, pid, face) -> np.nd
     bias = np.zeros(len(pts), np.float32)  # canopies: bumpy normals on a smooth ellipsoid
     if len(h):
         hp = pid.take(h)
-        nh = _rows(prep.h_normals, hp * prep.h_k + face.take(h))
-        _put_rows(normal, h, nh)
-        c = _rows(p["h_rgb"], hp)
+        nh = take_rows(prep.h_normals, hp * prep.h_k + face.take(h))
+        put_rows(normal, h, nh)
+        c = take_rows(p["h_rgb"], hp)
         mat = p["h_mat"].take(hp)
         cab = np.flatnonzero((mat == M_CABIN) & (nh[:, 2] < 0.9))  # glass
         if len(cab):
-            _put_rows(c, cab, _rows(prep.h_glass, hp.take(cab)))
+            put_rows(c, cab, take_rows(prep.h_glass, hp.take(cab)))
         fac = np.flatnonzero(mat == M_FACADE)
         if len(fac):
-            _put_rows(c, fac, _facade(_rows(pts, h.take(fac)), _rows(nh, fac), _rows(c, fac), _rows(p["h_par"], hp.take(fac))))
-        _put_rows(col, h, c)
+            put_rows(c, fac, _facade(take_rows(pts, h.take(fac)), take_rows(nh, fac), take_rows(c, fac), take_rows(p["h_par"], hp.take(fac))))
+        put_rows(col, h, c)
     if len(e):
         ep = pid.take(e)
-        pe = _rows(pts, e)
-        n = (pe - _rows(prep.e_c32, ep)) * _rows(prep.e_inv_r2, ep)  # gradient of the ellipsoid's equation
-        c = _rows(p["e_rgb"], ep)
+        pe = take_rows(pts, e)
+        n = (pe - take_rows(prep.e_c32, ep)) * take_rows(prep.e_inv_r2, ep)  # gradient of the ellipsoid's equation
+        c = take_rows(p["e_rgb"], ep)
         can = np.flatnonzero(p["e_mat"].take(ep) == M_CANOPY)
         if len(can) == len(e):  # woodland: every ellipsoid is a canopy
             wn = _wave_noise(pe, 1.6)
             n = _unit(n) + 0.55 * wn
             c *= 1.0 + 0.18 * wn[:, :1]
         elif len(can):
-            wn = _wave_noise(_rows(pe, can), 1.6)
-            _put_rows(n, can, _unit(_rows(n, can)) + 0.55 * wn)
-            _put_rows(c, can, _rows(c, can) * (1.0 + 0.18 * wn[:, :1]))
-        _put_rows(normal, e, _unit(n))
-        _put_rows(col, e, c)
+            wn = _wave_noise(take_rows(pe, can), 1.6)
+            put_rows(n, can, _unit(take_rows(n, can)) + 0.55 * wn)
+            put_rows(c, can, take_rows(c, can) * (1.0 + 0.18 * wn[:, :1]))
+        put_rows(normal, e, _unit(n))
+        put_rows(col, e, c)
         bias.put(e, 0.6)
     lam = rows_dot_f32(normal, scene.sun_dir.astype(np.float32))
     np.clip(lam, 0.0, 1.0, out=lam)
@@ -285,16 +285,16 @@ def _facade(pts, normal, wall, par) -> np.ndarray:
     out = wall
     w = np.flatnonzero(np.abs(normal[:, 2]) < 0.5)
     if len(w):
-        pw, nw, parw = _rows(pts, w), _rows(normal, w), _rows(par, w)
+        pw, nw, parw = take_rows(pts, w), take_rows(normal, w), take_rows(par, w)
         u = pw[:, 0] * -nw[:, 1] + pw[:, 1] * nw[:, 0]
         z = pw[:, 2]
         fu = np.mod(u, parw[:, 1]) / parw[:, 1]
         fz = np.mod(z, parw[:, 0]) / parw[:, 0]
         win = np.flatnonzero((fu > 0.28) & (fu < 0.72) & (fz > 0.35) & (fz < 0.8) & (z > 1.5) & (z < parw[:, 2] - 0.8))
-        _put_rows(out, w.take(win), parw[win, 3:4] * _GLASS_TINT + _GLASS_BASE)
+        put_rows(out, w.take(win), parw[win, 3:4] * _GLASS_TINT + _GLASS_BASE)
     r = np.flatnonzero(normal[:, 2] > 0.5)
     if len(r):
-        pr = _rows(pts, r)
+        pr = take_rows(pts, r)
         grain = 0.035 * _wave_noise(pr, 0.7, (0,)) + 0.02 * _wave_noise(pr, 3.1, (1,))
-        _put_rows(out, r, _rows(out, r) * 0.62 + 0.12 + grain)
+        put_rows(out, r, take_rows(out, r) * 0.62 + 0.12 + grain)
     return out

@@ -35,7 +35,7 @@ from ...runtime import WorkerPool, single_threaded_worker
 from .. import layout
 from ..grid import N_VIEWS, view_coords
 from ..splits import CLASSIFIER_SCENE, TARGETS, UNOCCLUDED_SCENE, check_context, scene_name
-from .render import SharedShadows, _Prep, focal_px, render_unoccluded_view, render_view
+from .render import PreparedScene, SharedShadows, focal_px, render_unoccluded_view, render_view
 from .world import (
     BLOCK_TARGETS,
     TARGET_ID,
@@ -149,7 +149,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
             if name == CLASSIFIER_SCENE:
                 stages.append({"terrain": scene.terrain,
                                "sun_direction": [round(float(c), 6) for c in scene.sun_dir]})
-        prep = _Prep(scene, shared)
+        prep = PreparedScene(scene, shared)
         for v in views:
             x, y, z = view_coords(int(v))
             stem = layout.view_stem(x, y, z, scene.target, name)
