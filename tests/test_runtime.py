@@ -190,7 +190,20 @@ def test_worker_pool_killed_worker_surfaces_as_broken_pool():
     assert not mp.active_children()
 
 
-TWICE_SCRIPT = """
+#: What a child Python inherits from the test's process must not decide a signal test: a
+#: SIGINT ignored or blocked there (as some tests of the suite may leave their pytest-xdist
+#: worker) is ignored or blocked in the child, which then never saw its Ctrl-C: the
+#: repeated-interrupt test ended twice with exit 0 and no output, every job run to its end.
+#: The scripts start from Python's own Ctrl-C handling and say what they inherited.
+FRESH_SIGINT = """
+import signal, sys
+print("inherited SIGINT:", signal.getsignal(signal.SIGINT), "blocked:", sorted(signal.pthread_sigmask(signal.SIG_BLOCK, [])),
+      file=sys.stderr)
+signal.signal(signal.SIGINT, signal.default_int_handler)
+signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+"""
+
+TWICE_SCRIPT = FRESH_SIGINT + """
 import multiprocessing as mp, os, signal, sys, threading, time
 from pathlib import Path
 import uevavd.runtime
@@ -263,7 +276,7 @@ def test_worker_pool_takes_a_repeated_interrupt_as_one(tmp_path, repeat_s, clean
     assert "leaked" not in out.stderr
 
 
-KILL_SCRIPT = """
+KILL_SCRIPT = FRESH_SIGINT + """
 import multiprocessing as mp, os, signal, sys, time
 from pathlib import Path
 from uevavd.runtime import WorkerPool
@@ -323,3 +336,25 @@ def test_a_killed_parent_leaves_no_worker_behind(tmp_path, how):
     while any(_alive(p) for p in pids) and time.monotonic() < end:
         time.sleep(0.05)
     assert not any(_alive(p) for p in pids)
+
+
+def test_a_pool_never_forks_a_process_running_other_threads():
+    """A fork copies the locks other threads hold: a pool worker forked beside an in-process
+    Ray driver hung the suite (test_worker_pool_failed_job_stops_the_others, 20 minutes). With
+    another thread running the pool spawns; a single-threaded process still forks."""
+    import threading
+
+    from uevavd.runtime import safe_context
+
+    stop = threading.Event()
+    thread = threading.Thread(target=stop.wait)
+    thread.start()
+    try:
+        assert safe_context().get_start_method() == "spawn"
+    finally:
+        stop.set()
+        thread.join()
+    probe = ("import multiprocessing as mp; from uevavd.runtime import safe_context; "
+             "print(mp.get_context().get_start_method(), safe_context().get_start_method())")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.split()
+    assert out[1] == out[0]  # fork on Linux, the platform's default elsewhere

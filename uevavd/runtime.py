@@ -101,6 +101,28 @@ _stop_event: Any = None
 _job_running = False
 
 
+def os_threads() -> int:
+    """Threads this process runs, native ones included (Linux counts them; elsewhere Python's)."""
+    try:
+        return len(os.listdir("/proc/self/task"))
+    except OSError:
+        return threading.active_count()
+
+
+def safe_context() -> Any:
+    """The start method for a pool whose caller named none: Python's default, except that
+    ``fork`` is taken only by a process running one thread. A fork copies the locks other
+    threads hold (tqdm's monitor, a Ray driver's native threads, pytest-xdist's I/O thread)
+    and the child can wait on one forever: a pool's worker forked beside an in-process Ray
+    driver hung the test suite. Elsewhere ``spawn`` (Python 3.14 no longer forks by default on
+    Linux either); a worker computes the same either way. A caller that needs fork passes
+    ``mp_context``."""
+    ctx = multiprocessing.get_context()
+    if ctx.get_start_method() == "fork" and os_threads() > 1:
+        return multiprocessing.get_context("spawn")
+    return ctx
+
+
 class WorkerPool:
     """A :class:`~concurrent.futures.ProcessPoolExecutor` that stops at once when the block
     it serves ends with an exception: Ctrl-C, a ``SIGINT`` from ``timeout``, or a failed
@@ -128,7 +150,7 @@ class WorkerPool:
 
     def __init__(self, workers: int, *, mp_context: Any = None, initializer: Callable[..., None] | None = None,
                  initargs: tuple = (), grace: float = 10.0) -> None:
-        ctx = mp_context or multiprocessing.get_context()
+        ctx = mp_context or safe_context()
         self.grace = grace
         self._stop = ctx.Event()
         self._futures: list[Future] = []
