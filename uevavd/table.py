@@ -233,10 +233,11 @@ class ObservationTable:
         wanted = set(resolve_split(split))
         return np.array([i for i, s in enumerate(self.splits) if s in wanted], dtype=np.int64)
 
-    def correct(self, thre: float) -> np.ndarray:
-        """(S, 605) bool: the classifier's probability for the true class is above ``thre``."""
-        true_p = np.take_along_axis(self.probs, self.targets[:, None, None], axis=2)[..., 0]
-        return true_p > thre
+    def true_class_probs(self) -> np.ndarray:
+        """(S, 605) float32: the recognizer's probability for each scene's true class, per
+        view. Whether a view counts as recognised is the env's rule,
+        :meth:`uevavd.env.config.EnvConfig.recognized` (above ``thre``)."""
+        return np.take_along_axis(self.probs, self.targets[:, None, None], axis=2)[..., 0]
 
     def argmax_correct(self) -> np.ndarray:
         """(S, 605) bool: argmax of the probabilities is the true class (accuracy)."""

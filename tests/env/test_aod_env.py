@@ -257,7 +257,7 @@ def test_info_has_the_same_keys_and_types_at_every_step(table):
         assert [type(v) for v in info.values()] == [type(v) for v in first.values()]
     assert first["return"] == 0.0 and moved["return"] == pytest.approx(r0)
     assert last["return"] == pytest.approx(r0 + 0.9 * r1)
-    assert moved["recognized"] == bool(table.correct(0.2)[moved["scene"], moved["view"]])
+    assert moved["recognized"] == bool((table.true_class_probs() > 0.2)[moved["scene"], moved["view"]])
     unknown = ObservationTable.from_arrays(table.features, table.probs, table.boxes, scenes=table.scenes,
                                            contexts=table.contexts, targets=table.targets, splits=table.splits)
     env = AODEnv(unknown, "train")

@@ -70,7 +70,7 @@ def test_passive_and_random_baselines(table):
     res = evaluate_policy(table, "train", PassivePolicy(), cfg)
     s = res.summary()
     assert s["path_m"] == 0 and s["stop_rate"] == 1 and s["steps_per_episode"] == 1
-    reco = table.correct(cfg.thre)[:3].ravel()
+    reco = cfg.recognized(table.true_class_probs())[:3].ravel()
     assert s["recognition_rate"] == pytest.approx(reco.mean())
     assert s["mean_return"] == pytest.approx(np.where(reco, 0.5, -0.5).mean())
     assert s["accuracy"] == pytest.approx(table.argmax_correct()[:3].mean())
@@ -108,7 +108,7 @@ def brute_force(table, cfg: EnvConfig) -> np.ndarray:
     optimal: the CMDP is deterministic). Sequences: k moves then stop (k < T_max), or
     T_max moves; stop's range is irrelevant."""
     tr = transitions(cfg.max_range)
-    reco = table.correct(cfg.thre)
+    reco = cfg.recognized(table.true_class_probs())
     term = np.where(reco, cfg.xi1, -cfg.xi1)
     moves = [(a, r) for a in range(6) for r in range(cfg.max_range)]
     best = np.full(reco.shape, -np.inf)
@@ -158,3 +158,11 @@ def test_oracle_q_values_agree_with_values(table):
     chosen = np.take_along_axis(flat, (ora.best_type * cfg.max_range + ora.best_range)[..., None], -1)[..., 0]
     np.testing.assert_allclose(chosen[:, 1:], ora.value[:, 1:])  # the policy's action attains V
     assert oracle_values(table, cfg).q is None
+
+
+def test_the_recognition_rule_is_the_env_configs():
+    """One rule, one place: recognised means the true class's probability is above thre
+    (strictly), read by the env, the batched env, the oracle and the trajectories alike."""
+    from uevavd.env.config import EnvConfig
+
+    np.testing.assert_array_equal(EnvConfig(thre=0.4).recognized(np.array([0.39, 0.4, 0.41])), [False, False, True])

@@ -163,11 +163,11 @@ def test_trajectory_start_passive_fails_and_oracle_succeeds():
     table = _one_hard_scene([0], visible=1.0 - np.arange(605) / 605)
     scene, start = pick_trajectory_start(table, config)
     assert (scene, start) == pick_trajectory_start(table, config)  # deterministic
-    assert start != 604 and not table.correct(config.thre)[scene, start]  # passive fails
+    assert start != 604 and not config.recognized(table.true_class_probs())[scene, start]  # passive fails
     res = evaluate_policy(table, "hard", OraclePolicy(table, config), config)
     i = int(np.flatnonzero((res.scene == scene) & (res.start_view == start))[0])
     assert res.recognized[i] and res.final_view[i] == 0  # the oracle's episode ends recognised
-    reachable = res.recognized & ~table.correct(config.thre)[0]
+    reachable = res.recognized & ~config.recognized(table.true_class_probs())[0]
     assert start == int(np.flatnonzero(reachable).max())  # the least visible such start
 
 

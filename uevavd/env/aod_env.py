@@ -183,7 +183,7 @@ class AODEnv(gym.Env):
         self._tr = transitions(cfg.max_range)
         self._mask_i8 = self._tr.mask.astype(np.int8)
         self._coords = view_coords(np.arange(N_VIEWS))  # (605, 3) float64 metres
-        self._reco = self.table.correct(cfg.thre)  # (S, 605) bool
+        self._reco = cfg.recognized(self.table.true_class_probs())  # (S, 605) bool
         self._acc = self.table.argmax_correct()
         d = self.table.feature_dim
         self.observation_space = spaces.Dict(

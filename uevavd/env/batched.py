@@ -72,7 +72,7 @@ class EnvTensors:
             self.features = torch.zeros((len(sel), N_VIEWS, 0), dtype=features_dtype, device=dev)
         self.feature_dim = table.feature_dim
         self.boxes = torch.as_tensor(np.asarray(table.boxes[sel]), dtype=torch.float32, device=dev)
-        self.reco = torch.as_tensor(table.correct(config.thre)[sel], device=dev)
+        self.reco = torch.as_tensor(config.recognized(table.true_class_probs())[sel], device=dev)
         self.acc = torch.as_tensor(table.argmax_correct()[sel], device=dev)
         self.targets = torch.as_tensor(table.targets[sel], device=dev)
         self.contexts = np.asarray(table.contexts[sel], np.int64)  # (S',) context ids

@@ -114,6 +114,12 @@ class EnvConfig:
         """``+xi1`` where the final view is recognised, ``-xi1`` where not."""
         return _where(recognized, self.xi1, -self.xi1)
 
+    def recognized(self, true_class_probs: Any) -> Any:
+        """The paper's recognition rule: a view is recognised where the recognizer's
+        probability for the true class is above ``thre`` (elementwise; e.g. on
+        ``table.true_class_probs()``, (S, 605) -> bool)."""
+        return true_class_probs > self.thre
+
     def reward(self, final: Any, recognized: Any, cost: Any) -> Any:
         """R_t: ``terminal_reward(recognized) - cost`` where the decision ends the episode,
         ``-xi2 - cost`` where it does not (``cost`` is :meth:`move_cost`, 0 for stop).

@@ -44,7 +44,7 @@ def oracle_values(
     """Solve the DP for every scene of ``table`` (vectorised over scenes and views)."""
     cfg = make_config(config)
     tr = transitions(cfg.max_range)
-    reco = table.correct(cfg.thre)  # (S, V)
+    reco = cfg.recognized(table.true_class_probs())  # (S, V)
     s, v = reco.shape
     a = cfg.max_range
     term = cfg.terminal_reward(reco).astype(np.float64)  # (S, V)

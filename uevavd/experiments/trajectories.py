@@ -38,7 +38,7 @@ def pick_trajectory_start(table, config) -> tuple[int, int]:
     hard = tbl.scene_indices("hard")
     if not len(hard):
         return 0, 0
-    passive_ok = tbl.correct(config.thre)  # passive stops at once: recognised iff its start view is
+    passive_ok = config.recognized(tbl.true_class_probs())  # passive stops at once: recognised iff its start view is
     res = evaluate_policy(tbl, "hard", OraclePolicy(tbl, config), config)
     oracle_ok = np.zeros_like(passive_ok)
     oracle_ok[res.scene, res.start_view] = res.recognized
