@@ -11,7 +11,7 @@ import uevavd
 ROOT = Path(uevavd.__file__).resolve().parent
 MAX_LINES = 400
 #: where an import of the package's own modules may sit inside a function, and why
-LAZY_MODULES = {"api.py", "info.py", "config.py", "config_rules.py"}  # lazy CLI/API, plugin loading
+LAZY_MODULES = {"api.py", "info.py"}  # the lazy CLI and API
 MUTUAL = {  # a module and the one it uses lazily: the two use each other
     ("data/synthetic/world.py", "render"),
     ("env/aod_env.py", "vector"),
@@ -92,8 +92,7 @@ def test_function_level_own_imports_only_where_the_map_allows():
                     continue
                 mod = node.module or ""
                 allowed = (
-                    path.name in ("cli.py", "__init__.py") or rel in LAZY_MODULES or rel.startswith("plugins/")
-                    or "plugins" in mod  # the lazy plugin loading
+                    path.name in ("cli.py", "__init__.py") or rel in LAZY_MODULES
                     or (node.level and not mod)  # uevavd.__version__ or a sibling package's lazy export
                     or (rel, mod) in MUTUAL or (rel, mod) in OPTIONAL
                 )

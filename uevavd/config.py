@@ -34,8 +34,9 @@ import os
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from .atomic import atomic_write
 from .config_rules import (
     COMPONENT_SECTIONS,
     DATACLASS_SECTIONS,
@@ -54,21 +55,17 @@ from .config_rules import (
 )
 from .hashing import json_digest
 
+# the registry sits below the specs: it resolves a registered method's file itself, and loads
+# plugins only when first asked (importing it is light)
+from .plugins.manager import manager
+from .plugins.registry import UnknownComponentError, import_target, resolve_method_target
+
+if TYPE_CHECKING:  # the typed sections' classes live in the layers that consume them
+    from .env.config import EnvConfig
+    from .policy.config import TrainConfig
+
 
 # -- locating method files ------------------------------------------------------------------
-def resolve_method_target(target: str) -> Path:
-    """A registered method's TOML path: absolute path, or ``"package:relative/path.toml"``."""
-    p = Path(target)
-    if p.is_absolute():
-        return p
-    package, sep, rel = target.partition(":")
-    if not sep:
-        raise ConfigError(f"method target {target!r}: expected an absolute path or 'package:path.toml'")
-    import importlib.resources
-
-    return Path(str(importlib.resources.files(package).joinpath(rel)))
-
-
 def _method_path(name_or_path: str | os.PathLike[str], relative_to: Path | None = None) -> Path:
     s = str(name_or_path)
     if s.endswith(".toml") or os.sep in s or "/" in s:
@@ -78,14 +75,14 @@ def _method_path(name_or_path: str | os.PathLike[str], relative_to: Path | None 
         if not p.is_file():
             raise ConfigError(f"method file {p} does not exist")
         return p.resolve()
-    from .plugins.manager import manager
-    from .plugins.registry import UnknownComponentError
-
     try:
         entry = manager.registry.get("method", s)
     except UnknownComponentError as exc:
         raise ConfigError(str(exc)) from None
-    path = entry.load()
+    try:
+        path = entry.load()
+    except ValueError as exc:  # a registered target that is no path
+        raise ConfigError(str(exc)) from None
     if not path.is_file():  # a file left out of the plugin's wheel (package-data)
         raise ConfigError(f"method {s!r} of plugin {entry.plugin!r} names {entry.target}, which is not installed "
                           f"({path} does not exist): list the file in the plugin's package data and reinstall it")
@@ -148,16 +145,12 @@ class Component:
 
     def build(self, **runtime: Any) -> Any:
         """The component, built with its config arguments plus ``runtime`` ones."""
-        from .plugins.manager import manager  # lazy: the registry loads plugins on first use
-
         return manager.registry.build(self.kind, self.name, **{**thaw(self.kwargs), **runtime})
 
     def accepts(self, argument: str) -> bool:
         """Whether the builder takes keyword ``argument``: a runtime value a host may offer
         (the dataset folder, a recognizer's path) is passed only to builders that name it,
         as pluggy passes a hook implementation only the arguments it names."""
-        from .plugins.manager import manager
-
         return argument in manager.registry.signature(self.kind, self.name).parameters
 
 
@@ -179,8 +172,6 @@ class PerceptionSection:
 
 
 def _section_class(section: str) -> Any:
-    from .plugins.registry import import_target  # lazy, as _dataclass_fields: keeps this module light
-
     return import_target(DATACLASS_SECTIONS[section])
 
 
@@ -221,11 +212,11 @@ class MethodSpec:
 
     # -- typed sections: what the consumers read (one decoding of the dict, here) -------------
     @property
-    def env(self) -> Any:
+    def env(self) -> EnvConfig:
         """``[env]`` as an :class:`~uevavd.env.config.EnvConfig` (the paper's values where unset)."""
         return _section_class("env")().replace(**thaw(self.data.get("env", {})))
 
-    def train_config(self, **runtime: Any) -> Any:
+    def train_config(self, **runtime: Any) -> TrainConfig:
         """``[train]`` as a :class:`~uevavd.policy.config.TrainConfig`, with the ``runtime``
         values a run adds (``seed``, ``episodes``) over the file's."""
         return _section_class("train").from_dict({**thaw(self.data.get("train", {})), **runtime})
@@ -266,8 +257,6 @@ class MethodSpec:
 
     def build(self, section: str, /, **runtime: Any) -> Any:
         """Build a component section with its config arguments plus ``runtime`` ones."""
-        from .plugins.manager import manager
-
         name, kwargs = self.component(section)
         return manager.registry.build(COMPONENT_SECTIONS[section], name, **{**kwargs, **runtime})
 
@@ -278,8 +267,6 @@ class MethodSpec:
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the resolved spec as TOML (atomically); :func:`load_method` reads it back."""
-        from .atomic import atomic_write
-
         return atomic_write(path, self.to_toml())
 
 
@@ -325,8 +312,6 @@ def loads_method(text: str, source: str = "<string>") -> MethodSpec:
 
 
 def known_methods() -> list[str]:
-    from .plugins.manager import manager
-
     return manager.registry.names("method")
 
 

@@ -14,6 +14,9 @@ import typing
 from collections.abc import Mapping
 from typing import Any
 
+from .plugins.manager import manager
+from .plugins.registry import UnknownComponentError, import_target
+
 #: Sections whose `name` picks a registry entry of a kind; other keys go to its builder.
 COMPONENT_SECTIONS: dict[str, str] = {
     "perception.segmenter": "segmenter",
@@ -173,9 +176,6 @@ def _check_fields(where: str, values: Mapping[str, Any], fields: Mapping[str, An
 
 
 def _builder_fields(kind: str, name: str, where: str, source: str) -> dict[str, Any]:
-    from .plugins.manager import manager
-    from .plugins.registry import UnknownComponentError
-
     try:
         builder = manager.registry.builder(kind, name)
         sig = manager.registry.signature(kind, name)
@@ -193,8 +193,6 @@ def _builder_fields(kind: str, name: str, where: str, source: str) -> dict[str, 
 
 
 def _dataclass_fields(target: str) -> dict[str, Any]:
-    from .plugins.registry import import_target
-
     cls = import_target(target)
     hints = typing.get_type_hints(cls)
     return {f.name: hints.get(f.name, Any) for f in dataclasses.fields(cls)}

@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from ..data.grid import STOP
+from ..plugins.manager import manager
 from .evaluate import evaluate_policy
 from .oracle import OraclePolicy
 from .visibility_oracle import VisibilityOraclePolicy
@@ -84,8 +85,6 @@ def build_oracle(*, table, config, seed: int = 0):
 def baseline_entries() -> list:
     """The registered baselines (:func:`uevavd.plugins.hookspecs.register_baselines`), in
     registration order."""
-    from ..plugins.manager import manager
-
     return manager.registry.in_order("baseline")
 
 

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import importlib.resources
 import inspect
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 #: Component kinds, and the hook that registers each.
@@ -65,10 +67,19 @@ class Entry:
     def load(self) -> Any:
         """Import and return the builder (or, for methods, the TOML path)."""
         if self.kind == "method":
-            from ..config import resolve_method_target
-
             return resolve_method_target(self.target)
         return import_target(self.target)
+
+
+def resolve_method_target(target: str) -> Path:
+    """A registered method's TOML path: absolute path, or ``"package:relative/path.toml"``."""
+    p = Path(target)
+    if p.is_absolute():
+        return p
+    package, sep, rel = target.partition(":")
+    if not sep:
+        raise ValueError(f"method target {target!r}: expected an absolute path or 'package:path.toml'")
+    return Path(str(importlib.resources.files(package).joinpath(rel)))
 
 
 def import_target(target: str) -> Any:
