@@ -13,6 +13,7 @@ after every epoch evaluates, logs and checkpoints. Run directory::
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import platform
 import time
@@ -25,13 +26,14 @@ import torch
 
 from ..atomic import atomic_write, atomic_write_json, remove_temporaries
 from ..config import ConfigError, MethodSpec, PerceptionSection
+from ..data.grid import N_TYPES
 from ..env.aod_env import load_table, select_scenes
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
 from ..perception.nets import resolve_device
 from ..runtime import torch_threads
-from .acting import GreedyPolicy, epsilon_greedy
+from .acting import GreedyPolicy
 from .checkpoint import (
     CheckpointError,
     checkpoint_meta,
@@ -39,6 +41,7 @@ from .checkpoint import (
     save_checkpoint,
     save_policy_file,
 )
+from .collector import EpisodeCollector, RunSeeds
 from .config import TrainConfig
 from .contract import build_checked_network
 from .learner import FeatureLookup, Learner
@@ -143,24 +146,118 @@ def train(
                       overrides=overrides, max_epochs=max_epochs, caller_state=caller_state)
 
 
+@dataclasses.dataclass
+class _Run:
+    """One training run's parts, built (and every input checked) before anything is written."""
+
+    out: Path
+    spec: MethodSpec
+    cfg: TrainConfig
+    settings: dict[str, Any]
+    net: Any
+    learner: Learner
+    replay: EpisodeReplay
+    collector: EpisodeCollector
+    lookup: FeatureLookup
+    evaluator: _Evaluator
+    #: the loop's counters (a checkpoint holds them): episodes, env steps, epochs, the updates'
+    #: credit, training wall time
+    loop: dict[str, Any] = dataclasses.field(default_factory=lambda: {
+        "episodes": 0, "env_steps": 0, "epoch": 0, "credit": 0.0, "wall": 0.0})
+    evals: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+
+    #: what a checkpoint holds beside the collector's state (CHECKPOINT_PARTS: name -> its owner)
+    CHECKPOINT_PARTS = ("net", "target", "optimizer", "replay")
+
+    def parts(self) -> dict[str, Any]:
+        return {"net": self.net, "target": self.learner.target, "optimizer": self.learner.optimizer,
+                "replay": self.replay}
+
+    def save(self) -> None:
+        save_checkpoint(RunDir(self.out).checkpoint, {
+            "meta": checkpoint_meta(self.settings), **{k: v.state_dict() for k, v in self.parts().items()},
+            "updates": self.learner.updates, **self.collector.state_dict(), "loop": dict(self.loop),
+            "evals": json.dumps(self.evals)})
+
+    def resume(self) -> bool:
+        """Load the run's checkpoint, if it has one (its settings checked against this run's)."""
+        path = RunDir(self.out).checkpoint
+        if not path.is_file():
+            return False
+        ck = load_checkpoint(path, expect=self.settings)
+        for key, part in self.parts().items():
+            part.load_state_dict(ck[key])
+        self.learner.updates = int(ck["updates"])
+        self.collector.load_state_dict(ck)
+        self.loop.update(ck["loop"])
+        self.evals = json.loads(ck["evals"])
+        return True
+
+
 def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, seed: int, device: str,
            progress: bool, overrides: dict | None, max_epochs: int | None, caller_state: contextlib.ExitStack) -> Path:
-    # -- settings -----------------------------------------------------------------------------
-    spec = spec.with_overrides(overrides)
-    table = load_table(table)
+    run = _setup(spec.with_overrides(overrides), load_table(table), Path(out), episodes=episodes, seed=seed,
+                 device=device, caller_state=caller_state)
+    if run is None:  # finished already
+        return Path(out)
+    cfg, loop = run.cfg, run.loop
+    if not run.resume():
+        run.collector.reset()
+    log = _Log(run, progress)
+    epochs_this_call = 0
+    try:  # the writer's thread and the bar end with the loop, also when a checkpoint fails
+        while loop["episodes"] < cfg.episodes:
+            # act: epsilon-greedy over allowed actions; store finished episodes whole
+            log.eps = cfg.epsilon(loop["episodes"])
+            finished = run.collector.step(log.eps)
+            loop["env_steps"] += cfg.n_envs
+            if finished is not None:
+                run.replay.add(finished.scene, finished.views, finished.types, finished.ranges, finished.rewards,
+                               finished.lengths)
+                loop["episodes"] += int(finished.lengths.numel())
+                log.episodes_done(finished.returns.tolist())
+            # learn: updates_per_step gradient updates per batched step, on average
+            if len(run.replay) >= cfg.learning_starts:
+                loop["credit"] += cfg.updates_per_step
+                while loop["credit"] >= 1.0:
+                    loop["credit"] -= 1.0
+                    _update(run, log)
+            # epoch end: evaluate, log, checkpoint
+            if loop["episodes"] >= (loop["epoch"] + 1) * cfg.epoch_episodes or loop["episodes"] >= cfg.episodes:
+                epochs_this_call += 1
+                # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
+                stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
+                _end_epoch(run, log, stop)
+                if stop:
+                    break
+    finally:
+        log.close()
+    if loop["episodes"] >= cfg.episodes:
+        # the shareable policy (the network alone), then the mark that the run is finished
+        save_policy_file(RunDir(run.out).policy, run.net.state_dict(),
+                         RunDir(run.out).method.read_text(encoding="utf-8"), run.settings)
+        atomic_write_json(RunDir(run.out).done, {
+            "episodes": loop["episodes"], "env_steps": loop["env_steps"], "updates": run.learner.updates,
+            "wall_s": loop["wall"], "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else []},
+            sort_keys=True)
+    return run.out
+
+
+def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, seed: int, device: str,
+           caller_state: contextlib.ExitStack) -> _Run | None:
+    """Every setting checked, the run's parts built, then (only then) its settings and method
+    written; None for a finished run."""
     check_table_perception(spec.perception, table, spec.name)
     cfg = spec.train_config(seed=seed, **({"episodes": episodes} if episodes is not None else {}))
     env_cfg = spec.env
     cfg = cfg.resolve_gamma(env_cfg.gamma)  # one discount: env.gamma (train.gamma is deprecated)
     dev = resolve_device(device if device != "auto" else cfg.device)
-    out = Path(out)
-    state_name, head_name = spec.state.name, spec.head.name
     settings = {
         "method": spec.name, "spec_hash": spec.hash, "table_key": table.key,
         "table_path": str(table.path) if table.path else None, "feature_dim": table.feature_dim,
         "table_identity": table.perception_identity,
-        "seed": seed, "train": cfg.to_dict(), "env": env_cfg.to_dict(), "n_types": 7,
-        "n_ranges": env_cfg.max_range, "t_max": env_cfg.t_max, "state": state_name, "head": head_name,
+        "seed": seed, "train": cfg.to_dict(), "env": env_cfg.to_dict(), "n_types": N_TYPES,
+        "n_ranges": env_cfg.max_range, "t_max": env_cfg.t_max, "state": spec.state.name, "head": spec.head.name,
         "device": str(dev), "versions": _versions(),
     }
     if cfg.threads > 0:
@@ -168,27 +265,24 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     settings["threads"] = torch.get_num_threads()  # results depend on it: recorded, checked on resume
     check_run_dir(out, settings)
     if RunDir(out).finished:
-        return out
+        return None
     # a killed save's temp files (a checkpoint's is full size; the policy's ends .tmp.safetensors)
     remove_temporaries(out)
-
-    # -- seeding and setup (everything that can refuse the input, before the run directory
-    # is written: a table without the train or an eval split leaves no half-made run) --------
     # the network initialises from torch's global RNG (on the CPU, then moved); seeded here,
     # the caller's streams (the CPU's, the run's GPU's) restored after the run
+    seeds = RunSeeds.of(cfg.seed)
     caller_state.enter_context(torch.random.fork_rng(devices=[dev] if dev.type == "cuda" else []))
-    torch.random.default_generator.manual_seed(cfg.seed)
+    torch.random.default_generator.manual_seed(seeds.network)
     if dev.type == "cuda":
         with torch.cuda.device(dev):
-            torch.cuda.manual_seed(cfg.seed)
+            torch.cuda.manual_seed(seeds.network)
     # each component checked against its kind's rules (one line naming the broken one) before
-    # anything of the run is written
+    # anything of the run is written; a table without the train or an eval split is refused here too
     net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
-                           seed=cfg.seed + 1, sampling=cfg.replay_sampling, device=dev)
-    env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=cfg.seed + 2,
-                        features_dtype=torch.float16)
+                           seed=seeds.replay, sampling=cfg.replay_sampling, device=dev)
+    env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=seeds.env, features_dtype=torch.float16)
     lookup = FeatureLookup(env.tensors)
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
@@ -196,147 +290,89 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     # writes leaves a run that resumes (method.toml is rewritten on every call)
     atomic_write_json(RunDir(out).settings, settings, sort_keys=True)
     spec.save(RunDir(out).method)
-    act_gen = torch.Generator(device=dev)
-    act_gen.manual_seed(cfg.seed + 3)
-    n, tmax = cfg.n_envs, env_cfg.t_max
-    ar = torch.arange(n, device=dev)
-    # running episodes: views o_0..o_T, actions and rewards so far
-    ep_views = torch.zeros(n, tmax + 1, dtype=torch.int64, device=dev)
-    ep_type = torch.zeros(n, tmax, dtype=torch.int64, device=dev)
-    ep_range = torch.zeros(n, tmax, dtype=torch.int64, device=dev)
-    ep_reward = torch.zeros(n, tmax, dtype=torch.float32, device=dev)
-    hidden = net.initial_hidden(n, dev)
-    loop = {"episodes": 0, "env_steps": 0, "epoch": 0, "credit": 0.0, "wall": 0.0}
-    evals: list[dict[str, Any]] = []
-    ckpt_path = RunDir(out).checkpoint
-    if ckpt_path.is_file():
-        ck = load_checkpoint(ckpt_path, expect=settings)
-        net.load_state_dict(ck["net"])
-        learner.target.load_state_dict(ck["target"])
-        learner.optimizer.load_state_dict(ck["optimizer"])
-        learner.updates = int(ck["updates"])
-        replay.load_state_dict(ck["replay"])
-        env.load_state_dict(ck["env"])
-        act_gen.set_state(ck["act_rng"])
-        for name, tensor in (("ep_views", ep_views), ("ep_type", ep_type), ("ep_range", ep_range),
-                             ("ep_reward", ep_reward), ("hidden", hidden)):
-            tensor.copy_(ck[name])
-        loop.update(ck["loop"])
-        evals = json.loads(ck["evals"])
-        obs = env.observe()
-    else:
-        obs = env.reset()
+    collector = EpisodeCollector(env, net, seed=seeds.acting, device=dev)
+    return _Run(out, spec, cfg, settings, net, learner, replay, collector, lookup, evaluator)
 
-    def checkpoint() -> None:
-        save_checkpoint(ckpt_path, {
-            "meta": checkpoint_meta(settings), "net": net.state_dict(), "target": learner.target.state_dict(),
-            "optimizer": learner.optimizer.state_dict(), "updates": learner.updates,
-            "replay": replay.state_dict(), "env": env.state_dict(), "act_rng": act_gen.get_state(),
-            "ep_views": ep_views.cpu(), "ep_type": ep_type.cpu(), "ep_range": ep_range.cpu(),
-            "ep_reward": ep_reward.cpu(), "hidden": hidden.cpu(), "loop": dict(loop), "evals": json.dumps(evals),
-        })
 
-    from torch.utils.tensorboard import SummaryWriter
-    from tqdm.auto import tqdm
+def _update(run: _Run, log: _Log) -> None:
+    """One gradient update on a prioritised batch of replayed episodes."""
+    cfg = run.cfg
+    batch = run.replay.sample(cfg.batch_size, cfg.beta(run.loop["episodes"]))
+    log.loss, td = run.learner.update(batch, run.lookup)
+    run.replay.update_priorities(batch.index, td)
+    if run.learner.updates % cfg.target_update == 0:
+        run.learner.sync_target()
+    if run.learner.updates % TB_EVERY_UPDATES == 0:
+        log.update(cfg.epsilon(run.loop["episodes"]))
 
-    writer = SummaryWriter(str(RunDir(out).tensorboard))
-    if not loop["episodes"]:  # the run's settings, once, as TensorBoard's text and hparams
-        _log_settings(writer, settings)
-    bar = tqdm(total=cfg.episodes, initial=min(loop["episodes"], cfg.episodes), unit="ep",
-               desc=f"train {spec.name}", disable=not progress, dynamic_ncols=True)
-    recent: deque[float] = deque(maxlen=1000)
-    epochs_this_call = 0
-    t0 = time.perf_counter() - loop["wall"]
-    loss_val = float("nan")
 
-    # -- the loop -------------------------------------------------------------------------------
-    try:  # the writer's thread and the bar end with the loop, also when a checkpoint fails
-        while loop["episodes"] < cfg.episodes:
-            # act: epsilon-greedy over allowed actions; the GRU memory restarts at t = 0
-            t = obs["t"]
-            with torch.no_grad():
-                hidden = hidden * (t != 0)[:, None].to(hidden.dtype)
-                q, hidden = net.step(obs["features"], obs["box"], hidden)
-                a_type, a_range = net.head.greedy(q, obs["mask"])
-                eps = cfg.epsilon(loop["episodes"])
-                a_type, a_range = epsilon_greedy(a_type, a_range, obs["mask"], eps, act_gen)
-            ep_views[ar, t] = obs["view"]
-            ep_type[ar, t] = a_type
-            ep_range[ar, t] = a_range
-            scene = obs["scene"]
-            obs, reward, done, info = env.step(a_type, a_range)
-            ep_reward[ar, t] = reward
-            loop["env_steps"] += n
+def _end_epoch(run: _Run, log: _Log, stop: bool) -> None:
+    """Evaluate on each split, log, and checkpoint (every ``checkpoint_every`` epochs, at the
+    end, and when this call stops); none of it counts as training time."""
+    cfg, loop = run.cfg, run.loop
+    loop["epoch"] += 1
+    loop["wall"] = time.perf_counter() - log.t0
+    paused = time.perf_counter()
+    ret = log.epoch(loop)
+    if cfg.eval_splits:
+        for split, summary in run.evaluator(run.net).items():
+            row = {("eval_episodes" if k == "episodes" else k): v for k, v in summary.items()}
+            run.evals.append({"epoch": loop["epoch"], "episodes": loop["episodes"], "wall_s": loop["wall"],
+                              "split": split, **row})
+            log.evaluation(split, summary, loop["episodes"])
+        atomic_write(RunDir(run.out).evals, "".join(json.dumps(r, default=str) + "\n" for r in run.evals))
+    if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
+        run.save()
+    log.writer.flush()
+    log.bar.set_postfix(ret=f"{ret:.3f}", eps=f"{log.eps:.2f}", loss=f"{log.loss:.4f}")
+    log.t0 += time.perf_counter() - paused
 
-            # store finished episodes whole (at most T_max decisions, T_max + 1 views)
-            if bool(done.any()):
-                idx = done.nonzero()[:, 0]
-                ep_views[idx, t[idx] + 1] = info["final_view"][idx]
-                replay.add(scene[idx], ep_views[idx], ep_type[idx], ep_range[idx], ep_reward[idx], t[idx] + 1)
-                ep_reward[idx] = 0.0
-                k = int(idx.numel())
-                loop["episodes"] += k
-                recent.extend(info["final_return"][idx].tolist())
-                bar.update(k)
-                if progress and (loop["env_steps"] // n) % 50 == 0:
-                    bar.set_postfix(ret=f"{np.mean(recent):.3f}", eps=f"{cfg.epsilon(loop['episodes']):.2f}",
-                                    loss=f"{loss_val:.4f}", refresh=False)
 
-            # learn
-            if len(replay) >= cfg.learning_starts:
-                loop["credit"] += cfg.updates_per_step
-                while loop["credit"] >= 1.0:
-                    loop["credit"] -= 1.0
-                    batch = replay.sample(cfg.batch_size, cfg.beta(loop["episodes"]))
-                    loss_val, td = learner.update(batch, lookup)
-                    replay.update_priorities(batch.index, td)
-                    if learner.updates % cfg.target_update == 0:
-                        learner.sync_target()
-                    if learner.updates % TB_EVERY_UPDATES == 0:
-                        _log_update(writer, learner, loss_val, cfg.epsilon(loop["episodes"]),
-                                    loop["episodes"] / max(time.perf_counter() - t0, 1e-9))
+class _Log:
+    """The run's TensorBoard scalars and progress bar; ``t0`` is where training time counts from."""
 
-            # epoch end: evaluate, log, checkpoint
-            if loop["episodes"] >= (loop["epoch"] + 1) * cfg.epoch_episodes or loop["episodes"] >= cfg.episodes:
-                loop["epoch"] += 1
-                epochs_this_call += 1
-                loop["wall"] = time.perf_counter() - t0
-                paused = time.perf_counter()  # evaluation, logging and checkpoints are not training time
-                ret = float(np.mean(recent)) if recent else float("nan")
-                writer.add_scalar("train/recent_return", ret, loop["episodes"])
-                writer.add_scalar("train/epsilon", eps, loop["episodes"])
-                writer.add_scalar("train/loss", loss_val, loop["episodes"])
-                writer.add_scalar("train/episodes_per_s", loop["episodes"] / max(loop["wall"], 1e-9), loop["episodes"])
-                if cfg.eval_splits:
-                    for split, summary in evaluator(net).items():
-                        row = {("eval_episodes" if k == "episodes" else k): v for k, v in summary.items()}
-                        evals.append({"epoch": loop["epoch"], "episodes": loop["episodes"], "wall_s": loop["wall"],
-                                      "split": split, **row})
-                        for key, value in summary.items():
-                            if isinstance(value, int | float):
-                                writer.add_scalar(f"eval_{split}/{key}", value, loop["episodes"])
-                    atomic_write(RunDir(out).evals, "".join(json.dumps(r, default=str) + "\n" for r in evals))
-                # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
-                stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
-                if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
-                    checkpoint()
-                writer.flush()
-                bar.set_postfix(ret=f"{ret:.3f}", eps=f"{eps:.2f}", loss=f"{loss_val:.4f}")
-                t0 += time.perf_counter() - paused
-                if stop:
-                    break
-    finally:
-        bar.close()
-        writer.close()
-    if loop["episodes"] >= cfg.episodes:
-        # the shareable policy (the network alone), then the mark that the run is finished
-        save_policy_file(RunDir(out).policy, net.state_dict(), RunDir(out).method.read_text(encoding="utf-8"),
-                         settings)
-        atomic_write_json(RunDir(out).done, {"episodes": loop["episodes"], "env_steps": loop["env_steps"],
-                                             "updates": learner.updates, "wall_s": loop["wall"],
-                                             "final_eval": evals[-len(cfg.eval_splits):] if cfg.eval_splits else []},
-                          sort_keys=True)
-    return out
+    def __init__(self, run: _Run, progress: bool) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+        from tqdm.auto import tqdm
+
+        self.run, self.progress = run, progress
+        self.writer = SummaryWriter(str(RunDir(run.out).tensorboard))
+        if not run.loop["episodes"]:  # the run's settings, once, as TensorBoard's text and hparams
+            _log_settings(self.writer, run.settings)
+        self.bar = tqdm(total=run.cfg.episodes, initial=min(run.loop["episodes"], run.cfg.episodes), unit="ep",
+                        desc=f"train {run.spec.name}", disable=not progress, dynamic_ncols=True)
+        self.recent: deque[float] = deque(maxlen=1000)
+        self.t0 = time.perf_counter() - run.loop["wall"]
+        self.loss = float("nan")
+        self.eps = float("nan")
+
+    def episodes_done(self, returns: list[float]) -> None:
+        loop = self.run.loop
+        self.recent.extend(returns)
+        self.bar.update(len(returns))
+        if self.progress and (loop["env_steps"] // self.run.cfg.n_envs) % 50 == 0:
+            self.bar.set_postfix(ret=f"{np.mean(self.recent):.3f}", eps=f"{self.run.cfg.epsilon(loop['episodes']):.2f}",
+                                 loss=f"{self.loss:.4f}", refresh=False)
+
+    def update(self, eps: float) -> None:
+        _log_update(self.writer, self.run.learner, self.loss, eps,
+                    self.run.loop["episodes"] / max(time.perf_counter() - self.t0, 1e-9))
+
+    def epoch(self, loop: dict[str, Any]) -> float:
+        ret = float(np.mean(self.recent)) if self.recent else float("nan")
+        for key, value in (("recent_return", ret), ("epsilon", self.eps), ("loss", self.loss),
+                           ("episodes_per_s", loop["episodes"] / max(loop["wall"], 1e-9))):
+            self.writer.add_scalar(f"train/{key}", value, loop["episodes"])
+        return ret
+
+    def evaluation(self, split: str, summary: dict[str, Any], episodes: int) -> None:
+        for key, value in summary.items():
+            if isinstance(value, int | float):
+                self.writer.add_scalar(f"eval_{split}/{key}", value, episodes)
+
+    def close(self) -> None:
+        self.bar.close()
+        self.writer.close()
 
 
 def _log_update(writer: Any, learner: Learner, loss: float, eps: float, episodes_per_s: float) -> None:
