@@ -707,3 +707,31 @@ def test_an_edited_final_eval_or_baselines_cache_is_not_used(ablation, tmp_path)
     shutil.copy(baselines, tmp_path / "baselines.json")
     (tmp_path / "baselines.json").write_text(json.dumps(data))
     assert read_sealed_json(tmp_path / "baselines.json") is None  # the edit is seen
+
+
+def test_result_rows_state_the_reward_constants_the_run_recorded(ablation):
+    """results.csv's thre and C come from the run's own settings.json, not from the plan's
+    setting dict (two sources for one value): a row never states another value than its
+    run trained and was evaluated under."""
+    from uevavd.experiments.results import run_rows
+
+    job = next(j for j in ablation["jobs"] if j.method == "map")
+    recorded = json.loads((Path(job.out) / "settings.json").read_text())["env"]
+    rows = run_rows(job, {"thre": 0.9, "C": 0.5})
+    assert rows and {(r["thre"], r["C"]) for r in rows} == {(recorded["thre"], recorded["C"])}
+
+
+def test_a_plan_resolves_each_method_spec_once(tiny, monkeypatch):
+    import uevavd.experiments.plan as plan_module
+
+    plan = _plan(tiny, "specs-once")
+    calls = []
+    real = plan_module.load_method
+    monkeypatch.setattr(plan_module, "load_method", lambda *a, **k: calls.append(a) or real(*a, **k))
+    for _ in range(3):
+        assert plan.spec("map") is plan.spec("map", dict(plan_module.DEFAULT_SETTING))
+        plan.spec("ibe_map")
+    assert calls == [("map",), ("ibe_map",)]
+    import pickle
+
+    assert "_specs" not in pickle.loads(pickle.dumps(plan)).__dict__  # a worker gets the plan without them

@@ -9,7 +9,7 @@ from pathlib import Path
 from ..config import MethodSpec, load_method
 from ..policy.trainer import train
 from ..runtime import tune_malloc
-from .plan import Plan, method_overrides
+from .plan import Plan
 from .results import final_eval
 
 
@@ -44,7 +44,7 @@ def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
     jobs = []
     for m in plan.methods:
         for setting_name, setting in plan.settings(m):
-            spec = load_method(m, overrides=method_overrides(plan, m, setting))
+            spec = plan.spec(m, setting)
             spec_path = save_spec(spec, plan.out / "specs" / f"{m}-{setting_name}.toml")
             for r in plan.recognizers:
                 for seed in plan.seeds:

@@ -5,13 +5,14 @@ gives its runs."""
 from __future__ import annotations
 
 import copy
+import json
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import ConfigError, known_methods, load_method, parse_override
+from ..config import ConfigError, MethodSpec, known_methods, load_method, parse_override
 from ..config_rules import check_count
 from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
@@ -90,12 +91,24 @@ class Plan:
     #: (same train_605 images, same settings; :meth:`uevavd.zoo.Zoo.recognizer_for`)
     use_zoo: bool = True
 
+    def spec(self, method: str, setting: Mapping[str, Any] = DEFAULT_SETTING) -> MethodSpec:
+        """The resolved spec of ``method`` under ``setting`` (the preset's overrides, the
+        setting's keys, ``--episodes``), loaded once per plan: every stage reads this one."""
+        cache = self.__dict__.setdefault("_specs", {})
+        key = (method, json.dumps(dict(setting), sort_keys=True, default=str))
+        if key not in cache:
+            cache[key] = load_method(method, overrides=method_overrides(self, method, setting))
+        return cache[key]
+
+    def __getstate__(self) -> dict[str, Any]:  # a plan sent to a worker carries no resolved specs
+        return {k: v for k, v in self.__dict__.items() if k != "_specs"}
+
     def settings(self, method: str) -> list[tuple[str, dict[str, Any]]]:
         """(name, {thre, C[, swept key]}) of each setting this method runs: "default" plus the
         sweeps if it is a sweep method, and the number of training contexts (:data:`CONTEXTS_KEY`)
         whatever it is (one key varied at a time from the default)."""
         out = [("default", dict(DEFAULT_SETTING))]
-        spec = load_method(method, overrides=preset_overrides(self.preset)) if self.extra_sweeps else None
+        spec = self.spec(method) if self.extra_sweeps else None
         for key, values in self.sweeps.items():
             if method in self.sweep_methods or key == CONTEXTS_KEY:
                 for v in values:
@@ -319,5 +332,4 @@ def env_config(plan: Plan, setting: dict[str, float]):
     """The env config of a setting as the runs see it: the preset's ``env.*`` overrides (of
     the first method; env keys are shared) with the setting's thre and C. The baselines and
     the trajectories use it, so they are judged under the runs' own reward and horizon."""
-    spec = load_method(plan.methods[0], overrides=method_overrides(plan, plan.methods[0], setting))
-    return spec.env
+    return plan.spec(plan.methods[0], setting).env

@@ -19,7 +19,7 @@ from ..env.evaluate import evaluate_policy
 from ..policy.acting import load_policy
 from ..policy.rundir import RunDir, read_settings
 from ..table import ObservationTable
-from .plan import AblationError, Plan, env_config
+from .plan import SWEEPABLE, AblationError, Plan, env_config
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +144,8 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
     ``final=True``, at the run's last episode count)."""
     path = RunDir(job.out).evals
     rows = []
-    base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting, **setting}
+    base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting,
+            **recorded_setting(job, setting)}
     if path.is_file():
         for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
             if not line.strip():
@@ -165,6 +166,18 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
                          "eval_contexts": contexts_covered(summary), **metric_row(summary),
                          "wall_s": float(final["key"]["wall_s"])})
     return rows
+
+
+def recorded_setting(job: Job, setting: dict[str, Any]) -> dict[str, Any]:
+    """The setting's reward constants (thre, C) as the run recorded them in its
+    ``settings.json`` (the env config it trained and was evaluated under), so a row never
+    states another value than its run used; the plan's for a run not started yet, and for
+    the other swept keys (the results' columns of those hold each method's resolved value)."""
+    try:
+        env = read_settings(job.out).get("env") or {}
+    except (OSError, ValueError):
+        return dict(setting)
+    return {k: env.get(SWEEPABLE[k].partition(".")[2], v) if k in SWEEPABLE else v for k, v in setting.items()}
 
 
 def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], log

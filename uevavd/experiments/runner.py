@@ -11,18 +11,15 @@ import json
 from pathlib import Path
 
 from ..atomic import atomic_write_json
-from ..config import load_method
 from .audit import audit_table, classifier_summary
 from .backends import run_jobs
 from .io import write_csv
 from .jobs import Job, plan_jobs, run_job
 from .plan import (
-    DEFAULT_SETTING,
     AblationError,
     ConfigError,
     Plan,
     make_plan,
-    method_overrides,
     parse_sweeps,
     resolved_value,
 )
@@ -67,7 +64,7 @@ def perception_summary(plan: Plan) -> dict[str, str]:
     perception every method used."""
     out = {}
     for m in plan.methods:
-        p = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)).perception.as_dict()
+        p = plan.spec(m).perception.as_dict()
         enc, seg, clf = p.get("encoder", {}), p.get("segmenter", {}), p.get("classifier", {})
         out[m] = (f"encoder {enc.get('name')} ({enc.get('weights', 'default weights')}), segmenter "
                   f"{seg.get('name')}{', decomposed' if p.get('decompose') else ''}, recognizer {clf.get('name')}")
@@ -103,7 +100,7 @@ def _with_swept_columns(plan: Plan, rows: list[dict]) -> tuple[list[dict], list[
     extra = plan.extra_sweeps
     if not extra:
         return rows, RESULT_COLUMNS
-    resolved = {m: load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)) for m in plan.methods}
+    resolved = {m: plan.spec(m) for m in plan.methods}
     first = resolved[plan.methods[0]]
     defaults = {m: {k: resolved_value(resolved.get(m) or first, k) for k in extra}
                 for m in {*resolved, *(r["method"] for r in rows)}}

@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 from ..atomic import atomic_write
-from ..config import load_method
 from ..data.reader import read_dataset
 from ..data.splits import VALIDATION, resolve_split, split_of
 from ..data.synthetic import write_world
@@ -20,7 +19,7 @@ from ..perception.prepare_ray import prepare_table_ray
 from ..perception.training.classifier import ClassifierRecipe, train_classifier
 from ..presets import world_contexts, world_root
 from ..zoo import Zoo
-from .plan import DEFAULT_SETTING, AblationError, Plan, method_overrides
+from .plan import AblationError, Plan
 
 
 class Stage:
@@ -59,7 +58,7 @@ def _check_splits(plan: Plan, manifest) -> None:
     contexts failed only after the recognizer and the tables were made)."""
     needed = {"train"}
     for m in plan.methods:
-        for split in load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING)).train_config().eval_splits:
+        for split in plan.spec(m).train_config().eval_splits:
             needed.update(("train",) if split == VALIDATION else resolve_split(split))
     have = {split_of(c) for c in manifest.contexts()}
     missing = sorted(needed - have)
@@ -110,7 +109,7 @@ def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]
     tables: dict[str, Path] = {}
     by_perception: dict[str, Path] = {}
     for m in plan.methods:
-        spec = load_method(m, overrides=method_overrides(plan, m, DEFAULT_SETTING))
+        spec = plan.spec(m)
         key = json_digest(spec.perception.as_dict(), 12)
         if key not in by_perception and plan.backend == "ray":
             by_perception[key] = prepare_table_ray(data, spec, classifier_path=classifier, progress=True)
