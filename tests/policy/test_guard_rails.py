@@ -401,3 +401,24 @@ def test_a_flipped_bit_in_a_cached_recognizer_is_refused(tmp_path):
     _flip(copy, offset=_safetensors_data_start(copy) + 4099)
     with pytest.raises(WeightsError, match="recognizer.safetensors: damaged"):
         read_classifier_file(copy)
+
+
+def test_an_unfinished_run_resumes_only_on_the_kind_of_device_it_started_on(table, tmp_path, capsys, monkeypatch):
+    """The device changes a run's numbers: resumed on another kind, a run paused on a GPU
+    went on on the CPU and ended as no uninterrupted run would. (No GPU here: the run's
+    recorded device is set as a run started on one records it.)"""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    run = tmp_path / "run"
+    args = ["train", "--method", "map", "--table", str(path), "--episodes", "300", "--out", str(run),
+            "--no-progress", "--device", "cpu", *_sets()]
+    assert main([*args, "--max-epochs", "1"]) == 0
+    capsys.readouterr()
+    settings = json.loads((run / "settings.json").read_text())
+    (run / "settings.json").write_text(json.dumps({**settings, "device": "cuda:0"}))
+    assert main(args) == 2
+    _one_line(capsys, f"{run} was trained on cuda:0 so far; resuming it on cpu", "resume with --device cuda:0")
+    (run / "settings.json").write_text(json.dumps(settings))
+    assert main(args) == 0 and (run / "done.json").is_file()  # on its own device it resumes
+    (run / "settings.json").write_text(json.dumps({**settings, "device": "cuda:0"}))
+    assert main(args) == 0  # a finished run is finished on any device

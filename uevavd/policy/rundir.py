@@ -77,7 +77,8 @@ class RunDir:
         return self.done.is_file()
 
 
-#: Settings whose change makes a run directory another run (device and progress may change).
+#: Settings whose change makes a run directory another run (check_run_dir also refuses to resume an
+#: unfinished run on another kind of device; progress may change).
 RUN_KEYS = ("method", "spec_hash", "table_key", "seed", "train", "env", "feature_dim")
 
 
@@ -164,3 +165,10 @@ def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
     if diffs:
         raise RunDirError(f"{out} holds a run of another configuration ({'; '.join(diffs)}); "
                           "use another --out, or the same settings to resume it")
+    # the device changes a run's numbers (other kernels): an unfinished run resumes on the kind
+    # it started on, so that it ends as an uninterrupted run would (another GPU of the kind is fine)
+    was, now = str(old.get("device") or ""), str(settings.get("device") or "")
+    if was and now and was.split(":")[0] != now.split(":")[0] and not RunDir(out).finished:
+        raise RunDirError(f"{out} was trained on {was} so far; resuming it on {now} would go on with other "
+                          f"kernels, and the run would differ from an uninterrupted one: resume with --device {was}, "
+                          "or train on the other device into a new --out")

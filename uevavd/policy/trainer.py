@@ -166,10 +166,8 @@ class _Run:
         "episodes": 0, "env_steps": 0, "epoch": 0, "credit": 0.0, "wall": 0.0})
     evals: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
-    #: what a checkpoint holds beside the collector's state (CHECKPOINT_PARTS: name -> its owner)
-    CHECKPOINT_PARTS = ("net", "target", "optimizer", "replay")
-
     def parts(self) -> dict[str, Any]:
+        """What a checkpoint holds beside the collector's state and the counters, by key."""
         return {"net": self.net, "target": self.learner.target, "optimizer": self.learner.optimizer,
                 "replay": self.replay}
 
