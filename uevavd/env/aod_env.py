@@ -36,7 +36,6 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from gymnasium import spaces
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
 from ..data.splits import VALIDATION, first_per_block
@@ -45,8 +44,7 @@ from ..table import ObservationTable, TableError
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
 from .render import render_frame
-
-F16_MAX = float(np.finfo(np.float16).max)
+from .spaces import F16_MAX, action_masks, action_space, observation_space  # noqa: F401 (F16_MAX: importable from here as before)
 
 
 def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationTable:
@@ -185,17 +183,8 @@ class AODEnv(gym.Env):
         self._coords = view_coords(np.arange(N_VIEWS))  # (605, 3) float64 metres
         self._reco = cfg.recognized(self.table.true_class_probs())  # (S, 605) bool
         self._acc = self.table.argmax_correct()
-        d = self.table.feature_dim
-        self.observation_space = spaces.Dict(
-            {
-                # features are stored as float16: its finite range bounds them
-                "features": spaces.Box(-F16_MAX, F16_MAX, (d,), np.float32),
-                "box": spaces.Box(0.0, 1.0, (4,), np.float32),
-                "action_mask": spaces.Box(0, 1, (N_TYPES, cfg.max_range), np.int8),
-                "t": spaces.Discrete(cfg.t_max + 1),
-            }
-        )
-        self.action_space = spaces.MultiDiscrete([N_TYPES, cfg.max_range])
+        self.observation_space = observation_space(self.table.feature_dim, cfg)
+        self.action_space = action_space(cfg)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode={render_mode!r}: expected None or one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
@@ -342,8 +331,6 @@ class AODEnv(gym.Env):
         MultiDiscrete form: (7 + A,) bool, a type where any of its ranges is allowed, then
         every range (the joint (type, range) rule cannot be split per dimension; wrap the env
         in :class:`~uevavd.env.wrappers.DiscreteActions` for the exact joint mask)."""
-        from .vector import action_masks
-
         if self._done:
             raise RuntimeError("action_masks() on a finished episode: call reset() first")
         return action_masks(self._tr.mask[self._view][None], "multi")[0]

@@ -26,14 +26,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium import spaces
 from gymnasium.vector.utils import batch_space
 
-from ..data.grid import N_TYPES, STOP
-from .aod_env import AODEnv, integral_actions
+from ..data.grid import N_TYPES
+from .aod_env import integral_actions
 from .batched import BatchedAODEnv
 from .config import EnvConfig, make_config
 from .render import render_frame
+from .spaces import action_masks, action_space, observation_space
 
 ACTION_FORMS = ("multi", "flat")
 #: The single env's per-step info keys the vector env reports at every step (``info[key]`` of
@@ -76,19 +76,12 @@ class AODVectorEnv(gym.vector.VectorEnv):
         self.render_mode = render_mode
         cfg = make_config(config, **overrides)
         self._batched = BatchedAODEnv(table, split, num_envs, cfg, device=device, contexts=contexts)
-        single = AODEnv(self._batched.table, split, cfg, contexts=contexts)  # the spaces, one definition
         self.num_envs = num_envs
         self.actions = actions
         self._a = cfg.max_range
-        obs_space = single.observation_space
-        if actions == "flat":
-            obs_space = spaces.Dict({**obs_space.spaces,
-                                     "action_mask": spaces.Box(0, 1, (N_TYPES * self._a,), np.int8)})
-            self.single_action_space = spaces.Discrete(N_TYPES * self._a)
-        else:
-            self.single_action_space = single.action_space
-        self.single_observation_space = obs_space
-        self.observation_space = batch_space(obs_space, num_envs)
+        self.single_action_space = action_space(cfg, actions=actions)
+        self.single_observation_space = observation_space(self._batched.table.feature_dim, cfg, actions=actions)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.config = cfg
         self.table = self._batched.table
@@ -212,16 +205,6 @@ class AODVectorEnv(gym.vector.VectorEnv):
         for i in np.flatnonzero(done):
             out[i] = {k: v[i] for k, v in last.items()}
         return out
-
-
-def action_masks(mask: np.ndarray, actions: str) -> np.ndarray:
-    """(N, 7, A) allowed-action masks -> the form of the action space (see AODVectorEnv)."""
-    mask = np.asarray(mask, dtype=bool)
-    if actions == "flat":
-        return mask.reshape(mask.shape[0], -1)
-    types = mask.any(-1)
-    types[:, STOP] = True
-    return np.concatenate([types, np.ones((mask.shape[0], mask.shape[-1]), bool)], axis=1)
 
 
 def make_vector_env(table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,

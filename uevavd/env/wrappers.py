@@ -9,7 +9,7 @@ import numpy as np
 from gymnasium import spaces
 
 from ..data.grid import N_TYPES, unflat_action
-from .vector import action_masks
+from .spaces import action_masks
 
 
 class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
