@@ -101,24 +101,17 @@ _stop_event: Any = None
 _job_running = False
 
 
-def os_threads() -> int:
-    """Threads this process runs, native ones included (Linux counts them; elsewhere Python's)."""
-    try:
-        return len(os.listdir("/proc/self/task"))
-    except OSError:
-        return threading.active_count()
-
-
 def safe_context() -> Any:
-    """The start method for a pool whose caller named none: Python's default, except that
-    ``fork`` is taken only by a process running one thread. A fork copies the locks other
-    threads hold (tqdm's monitor, a Ray driver's native threads, pytest-xdist's I/O thread)
-    and the child can wait on one forever: a pool's worker forked beside an in-process Ray
-    driver hung the test suite. Elsewhere ``spawn`` (Python 3.14 no longer forks by default on
-    Linux either); a worker computes the same either way. A caller that needs fork passes
-    ``mp_context``."""
+    """The start method for a pool whose caller named none: Python's default, except that a
+    process that has imported Ray spawns its workers instead of forking them. A Ray driver's
+    native threads (gRPC, the core worker) outlive ``ray.shutdown()``, and a worker forked
+    beside them can wait forever on a lock one of them held at the fork: a pool's worker
+    forked after the Ray test hung the suite for 20 minutes. Other threads (numpy's BLAS
+    pool, which every process importing numpy runs, tqdm's monitor) are forked beside as
+    before, and a script without an ``if __name__ == "__main__"`` guard keeps working; a
+    worker computes the same either way. A caller that needs one method passes ``mp_context``."""
     ctx = multiprocessing.get_context()
-    if ctx.get_start_method() == "fork" and os_threads() > 1:
+    if ctx.get_start_method() == "fork" and "ray" in sys.modules:
         return multiprocessing.get_context("spawn")
     return ctx
 
