@@ -44,15 +44,8 @@ def _own_import(node: ast.AST) -> bool:
     return isinstance(node, ast.ImportFrom) and bool(node.level or (node.module or "").startswith("uevavd"))
 
 
-def test_no_module_level_import_cycle():
-    mods = _modules()
-    graph = {}
-    for name, (path, tree) in mods.items():
-        deps = set()
-        for node in tree.body:
-            if _own_import(node):
-                deps |= set(_target(mods, name, path, node))
-        graph[name] = deps - {name}
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The cycles a depth-first walk of ``graph`` (module -> the modules it imports) meets."""
     state: dict[str, int] = {}
     cycles: list[list[str]] = []
 
@@ -70,6 +63,19 @@ def test_no_module_level_import_cycle():
     for m in sorted(graph):
         if m not in state:
             visit(m, [])
+    return cycles
+
+
+def test_no_module_level_import_cycle():
+    mods = _modules()
+    graph = {}
+    for name, (path, tree) in mods.items():
+        deps = set()
+        for node in tree.body:
+            if _own_import(node):
+                deps |= set(_target(mods, name, path, node))
+        graph[name] = deps - {name}
+    cycles = _cycles(graph)
     assert not cycles, f"module-level import cycles: {cycles}"
 
 
@@ -138,21 +144,5 @@ def test_the_whole_import_graph_has_no_cycle_beside_the_written_lazy_edges():
             continue
         graph[name] = {t for node in _runtime_imports(tree) for t in _target(mods, name, path, node)
                        if t != name and (rel, node.module) not in MUTUAL}
-    cycles = []
-    state: dict[str, int] = {}
-
-    def visit(u: str, stack: list[str]) -> None:
-        state[u] = 1
-        stack.append(u)
-        for v in sorted(graph[u]):
-            if state.get(v) == 1:
-                cycles.append(stack[stack.index(v):] + [v])
-            elif v not in state:
-                visit(v, stack)
-        stack.pop()
-        state[u] = 2
-
-    for m in sorted(graph):
-        if m not in state:
-            visit(m, [])
+    cycles = _cycles(graph)
     assert not cycles, f"import cycles outside the written lazy edges: {cycles}"
