@@ -130,7 +130,9 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
         if est.recurrent:
             f3 = f.clone()
             f3[:, 0] += 5.0
-            _rule(not torch.allclose(est(f3, b)[:, -1], s[:, -1]), what,
+            with _calling(what, call):
+                s3 = est(f3, b)
+            _rule(not torch.allclose(s3[:, -1], s[:, -1]), what,
                   "recurrent = True but s_T ignores o_0; set recurrent = False for a single-view estimator")
 
 
