@@ -39,9 +39,9 @@ def main() -> None:
     tune_malloc()  # as `uevavd train` does (and every side measured here); UEVAVD_MALLOC_TUNING=0 turns it off
 
     from uevavd.config import load_method, parse_override
-    from uevavd.env.aod_env import load_table
     from uevavd.policy.checkpoint import load_checkpoint
     from uevavd.policy.trainer import train
+    from uevavd.table import load_table
 
     if args.table:
         table = load_table(args.table)

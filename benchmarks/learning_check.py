@@ -43,13 +43,13 @@ def main() -> int:
     tune_malloc()  # as `uevavd train` does (and every side measured here); UEVAVD_MALLOC_TUNING=0 turns it off
 
     from uevavd.config import load_method, parse_override
-    from uevavd.env.aod_env import load_table
     from uevavd.env.baselines import PassivePolicy, RandomPolicy
     from uevavd.env.config import EnvConfig
     from uevavd.env.evaluate import evaluate_policy
     from uevavd.env.oracle import OraclePolicy
     from uevavd.policy.acting import load_policy
     from uevavd.policy.trainer import train
+    from uevavd.table import load_table
 
     if args.toy:
         from uevavd.testing.policy import toy_table

@@ -63,11 +63,11 @@ def main() -> None:
     tune_malloc()  # as `uevavd train` does
 
     from uevavd.config import load_method, parse_override
-    from uevavd.env.aod_env import load_table
     from uevavd.env.baselines import reference_policies
     from uevavd.env.config import make_config
     from uevavd.env.evaluate import evaluate_policy
     from uevavd.experiments.plan import DEFAULT_SETTING, make_plan, method_overrides
+    from uevavd.table import load_table
 
     with tempfile.TemporaryDirectory(prefix="ttq-plan-") as out:  # the plan writes nothing there
         plan = make_plan(preset="quick", out=out, methods=["map", "memo_map"], seeds=1, recognizers=1)

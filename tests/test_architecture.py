@@ -10,6 +10,10 @@ import uevavd
 
 ROOT = Path(uevavd.__file__).resolve().parent
 MAX_LINES = 400
+#: modules that may run longer because one job needs them whole, with their own limit; their
+#: functions stay short instead (issue 40: a split made only for length leaks private names)
+ONE_JOB = {"table.py": 480}  # the observation table: build, check, select, save and load one contract
+ONE_JOB_FUNCTION_LINES = 50
 #: where an import of the package's own modules may sit inside a function, and why
 LAZY_MODULES = {"api.py", "info.py"}  # the lazy CLI and API
 MUTUAL = {  # a module and the one it uses lazily: the two use each other
@@ -80,9 +84,19 @@ def test_no_module_level_import_cycle():
 
 
 def test_no_module_over_the_limit():
-    long = {str(p.relative_to(ROOT)): n for p, _ in _modules().values()
-            if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_LINES}
-    assert not long, f"modules over {MAX_LINES} lines: {long}"
+    long = {rel: n for p, _ in _modules().values()
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > ONE_JOB.get(rel := str(p.relative_to(ROOT)),
+                                                                                   MAX_LINES)}
+    assert not long, f"modules over {MAX_LINES} lines (or their ONE_JOB limit): {long}"
+
+
+def test_a_longer_module_keeps_its_functions_short():
+    modules = {str(p.relative_to(ROOT)): tree for p, tree in _modules().values()}
+    assert set(ONE_JOB) <= set(modules), f"ONE_JOB names modules that do not exist: {set(ONE_JOB) - set(modules)}"
+    long = [f"{rel}:{fn.name} ({fn.end_lineno - fn.lineno + 1} lines)" for rel in ONE_JOB
+            for fn in ast.walk(modules[rel]) if isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef)
+            and fn.end_lineno - fn.lineno + 1 > ONE_JOB_FUNCTION_LINES]
+    assert not long, f"functions over {ONE_JOB_FUNCTION_LINES} lines in a module allowed to be longer: {long}"
 
 
 def test_function_level_own_imports_only_where_the_map_allows():

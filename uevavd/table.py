@@ -39,8 +39,9 @@ import numpy as np
 
 from .atomic import atomic_dir
 from .data.grid import N_VIEWS
-from .data.splits import SPLITS, TARGETS, resolve_split
+from .data.splits import SPLITS, TARGETS, VALIDATION, first_per_block, resolve_split
 from .hashing import file_sha256, json_digest
+from .paths import tables_dir
 
 SCHEMA_VERSION = 1
 ARRAYS = ("features", "probs", "boxes", "visible")
@@ -233,6 +234,59 @@ class ObservationTable:
         wanted = set(resolve_split(split))
         return np.array([i for i, s in enumerate(self.splits) if s in wanted], dtype=np.int64)
 
+    # -- selection --------------------------------------------------------------------------
+    def select(self, split: str, contexts: Any = None, *, train_per_block: int = 0) -> np.ndarray:
+        """(n,) int64 scene indices of ``split``, optionally only the given context ids: the
+        scenes an env, a trainer or an evaluation of that split serves.
+
+        ``train_per_block`` (``EnvConfig.train_per_block``; 0 = all) keeps of the split's
+        training contexts the first N of each block, by id; test contexts are never dropped.
+        ``split="validation"`` (:data:`~uevavd.data.splits.VALIDATION`) is the other training
+        contexts: those a run with this ``train_per_block`` never trains on.
+        Raises :class:`TableError` when the selection is empty (a table without contexts of
+        that split) or a block holds fewer than ``train_per_block`` training contexts, and
+        ``ValueError`` naming context ids that are not in the split.
+        """
+        idx = self._validation(train_per_block) if split == VALIDATION else self._trained(split, train_per_block)
+        if contexts is not None:
+            wanted = [int(c) for c in np.atleast_1d(np.asarray(contexts))]
+            have = {int(self.contexts[i]): int(i) for i in idx}
+            missing = [c for c in wanted if c not in have]
+            if missing:
+                raise ValueError(f"context(s) {missing} are not in split {split!r} of table {self.key!r}; "
+                                 f"its contexts there are {sorted(have)}")
+            idx = np.array([have[c] for c in wanted], dtype=np.int64)
+        if idx.size == 0:
+            raise TableError(f"table {self.key!r} has no scenes in split {split!r} (splits present: "
+                             f"{sorted(set(self.splits))}); build the table over contexts of that split")
+        return idx
+
+    def _trained(self, split: str, train_per_block: int) -> np.ndarray:
+        """The scenes of ``split``, its training contexts cut to the first ``train_per_block``
+        of each block (0 = all)."""
+        idx = self.scene_indices(split)
+        if not train_per_block:
+            return idx
+        is_train = np.asarray(self.splits)[idx] == "train"
+        try:
+            keep = set(first_per_block(self.contexts[idx[is_train]], train_per_block))
+        except ValueError as exc:
+            raise TableError(f"env.train_per_block = {train_per_block}: {exc} (table {self.key!r}); build "
+                             "the table over a world with more training contexts, or lower it") from None
+        return idx[~is_train | np.isin(self.contexts[idx], sorted(keep))]
+
+    def _validation(self, train_per_block: int) -> np.ndarray:
+        """The training scenes past the first ``train_per_block`` of each block."""
+        if not train_per_block:
+            raise TableError("split 'validation' is the training contexts a run leaves out of its training: set "
+                             "env.train_per_block (e.g. 16 of the 20 per block) to hold some out")
+        idx = self.scene_indices("train")
+        idx = idx[~np.isin(idx, self._trained("train", train_per_block))]
+        if idx.size == 0:
+            raise TableError(f"env.train_per_block = {train_per_block} leaves no training context of table "
+                             f"{self.key!r} out: nothing to validate on; lower it")
+        return idx
+
     def true_class_probs(self) -> np.ndarray:
         """(S, 605) float32: the recognizer's probability for each scene's true class, per
         view. Whether a view counts as recognised is the env's rule,
@@ -295,36 +349,7 @@ class ObservationTable:
         modification time against the record written by :meth:`save` (hashed and scanned
         only when those differ, or when the table has no record). :meth:`verify` checks all."""
         path = Path(path)
-        meta_path = path / META_FILE
-        if not meta_path.is_file():
-            raise TableError(
-                f"{path} is not an observation table (no {META_FILE}); build one with `uevavd prepare`"
-            )
-        try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except ValueError as exc:  # not JSON, or not UTF-8
-            raise TableError(f"{meta_path}: unreadable metadata ({exc}); rebuild the table") from None
-        if not isinstance(meta, dict):
-            raise TableError(f"{meta_path}: expected a JSON object; rebuild the table")
-        version = meta.get("schema_version")
-        if version != SCHEMA_VERSION:
-            raise TableError(
-                f"{path}: table schema version {version} but this uevavd reads version {SCHEMA_VERSION}; "
-                "rebuild it with `uevavd prepare`"
-            )
-        digest = meta.pop("meta_sha256", None)
-        if digest is None or digest != _meta_digest(meta):  # every table of this schema is written with one
-            raise TableError(f"{meta_path} was changed after the table was written (its scenes, targets, splits or "
-                             "config no longer match their checksum, or the checksum was removed): rebuild the "
-                             "table with `uevavd prepare`")
-        missing = [k for k in ("scenes", "contexts", "targets", "splits") if k not in meta]
-        if missing:
-            raise TableError(f"{meta_path}: no {', '.join(missing)}; rebuild the table with `uevavd prepare`")
-        if expect_key is not None and meta.get("key") != expect_key:
-            raise TableError(
-                f"{path}: table key {meta.get('key')} does not match the expected {expect_key} "
-                "(it was built from other inputs or another config); rebuild it"
-            )
+        meta = _read_meta(path, expect_key)
         arrays = {}
         for name in ARRAYS:
             f = path / f"{name}.npy"
@@ -348,9 +373,14 @@ class ObservationTable:
         )
         table.check(where=str(path), values=False)
         table._check_values(str(path), SMALL_ARRAYS)
-        records = meta.get("integrity", {}).get("files", {})
+        table._check_files()
+        return table
+
+    def _check_files(self) -> None:
+        """Each array file of a loaded table against the record :meth:`save` wrote with it."""
+        records = self.meta.get("integrity", {}).get("files", {})
         for name in ARRAYS:
-            f = path / f"{name}.npy"
+            f = self.path / f"{name}.npy"
             rec = records.get(f.name)
             if name in SMALL_ARRAYS:  # a few MB: their digest, on every load (values in range can be wrong)
                 if rec is not None and file_sha256(f) != rec["sha256"]:
@@ -368,11 +398,60 @@ class ObservationTable:
                 if st.st_mtime_ns == rec["mtime_ns"] and st.st_ctime_ns == rec.get("ctime_ns", st.st_ctime_ns):
                     continue
             # No record (an older table) or changed since written: scan it, then compare its hash.
-            table._check_values(str(path), (name,))
+            self._check_values(str(self.path), (name,))
             if rec is not None and file_sha256(f) != rec["sha256"]:
                 raise TableError(f"{f}: changed since the table was written (sha256 differs from {META_FILE}); "
                                  "rebuild the table, or write changed arrays with from_arrays(...).save()")
+
+
+def _read_meta(path: Path, expect_key: str | None) -> dict[str, Any]:
+    """A table folder's ``meta.json``, checked: its schema, its own digest, the per-scene keys
+    and (where given) the expected table key; its digest removed."""
+    meta_path = path / META_FILE
+    if not meta_path.is_file():
+        raise TableError(f"{path} is not an observation table (no {META_FILE}); build one with `uevavd prepare`")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except ValueError as exc:  # not JSON, or not UTF-8
+        raise TableError(f"{meta_path}: unreadable metadata ({exc}); rebuild the table") from None
+    if not isinstance(meta, dict):
+        raise TableError(f"{meta_path}: expected a JSON object; rebuild the table")
+    version = meta.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise TableError(f"{path}: table schema version {version} but this uevavd reads version {SCHEMA_VERSION}; "
+                         "rebuild it with `uevavd prepare`")
+    digest = meta.pop("meta_sha256", None)
+    if digest is None or digest != _meta_digest(meta):  # every table of this schema is written with one
+        raise TableError(f"{meta_path} was changed after the table was written (its scenes, targets, splits or "
+                         "config no longer match their checksum, or the checksum was removed): rebuild the "
+                         "table with `uevavd prepare`")
+    missing = [k for k in ("scenes", "contexts", "targets", "splits") if k not in meta]
+    if missing:
+        raise TableError(f"{meta_path}: no {', '.join(missing)}; rebuild the table with `uevavd prepare`")
+    if expect_key is not None and meta.get("key") != expect_key:
+        raise TableError(f"{path}: table key {meta.get('key')} does not match the expected {expect_key} "
+                         "(it was built from other inputs or another config); rebuild it")
+    return meta
+
+def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationTable:
+    """An :class:`ObservationTable`, or one loaded (and checked, NaN refused) from a folder, or
+    by its key from ``$UEVAVD_CACHE/tables`` where no such folder exists (a portable name:
+    Minari datasets' environment specs hold the key, not a machine's path)."""
+    if isinstance(table, ObservationTable):
         return table
+    if isinstance(table, str | os.PathLike):
+        path = Path(table)
+        if not path.exists() and len(path.parts) == 1 and (tables_dir() / path).is_dir():
+            path = tables_dir() / path
+        return ObservationTable.load(path)
+    raise TypeError(f"table={table!r}: expected an ObservationTable or the path of a table folder")
+
+
+def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, train_per_block: int = 0
+                  ) -> np.ndarray:
+    """``table.select(split, contexts, train_per_block=...)`` (:meth:`ObservationTable.select`),
+    for code written against ``uevavd.env.select_scenes``."""
+    return table.select(split, contexts, train_per_block=train_per_block)
 
 
 def _versions() -> dict[str, str]:

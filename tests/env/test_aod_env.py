@@ -231,6 +231,14 @@ def test_train_per_block_keeps_the_first_training_contexts_of_each_block():
         splits=["train"] * 5 + ["hard"] * 2)
     two = EnvConfig(train_per_block=2)
     assert sorted(t.contexts[AODEnv(t, "train", two).scenes]) == [1, 2, 31, 32]
+    # the rule is the table's own (issue 40): the env, the trainer and the evaluation ask it
+    assert sorted(t.contexts[t.select("train", train_per_block=2)]) == [1, 2, 31, 32]
+    assert sorted(t.contexts[t.select("validation", train_per_block=2)]) == [3]
+    assert t.select("train", [31, 2], train_per_block=2).tolist() == [3, 1]
+    with pytest.raises(ValueError, match=r"context\(s\) \[3\] are not in split 'train'"):
+        t.select("train", [3], train_per_block=2)
+    with pytest.raises(TableError, match="set env.train_per_block"):
+        t.select("validation")  # nothing held out
     assert sorted(AODEnv(t, "train").scenes.tolist()) == [0, 1, 2, 3, 4]  # 0: all
     assert sorted(EnvTensors(t, "train", EnvConfig(train_per_block=1)).contexts) == [1, 31]
     assert sorted(EnvTensors(t, "hard", EnvConfig(train_per_block=1)).contexts) == [26, 56]

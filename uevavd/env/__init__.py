@@ -27,8 +27,8 @@ ENV_ID = "uevavd/AOD-v0"
 
 _LAZY = {
     "AODEnv": "aod_env",
-    "load_table": "aod_env",
-    "select_scenes": "aod_env",
+    "load_table": ".table",  # one package up: the table layer
+    "select_scenes": ".table",
     "DiscreteActions": "wrappers",
     "BatchedAODEnv": "batched",
     "AODVectorEnv": "vector",

@@ -31,77 +31,17 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import os
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
-from ..data.splits import VALIDATION, first_per_block
-from ..paths import tables_dir
-from ..table import ObservationTable, TableError
+from ..table import ObservationTable, load_table
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
 from .render import render_frame
 from .spaces import F16_MAX, action_masks, action_space, observation_space  # noqa: F401 (F16_MAX: importable from here as before)
-
-
-def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationTable:
-    """An :class:`ObservationTable`, or one loaded (and checked, NaN refused) from a folder, or
-    by its key from ``$UEVAVD_CACHE/tables`` where no such folder exists (a portable name:
-    Minari datasets' environment specs hold the key, not a machine's path)."""
-    if isinstance(table, ObservationTable):
-        return table
-    if isinstance(table, str | os.PathLike):
-        path = Path(table)
-        if not path.exists() and len(path.parts) == 1 and (tables_dir() / path).is_dir():
-            path = tables_dir() / path
-        return ObservationTable.load(path)
-    raise TypeError(f"table={table!r}: expected an ObservationTable or the path of a table folder")
-
-
-def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, train_per_block: int = 0
-                  ) -> np.ndarray:
-    """(n,) int64 table scene indices of ``split``, optionally only the given context ids.
-
-    ``train_per_block`` (``EnvConfig.train_per_block``; 0 = all) keeps of the split's
-    training contexts the first N of each block, by id; test contexts are never dropped.
-    ``split="validation"`` (:data:`~uevavd.data.splits.VALIDATION`) is the other training
-    contexts: those a run with this ``train_per_block`` never trains on.
-    Raises :class:`TableError` when the selection is empty (a table without contexts of
-    that split) or a block holds fewer than ``train_per_block`` training contexts, and
-    ``ValueError`` naming context ids that are not in the split.
-    """
-    if split == VALIDATION:
-        idx = _validation_scenes(table, train_per_block)
-    else:
-        idx = table.scene_indices(split)
-        if train_per_block:
-            is_train = np.asarray(table.splits)[idx] == "train"
-            try:
-                keep = set(first_per_block(table.contexts[idx[is_train]], train_per_block))
-            except ValueError as exc:
-                raise TableError(f"env.train_per_block = {train_per_block}: {exc} (table {table.key!r}); build "
-                                 "the table over a world with more training contexts, or lower it") from None
-            idx = idx[~is_train | np.isin(table.contexts[idx], sorted(keep))]
-    if contexts is not None:
-        wanted = [int(c) for c in np.atleast_1d(np.asarray(contexts))]
-        have = {int(table.contexts[i]): int(i) for i in idx}
-        missing = [c for c in wanted if c not in have]
-        if missing:
-            raise ValueError(
-                f"context(s) {missing} are not in split {split!r} of table {table.key!r}; "
-                f"its contexts there are {sorted(have)}"
-            )
-        idx = np.array([have[c] for c in wanted], dtype=np.int64)
-    if idx.size == 0:
-        raise TableError(
-            f"table {table.key!r} has no scenes in split {split!r} (splits present: "
-            f"{sorted(set(table.splits))}); build the table over contexts of that split"
-        )
-    return idx
-
 
 #: ``info["visible"]`` where the data has no visible fraction (the real release).
 NO_VISIBLE = -1.0
@@ -130,19 +70,6 @@ def _int_option(options: dict[str, Any], name: str) -> int:
     if isinstance(value, bool | np.bool_) or not isinstance(value, int | np.integer):
         raise ValueError(f"reset option {name}={value!r}: expected an integer")
     return int(value)
-
-
-def _validation_scenes(table: ObservationTable, train_per_block: int) -> np.ndarray:
-    """The table's training scenes past the first ``train_per_block`` of each block."""
-    if not train_per_block:
-        raise TableError("split 'validation' is the training contexts a run leaves out of its training: set "
-                         "env.train_per_block (e.g. 16 of the 20 per block) to hold some out")
-    idx = table.scene_indices("train")
-    idx = idx[~np.isin(idx, select_scenes(table, "train", train_per_block=train_per_block))]
-    if idx.size == 0:
-        raise TableError(f"env.train_per_block = {train_per_block} leaves no training context of table "
-                         f"{table.key!r} out: nothing to validate on; lower it")
-    return idx
 
 
 class AODEnv(gym.Env):
@@ -177,7 +104,7 @@ class AODEnv(gym.Env):
         self.table = load_table(table)
         self.config = cfg = make_config(config, **overrides)
         self.split = split
-        self.scenes = select_scenes(self.table, split, contexts, train_per_block=cfg.train_per_block)
+        self.scenes = self.table.select(split, contexts, train_per_block=cfg.train_per_block)
         self._tr = transitions(cfg.max_range)
         self._mask_i8 = self._tr.mask.astype(np.int8)
         self._coords = view_coords(np.arange(N_VIEWS))  # (605, 3) float64 metres

@@ -30,8 +30,7 @@ import numpy as np
 import torch
 
 from ..data.grid import N_TYPES, N_VIEWS, STEP_M, STOP, transitions
-from ..table import ObservationTable
-from .aod_env import load_table, select_scenes
+from ..table import ObservationTable, load_table
 from .config import EnvConfig, make_config
 
 
@@ -60,7 +59,7 @@ class EnvTensors:
         dev = torch.device(device)
         self.device = dev
         self.config = config
-        sel = select_scenes(table, split, contexts, train_per_block=config.train_per_block)
+        sel = table.select(split, contexts, train_per_block=config.train_per_block)
         self.scenes = torch.as_tensor(sel, dtype=torch.int64, device=dev)
         local = np.full(len(table), -1, np.int64)
         local[sel] = np.arange(len(sel))

@@ -27,8 +27,7 @@ import torch
 
 from ..atomic import atomic_write, json_text
 from ..data.grid import N_VIEWS, STEP_M
-from ..table import ObservationTable
-from .aod_env import load_table
+from ..table import ObservationTable, load_table
 from .batched import EnvTensors
 from .config import EnvConfig, make_config
 

@@ -11,7 +11,7 @@ the baselines (``oracle``: the class-knowing oracle, ``visibility_oracle``, ``pa
 interface as in evaluation.
 
 Portable: the dataset's environment spec names the table by its key, not its path
-(``table="<key>"``, which :func:`~uevavd.env.aod_env.load_table` finds under
+(``table="<key>"``, which :func:`~uevavd.table.load_table` finds under
 ``$UEVAVD_CACHE/tables``), so ``minari.load_dataset(id).recover_environment()`` gives a working
 env on any machine whose cache holds the table (``uevavd prepare`` builds the same key from the
 same data and method), and the dataset itself loads anywhere. Needs ``minari`` (``pip install
@@ -31,7 +31,8 @@ import torch
 
 from ..config_rules import check_count
 from ..policy.acting import load_policy
-from .aod_env import AODEnv, load_table
+from ..table import load_table
+from .aod_env import AODEnv
 from .baselines import PassivePolicy, RandomPolicy
 from .config import EnvConfig
 from .oracle import OraclePolicy

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ..env.aod_env import load_table
 from ..perception.classifier import read_classifier_file
+from ..table import load_table
 from .report_data import md_table as _table
 
 #: Visible fraction at or above which a view counts as clear (the world's validity rule's).

@@ -8,13 +8,12 @@ from typing import Any
 
 import numpy as np
 
-from ..env.aod_env import load_table
 from ..env.baselines import RandomPolicy
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy
 from ..env.oracle import OraclePolicy
 from ..policy.acting import load_policy
-from ..table import ObservationTable
+from ..table import ObservationTable, load_table
 from .jobs import Job
 from .plan import DEFAULT_SETTING, Plan, env_config
 from .results import is_done

@@ -18,10 +18,9 @@ import torch
 
 from ..config import loads_method
 from ..data.grid import N_VIEWS, STOP
-from ..env.aod_env import load_table
 from ..env.config import EnvConfig, make_config
 from ..state.base import InputGateCache
-from ..table import ObservationTable
+from ..table import ObservationTable, load_table
 from . import targets as T
 from .checkpoint import ARCH_KEYS, check_policy_fits, load_checkpoint, load_net_state, read_policy_file
 from .network import QNetwork, build_network

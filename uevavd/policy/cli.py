@@ -22,7 +22,7 @@ def split_problem(table: Any, split: str, where: str) -> str | None:
     from ..data.splits import SPLIT_ALIASES, VALIDATION, resolve_split
 
     if split == VALIDATION:
-        return None  # the run's held-out training contexts: its env config says which (select_scenes)
+        return None  # the run's held-out training contexts: its env config says which (ObservationTable.select)
     present = {s: int(sum(1 for x in table.splits if x == s)) for s in dict.fromkeys(table.splits)}
     have = ", ".join(f"{s} ({n} contexts)" for s, n in present.items()) or "none"
     try:
@@ -179,10 +179,10 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from ..env.aod_env import load_table
     from ..env.baselines import reference_policies
     from ..env.config import make_config
     from ..env.evaluate import evaluate_policy
+    from ..table import load_table
     from .acting import load_policy
     from .rundir import read_settings
 

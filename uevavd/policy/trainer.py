@@ -27,12 +27,12 @@ import torch
 from ..atomic import atomic_write, atomic_write_json, remove_temporaries
 from ..config import ConfigError, MethodSpec, PerceptionSection
 from ..data.grid import N_TYPES
-from ..env.aod_env import load_table, select_scenes
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
 from ..perception.nets import resolve_device
 from ..runtime import torch_threads
+from ..table import load_table
 from .acting import GreedyPolicy
 from .checkpoint import (
     CheckpointError,
@@ -105,7 +105,7 @@ class _Evaluator:
         net.train()
         self.tensors = {}
         for split in cfg.eval_splits:
-            ctx = table.contexts[select_scenes(table, split, train_per_block=env_cfg.train_per_block)]
+            ctx = table.contexts[table.select(split, train_per_block=env_cfg.train_per_block)]
             if cfg.eval_contexts and cfg.eval_contexts < len(ctx):
                 ctx = ctx[np.linspace(0, len(ctx) - 1, cfg.eval_contexts).round().astype(int)]
             self.tensors[split] = EnvTensors(table, split, env_cfg, device=device, contexts=ctx,
