@@ -24,10 +24,12 @@ MUTUAL = {  # a module and the one it uses lazily: the two use each other
 OPTIONAL = {("experiments/references.py", "env.sb3")}  # Stable-Baselines3, only for --sb3
 
 
-def _modules() -> dict[str, tuple[Path, ast.Module]]:
+def _modules(root: Path = ROOT) -> dict[str, tuple[Path, ast.Module]]:
+    """Each module of the package at ``root`` (benchmarks/architecture_figures.py reads
+    another checkout's) by dotted name, with its path and syntax tree."""
     out = {}
-    for p in sorted(ROOT.rglob("*.py")):
-        rel = p.relative_to(ROOT.parent).with_suffix("")
+    for p in sorted(root.rglob("*.py")):
+        rel = p.relative_to(root.parent).with_suffix("")
         name = ".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)
         out[name] = (p, ast.parse(p.read_text(encoding="utf-8")))
     return out

@@ -285,7 +285,14 @@ def test_bad_presets_and_sweeps_are_refused(tmp_path):
     for key, message in (("gamma", "expected thre, C or a dotted key"), ("perception.gray_seed", "other tables"),
                          ("env.xi2", r"--sweep env.xi2='abc' for method 'map'.*wrong type")):
         with pytest.raises(AblationError, match=message):
-            make_plan(preset="quick", out=tmp_path / "s", methods=["map"], sweeps=parse_sweeps([f"{key}=abc"]))
+            make_plan(preset="quick", out=tmp_path / "s", methods=["map"], sweep_methods=["map"],
+                      sweeps=parse_sweeps([f"{key}=abc"]))
+    for kw, message in (({"episodes": 0}, r"with --episodes 0 for method 'map': .*train.episodes = 0"),
+                        ({"sweeps": {"train.lr": [float("inf")]}, "sweep_methods": ["map"]},
+                         r"--sweep train.lr=inf for method 'map'")):
+        with pytest.raises(AblationError, match=message):  # ranges, before anything is written (issue 42)
+            make_plan(preset="quick", out=tmp_path / "e", methods=["map"], **kw)
+    assert not (tmp_path / "e").exists()
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "bad"\n[world]\nseed = 0\nsize = 16\nper_block = { train = 1 }\n'
                    '[overrides]\n"train.episode" = 10\n')
@@ -721,17 +728,31 @@ def test_result_rows_state_the_reward_constants_the_run_recorded(ablation):
     assert rows and {(r["thre"], r["C"]) for r in rows} == {(recorded["thre"], recorded["C"])}
 
 
-def test_a_plan_resolves_each_method_spec_once(tiny, monkeypatch):
+def test_a_plan_resolves_each_method_spec_once(tiny, monkeypatch, tmp_path):
+    """make_plan resolves (and so checks) each (method, setting) it runs once; the stages,
+    the runs' spec files and the progress bar read those specs; a worker resolves its run's
+    spec once more, from the file (issue 40: 4 resolutions of one spec before)."""
+    import uevavd.experiments.jobs as jobs_module
     import uevavd.experiments.plan as plan_module
 
-    plan = _plan(tiny, "specs-once")
     calls = []
     real = plan_module.load_method
-    monkeypatch.setattr(plan_module, "load_method", lambda *a, **k: calls.append(a) or real(*a, **k))
+    counting = lambda *a, **k: calls.append(a[0]) or real(*a, **k)  # noqa: E731
+    monkeypatch.setattr(plan_module, "load_method", counting)
+    monkeypatch.setattr(jobs_module, "load_method", counting)
+    plan = _plan(tiny, "specs-once", sweeps={"thre": [0.4], "train.lr": [0.01]})
+    settings = {m: [name for name, _ in plan.settings(m)] for m in plan.methods}
+    assert settings == {"map": ["default"], "ibe_map": ["default", "thre=0.4", "train.lr=0.01"]}
+    assert sorted(calls) == ["ibe_map"] * 3 + ["map"]
     for _ in range(3):
         assert plan.spec("map") is plan.spec("map", dict(plan_module.DEFAULT_SETTING))
         plan.spec("ibe_map")
-    assert calls == [("map",), ("ibe_map",)]
+    fake_tables = {0: {m: tmp_path / "table" for m in plan.methods}}
+    plan.out = tmp_path / "out"
+    for _ in range(2):  # the second as a resumed ablation: the spec files are read, not resolved
+        jobs = plan_jobs(plan, fake_tables)
+    assert sorted(calls) == ["ibe_map"] * 3 + ["map"]
+    assert {j.episodes for j in jobs} == {plan.spec("map").train_config().episodes}
     import pickle
 
     assert "_specs" not in pickle.loads(pickle.dumps(plan)).__dict__  # a worker gets the plan without them

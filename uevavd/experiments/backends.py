@@ -18,7 +18,6 @@ from collections.abc import Callable, Sequence
 
 from tqdm import tqdm
 
-from ..config import load_method
 from ..policy.rundir import RunDir
 from ..runtime import WorkerPool
 from .jobs import Job, run_job
@@ -72,7 +71,7 @@ class RunsProgress:
 
     def __init__(self, jobs: Sequence[Job], *, every: float = 2.0, desc: str = "runs") -> None:
         self.jobs, self.desc, self.every = list(jobs), desc, every
-        self.episodes = {j.key: _episodes_asked(j) for j in self.jobs}
+        self.episodes = {j.key: j.episodes for j in self.jobs}
         self.ended: set[str] = set()
         self.bar = tqdm(total=sum(self.episodes.values()), unit="ep", unit_scale=True,
                         desc=self._desc(), dynamic_ncols=True)
@@ -109,10 +108,6 @@ class RunsProgress:
         self._stop.set()
         self._thread.join()
         self.bar.close()
-
-
-def _episodes_asked(job: Job) -> int:
-    return int(load_method(job.spec_path).train_config().episodes)
 
 
 def last_evaluation(job: Job) -> dict:

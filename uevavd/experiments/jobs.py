@@ -26,6 +26,7 @@ class Job:
     threads: int = 1  #: torch threads for a method that sets train.threads = 0 (cores // workers)
     device: str = "cpu"
     recognizer: int = 0  #: which recognizer (its training seed) the table's probabilities come from
+    episodes: int = 0  #: the episodes the run trains (its spec's train.episodes), for the progress bar
 
     @property
     def key(self) -> str:
@@ -35,7 +36,12 @@ class Job:
 def save_spec(spec: MethodSpec, path: Path) -> Path:
     """Write a run's resolved method spec for its workers, unless ``path`` already holds it
     (a resumed ablation leaves the file, and its time, as they were). Returns ``path``."""
-    if not path.is_file() or load_method(path).hash != spec.hash:
+    text = spec.to_toml()  # its hash in its first line: the same text is the same spec
+    try:
+        same = path.read_text(encoding="utf-8") == text
+    except (OSError, UnicodeDecodeError):
+        same = False
+    if not same:
         spec.save(path)
     return path
 
@@ -46,11 +52,12 @@ def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
         for setting_name, setting in plan.settings(m):
             spec = plan.spec(m, setting)
             spec_path = save_spec(spec, plan.out / "specs" / f"{m}-{setting_name}.toml")
+            episodes = int(spec.train_config().episodes)
             for r in plan.recognizers:
                 for seed in plan.seeds:
                     out = plan.out / "runs" / m / setting_name / f"rec{r}" / f"seed{seed}"
                     jobs.append(Job(m, setting_name, seed, str(spec_path), str(tables[r][m]), str(out),
-                                    device=plan.device, recognizer=r))
+                                    device=plan.device, recognizer=r, episodes=episodes))
     return jobs
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import ConfigError, MethodSpec, known_methods, load_method, parse_override
+from ..config import MethodSpec, known_methods, load_method, parse_override
 from ..config_rules import check_count
 from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
@@ -228,12 +228,6 @@ def make_plan(
         if key.split(".", 1)[0] not in ("env", "train", "state", "head") or "." not in key:
             raise AblationError(f"sweep over {key!r}: expected thre, C or a dotted key of a method's env, train, state "
                                 "or head section (perception keys would need other tables: run another ablation)")
-        for m in methods:
-            for v in values:
-                try:
-                    load_method(m, overrides={**preset_overrides(cfg), key: v})
-                except ConfigError as exc:
-                    raise AblationError(f"--sweep {key}={v!r} for method {m!r}: {exc}") from None
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
         sweep_methods = [m for m in abl.get("sweep_methods", [methods[-1]]) if m in methods]
     sweep_methods = list(sweep_methods)
@@ -262,12 +256,7 @@ def make_plan(
         ClassifierRecipe.from_preset(cfg)
     except ValueError as exc:
         raise AblationError(str(exc)) from None
-    for m in methods:
-        try:
-            load_method(m, overrides=preset_overrides(cfg))
-        except ConfigError as exc:
-            raise AblationError(f"preset {preset!r} [overrides] for method {m!r}: {exc}") from None
-    return Plan(
+    plan = Plan(
         preset=cfg,
         methods=methods,
         seeds=list(range(n_seeds)),
@@ -284,6 +273,25 @@ def make_plan(
         sb3=sb3_agents,
         use_zoo=bool(use_zoo),
     )
+    _resolve_specs(plan, preset)
+    return plan
+
+
+def _resolve_specs(plan: Plan, preset: str) -> None:
+    """Resolve (and so check, ranges included) every (method, setting) spec the plan runs, once,
+    before anything is written: the stages and the runs' spec files read these."""
+    for m in plan.methods:
+        setting = DEFAULT_SETTING
+        try:
+            for _, setting in plan.settings(m):
+                spec = plan.spec(m, setting)
+                spec.env, spec.train_config()  # their ranges (train.episodes >= 1, ...): load_method checks types
+        except ValueError as exc:  # ConfigError, EnvConfigError
+            swept = {k: v for k, v in setting.items() if k not in DEFAULT_SETTING or DEFAULT_SETTING[k] != v}
+            where = (", ".join(f"--sweep {k}={v!r}" for k, v in swept.items()) if swept
+                     else f"preset {preset!r} [overrides]" + (f" with --episodes {plan.episodes}"
+                                                              if plan.episodes is not None else ""))
+            raise AblationError(f"{where} for method {m!r}: {exc}") from None
 
 
 def with_context_axis(preset: dict[str, Any], values: Sequence[Any], *, from_data: bool) -> dict[str, Any]:

@@ -11,13 +11,13 @@ import json
 from pathlib import Path
 
 from ..atomic import atomic_write_json
+from ..config import ConfigError
 from .audit import audit_table, classifier_summary
 from .backends import run_jobs
 from .io import write_csv
 from .jobs import Job, plan_jobs, run_job
 from .plan import (
     AblationError,
-    ConfigError,
     Plan,
     make_plan,
     parse_sweeps,
