@@ -101,9 +101,15 @@ _stop_event: Any = None
 _job_running = False
 
 
+#: Libraries whose native threads make a fork unsafe once imported: Ray's driver, and JAX
+#: (which Minari's DataCollector imports; JAX itself warns that a fork beside it may deadlock).
+FORK_UNSAFE = ("ray", "jax")
+
+
 def safe_context() -> Any:
     """The start method for a pool whose caller named none: Python's default, except that a
-    process that has imported Ray spawns its workers instead of forking them. A Ray driver's
+    process that has imported Ray or JAX (:data:`FORK_UNSAFE`) spawns its workers instead of
+    forking them. A Ray driver's
     native threads (gRPC, the core worker) outlive ``ray.shutdown()``, and a worker forked
     beside them can wait forever on a lock one of them held at the fork: a pool's worker
     forked after the Ray test hung the suite for 20 minutes. Other threads (numpy's BLAS
@@ -111,7 +117,7 @@ def safe_context() -> Any:
     before, and a script without an ``if __name__ == "__main__"`` guard keeps working; a
     worker computes the same either way. A caller that needs one method passes ``mp_context``."""
     ctx = multiprocessing.get_context()
-    if ctx.get_start_method() == "fork" and "ray" in sys.modules:
+    if ctx.get_start_method() == "fork" and any(m in sys.modules for m in FORK_UNSAFE):
         return multiprocessing.get_context("spawn")
     return ctx
 

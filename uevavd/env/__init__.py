@@ -5,7 +5,8 @@ Public API (kept stable for ``uevavd.state`` / ``uevavd.policy``):
 * :class:`EnvConfig` - episode and reward constants (``[env]`` section of a method TOML)
 * :class:`AODEnv` - ``gymnasium.Env``, registered as ``"uevavd/AOD-v0"`` on import of
   this package (``gymnasium.make("uevavd/AOD-v0", table=..., split="train")``);
-  :class:`DiscreteActions` turns its ``MultiDiscrete([7, A])`` into ``Discrete(7 * A)``
+  :class:`DiscreteActions` turns its ``MultiDiscrete([7, A])`` into ``Discrete(7 * A)``;
+  :class:`MaskedFlatObservation` gives ``{"obs", "mask"}`` for libraries that read ``obs.mask``
 * :class:`BatchedAODEnv` - N episodes in lockstep as torch tensors, auto-reset
 * :func:`evaluate_policy` / :class:`EvalResult` - exhaustive evaluation (every context
   of a split x every start view), with :class:`RandomPolicy`, :class:`PassivePolicy`
@@ -30,6 +31,7 @@ _LAZY = {
     "load_table": ".table",  # one package up: the table layer
     "select_scenes": ".table",
     "DiscreteActions": "wrappers",
+    "MaskedFlatObservation": "wrappers",
     "BatchedAODEnv": "batched",
     "AODVectorEnv": "vector",
     "evaluate_policy": "evaluate",

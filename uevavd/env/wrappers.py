@@ -55,3 +55,28 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
         a_type, a_range = unflat_action(int(action), self._a)
         obs, reward, terminated, truncated, info = self.env.step(np.array([a_type, a_range], np.int64))
         return self._flat_obs(obs), reward, terminated, truncated, info
+
+
+class MaskedFlatObservation(gym.ObservationWrapper, gym.utils.RecordConstructorArgs):
+    """The observation as ``{"obs": flat float32 vector, "mask": (7 * A,) bool}`` over one
+    action index (:class:`DiscreteActions` is applied where the env has the joint action):
+    the convention of libraries that read an action mask from ``obs.mask`` (Tianshou's DQN
+    family masks its Q-values and its exploration with it). ``"obs"`` is Gymnasium's
+    ``flatten`` of the wrapped observation, the mask included, as
+    ``FlattenObservation(DiscreteActions(env))`` gives it."""
+
+    def __init__(self, env: gym.Env) -> None:
+        gym.utils.RecordConstructorArgs.__init__(self)
+        if isinstance(env.action_space, spaces.MultiDiscrete):
+            env = DiscreteActions(env)
+        gym.ObservationWrapper.__init__(self, env)
+        self._inner = env.observation_space
+        flat = spaces.flatten_space(self._inner)  # float64 (the one-hot of t): float32, as networks take it
+        self.observation_space = spaces.Dict({
+            "obs": spaces.Box(flat.low.astype(np.float32), flat.high.astype(np.float32), dtype=np.float32),
+            "mask": spaces.MultiBinary(int(env.action_space.n)),
+        })
+
+    def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
+        return {"obs": spaces.flatten(self._inner, observation).astype(np.float32),
+                "mask": np.asarray(observation["action_mask"], dtype=bool)}
