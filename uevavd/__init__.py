@@ -16,9 +16,10 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 #: The researcher's API (:mod:`uevavd.api`), importable from the top level.
-API = ("train_classifier", "build_table", "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained")
+API = ("train_classifier", "build_table", "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained",
+       "policy_network", "save_network")
 __all__ = ["__version__", "load_method", "load_preset", "MethodSpec", "registry", "train_classifier", "build_table",
-           "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained"]
+           "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained", "policy_network", "save_network"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from .api import (
@@ -27,6 +28,8 @@ if TYPE_CHECKING:  # pragma: no cover
         evaluate_pretrained,
         load_policy_file,
         load_run,
+        policy_network,
+        save_network,
         train,
         train_classifier,
     )

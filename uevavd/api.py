@@ -172,3 +172,19 @@ def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, method:
     from .policy.acting import load_policy_file as _load_policy_file
 
     return _load_policy_file(path, table=table, method=method, device=device)
+
+
+def policy_network(method: Any, table: Any):
+    """A fresh network of ``method`` for ``table``, to train with your own code (behaviour
+    cloning, say); see :func:`uevavd.policy.acting.policy_network`."""
+    from .policy.acting import policy_network as _policy_network
+
+    return _policy_network(method, table)
+
+
+def save_network(net: Any, path: str | os.PathLike[str], *, method: Any, table: Any) -> Path:
+    """Write a :func:`policy_network` as a policy file that :func:`load_policy_file` and
+    ``uevavd evaluate FILE --table TABLE`` read; see :func:`uevavd.policy.acting.save_network`."""
+    from .policy.acting import save_network as _save_network
+
+    return _save_network(net, path, method=method, table=table)

@@ -103,3 +103,57 @@ def test_minari_data_collector_records_infos_with_a_portable_spec(table, tmp_pat
     ds = env.create_dataset("uevavd/collected-v0", algorithm_name="random")
     assert ds.total_steps >= 40 and "return" in next(ds.iterate_episodes()).infos
     assert ds.spec.env_spec.kwargs["table"] == table.key
+
+
+def test_behaviour_cloning_on_an_oracle_dataset_is_evaluated_by_uevavd_evaluate(table, tmp_path, monkeypatch, capsys):
+    """docs/environment.md's example: the class-knowing oracle's episodes exported, a method's
+    network cloned on them with cross-entropy on both branches, written with save_network and
+    evaluated by `uevavd evaluate FILE --table` beside the baselines; a network of another
+    method is refused when saved, naming the tensors."""
+    import json
+
+    import torch
+
+    from uevavd.api import policy_network, save_network
+    from uevavd.cli import main
+    from uevavd.config import load_method
+
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    from uevavd.paths import tables_dir
+
+    folder = table.save(tables_dir() / table.key)
+    assert main(["export-minari", str(folder), "--split", "train", "--policy", "oracle", "--episodes", "60",
+                 "--id", "uevavd/bc-oracle-v0"]) == 0
+    small = {"state.input_dim": 64, "state.state_dim": 32, "head.hidden": 32}
+    method = load_method("map", overrides=small)
+    episodes = list(minari.load_dataset("uevavd/bc-oracle-v0").iterate_episodes())
+    x = torch.cat([torch.as_tensor(e.observations["features"][:-1]) for e in episodes]).float()
+    b = torch.cat([torch.as_tensor(e.observations["box"][:-1]) for e in episodes])
+    a = torch.cat([torch.as_tensor(e.actions) for e in episodes])
+    torch.manual_seed(0)
+    net = policy_network(method, folder)
+    opt = torch.optim.Adam(net.parameters(), 1e-2)
+    losses = []
+    for _ in range(150):
+        q_type, q_range = (q[:, 0] for q in net(x[:, None], b[:, None]))
+        loss = torch.nn.functional.cross_entropy(q_type, a[:, 0]) + torch.nn.functional.cross_entropy(q_range, a[:, 1])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss))
+    assert losses[-1] < 0.5 * losses[0]
+    path = save_network(net, tmp_path / "bc.safetensors", method=method, table=folder)
+    capsys.readouterr()
+    assert main(["evaluate", str(path), "--table", str(folder), "--split", "hard"]) == 0
+    out = capsys.readouterr().out
+    assert "bc " in out and "passive" in out and "oracle" in out
+    rows = json.loads((tmp_path / "bc.eval_hard.json").read_text())
+    assert {"bc", "passive", "random", "oracle"} <= set(rows)
+    gru = policy_network(load_method("ibe_map", overrides=small), folder)
+    with pytest.raises(ValueError, match="bc2.safetensors"):
+        save_network(gru, tmp_path / "bc2.safetensors", method=method, table=folder)
+    assert not (tmp_path / "bc2.safetensors").exists()
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main(["evaluate", str(path), "--split", "hard"]) == 2
+    assert "pass --table" in capsys.readouterr().err

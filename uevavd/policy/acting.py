@@ -3,6 +3,9 @@
 * :func:`epsilon_greedy` / :func:`random_actions` - exploration, written once.
 * :class:`GreedyPolicy` / :func:`load_policy` - a trained network as a policy for
   :func:`uevavd.env.evaluate.evaluate_policy` (``reset(n)``, ``act(obs)``).
+* :func:`policy_network` / :func:`save_network` - a method's network for a table, trained by
+  your own code (behaviour cloning on a Minari dataset), written as a policy file that
+  :func:`load_policy_file` and ``uevavd evaluate FILE --table T`` read.
 
 Action masks: the environment's (N, 7, A) mask marks moves that would be clamped at the
 grid's edge; the agent never picks a clamped move, greedily or at random.
@@ -16,13 +19,20 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import loads_method
+from ..config import as_method, loads_method
 from ..data.grid import N_VIEWS, STOP
 from ..env.config import EnvConfig, make_config
 from ..state.base import InputGateCache
 from ..table import ObservationTable, load_table
 from . import targets as T
-from .checkpoint import ARCH_KEYS, check_policy_fits, load_checkpoint, load_net_state, read_policy_file
+from .checkpoint import (
+    ARCH_KEYS,
+    check_policy_fits,
+    load_checkpoint,
+    load_net_state,
+    read_policy_file,
+    save_policy_file,
+)
 from .network import QNetwork, build_network
 from .rundir import RunDir, read_settings, run_spec
 
@@ -234,3 +244,24 @@ def load_policy_file(path: str | Path, *, table: Any = None, method: str | None 
     # a copy: the table is memory-mapped read-only
     features = None if table is None else torch.from_numpy(np.array(table.features))
     return GreedyPolicy(net, device=device, features=features), cfg
+
+
+def policy_network(method: Any, table: Any) -> QNetwork:
+    """A fresh network of ``method`` (a name, a TOML path or a MethodSpec) for ``table``'s
+    features and the method's action space: ``net(features (B, T, D), boxes (B, T, 4))``
+    gives the head's Q branches (the built-in head: type (B, T, 7) and range (B, T, A))."""
+    spec = as_method(method)
+    return build_network(spec.state, spec.head, load_table(table).feature_dim, n_ranges=spec.env.max_range)
+
+
+def save_network(net: QNetwork, path: str | Path, *, method: Any, table: Any) -> Path:
+    """Write ``net`` (a :func:`policy_network` of ``method``, trained however you like) as a
+    policy file for ``table``'s perception: what a finished run writes as
+    ``policy.safetensors``. A network of another architecture is refused here, naming the
+    tensors that differ, rather than when the file is read."""
+    spec, table = as_method(method), load_table(table)
+    load_net_state(policy_network(spec, table), net.state_dict(), path)  # the method's own shapes
+    settings = {"method": spec.name, "spec_hash": spec.hash, "table_key": table.key, "seed": None,
+                "table_identity": table.perception_identity, "feature_dim": table.feature_dim,
+                "env": spec.env.to_dict()}
+    return save_policy_file(path, net.state_dict(), spec.to_toml(), settings)

@@ -126,7 +126,9 @@ def add_train(p: argparse.ArgumentParser):
 
 
 def add_evaluate(p: argparse.ArgumentParser):
-    p.add_argument("run_dir", type=Path, nargs="?", default=None, help="training run directory")
+    p.add_argument("run_dir", type=Path, nargs="?", default=None, metavar="RUN_DIR_OR_POLICY",
+                   help="training run directory, or a policy file (.safetensors: a finished run's "
+                        "policy.safetensors, or one written by uevavd.save_network) with --table")
     p.add_argument("--pretrained", default=None, metavar="METHOD",
                    help="evaluate the model zoo's policy of METHOD (map, memo_map, ibe_map) instead of a run: "
                         "generates the quick world's contexts of --split, builds their table with the shipped "
@@ -135,8 +137,10 @@ def add_evaluate(p: argparse.ArgumentParser):
                    help="train, simple, hard or test (simple + hard); the table must hold contexts of it")
     p.add_argument("--workers", type=int, default=None, help="--pretrained: processes for world generation "
                                                               "(default: the number of cores)")
-    p.add_argument("--table", type=Path, default=None, help="observation table (default: the run's)")
-    p.add_argument("--json", type=Path, default=None, help="output JSON (default RUN_DIR/eval_<split>.json)")
+    p.add_argument("--table", type=Path, default=None,
+                   help="observation table (default: the run's; a policy file needs one of its perception config)")
+    p.add_argument("--json", type=Path, default=None,
+                   help="output JSON (default RUN_DIR/eval_<split>.json, or POLICY.eval_<split>.json)")
     p.add_argument("--device", default="cpu")
 
     def run(args: argparse.Namespace) -> int:
@@ -179,15 +183,14 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from ..env.baselines import reference_policies
     from ..env.config import make_config
-    from ..env.evaluate import evaluate_policy
-    from ..table import load_table
     from .acting import load_policy
     from .rundir import read_settings
 
+    if args.run_dir.is_file():
+        return _evaluate_file(args)
     if not RunDir(args.run_dir).settings.is_file():
-        return _error("evaluate", f"{args.run_dir} is not a training run (no settings.json)")
+        return _error("evaluate", f"{args.run_dir} is not a training run (no settings.json) nor a policy file")
     try:
         settings = read_settings(args.run_dir)
     except ValueError as exc:
@@ -195,27 +198,55 @@ def _evaluate(args: argparse.Namespace) -> int:
     table_path = args.table or settings.get("table_path")
     if not table_path:
         return _error("evaluate", "the run names no table folder; pass --table")
-    problem = _table_problem(Path(table_path))
-    if problem:
-        return _error("evaluate", problem)
-    table = load_table(table_path)
+    table = _split_table(Path(table_path), args.split)
+    if isinstance(table, str):
+        return _error("evaluate", table)
     if table.key != settings["table_key"]:
         return _error("evaluate", f"table {table_path} has key {table.key} but the run was trained on "
                                   f"{settings['table_key']}; pass the run's table with --table")
-    problem = split_problem(table, args.split, f"table {table_path}")
+    policy = load_policy(args.run_dir, device=args.device)
+    return _print_beside_baselines(args, table, settings["method"], policy, make_config(settings["env"]),
+                                   args.json or args.run_dir / f"eval_{args.split}.json")
+
+
+def _evaluate_file(args: argparse.Namespace) -> int:
+    """A policy file (``save_network``'s, a run's ``policy.safetensors``) on ``--table``."""
+    from .acting import load_policy_file
+
+    if args.table is None:
+        return _error("evaluate", f"{args.run_dir} is a policy file, which names no table folder: pass --table (a "
+                                  "table of the perception config it was trained for)")
+    table = _split_table(args.table, args.split)
+    if isinstance(table, str):
+        return _error("evaluate", table)
+    policy, cfg = load_policy_file(args.run_dir, table=table, device=args.device)
+    out = args.json or args.run_dir.with_name(f"{args.run_dir.stem}.eval_{args.split}.json")
+    return _print_beside_baselines(args, table, args.run_dir.stem, policy, cfg, out)
+
+
+def _split_table(path: Path, split: str) -> Any:
+    """The table at ``path`` when ``split`` can be evaluated on it, else why not (a str)."""
+    from ..table import load_table
+
+    problem = _table_problem(path)
     if problem:
-        return _error("evaluate", problem)
-    cfg = make_config(settings["env"])
-    policies = {settings["method"]: load_policy(args.run_dir, device=args.device), **reference_policies(table, cfg)}
-    results = {name: evaluate_policy(table, args.split, pol, cfg, device=args.device)
-               for name, pol in policies.items()}
+        return problem
+    table = load_table(path)
+    return split_problem(table, split, f"table {path}") or table
+
+
+def _print_beside_baselines(args: argparse.Namespace, table: Any, name: str, policy: Any, cfg: Any, out: Path) -> int:
+    from ..env.baselines import reference_policies
+    from ..env.evaluate import evaluate_policy
+
+    policies = {name: policy, **reference_policies(table, cfg)}
+    results = {n: evaluate_policy(table, args.split, pol, cfg, device=args.device) for n, pol in policies.items()}
     cols = ["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"]
     print(f"{args.run_dir} on split {args.split!r} ({len(next(iter(results.values())))} episodes)")
     print(f"{'policy':<18}" + "".join(f"{c:>18}" for c in cols))
-    for name, res in results.items():
-        s = res.summary()
-        print(f"{name:<18}" + "".join(f"{s[c]:>18.4f}" for c in cols))
-    path = args.json or args.run_dir / f"eval_{args.split}.json"
-    atomic_write_json(path, {name: res.to_dict() for name, res in results.items()}, sort_keys=True)
-    print(f"wrote {path}")
+    for n, res in results.items():
+        summary = res.summary()
+        print(f"{n:<18}" + "".join(f"{summary[c]:>18.4f}" for c in cols))
+    atomic_write_json(out, {n: res.to_dict() for n, res in results.items()}, sort_keys=True)
+    print(f"wrote {out}")
     return 0
