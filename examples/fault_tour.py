@@ -1,5 +1,6 @@
 """A tour of user mistakes and damaged files through the CLI (docs/faults.md): prints, for
-each fault, the exit status and the line the user reads.
+each fault, the exit status and the line the user reads (issue 14's cases, then issue 42's:
+flipped bits in a checkpoint and a policy file, an edited table, values out of range).
 
     python examples/fault_tour.py
 """
@@ -63,7 +64,49 @@ toy = toy_table(n_train=2, n_hard=1, feature_dim=8)  # the same table, recorded 
 quick = load_method("map", preset_overrides(load_preset("quick"))).perception.as_dict()
 quick_table = ObservationTable.from_arrays(toy.features, toy.probs, toy.boxes, scenes=toy.scenes, targets=toy.targets,
                                            splits=toy.splits, config={"perception": quick}).save(W / "quick_table")
+# issue 42's damaged artefacts, each copied from the finished run and the table above
+def flip(path: Path, at: float) -> None:
+    data = bytearray(path.read_bytes())
+    data[int(len(data) * at)] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+run4 = W / "run4"
+shutil.copytree(W / "run", run4)
+(run4 / "done.json").unlink()
+flip(run4 / "checkpoint.pt", 0.3)
+flipped_policy = W / "flipped.safetensors"
+shutil.copy(W / "run" / "policy.safetensors", flipped_policy)
+flip(flipped_policy, 0.9)
+edited = W / "edited_table"
+shutil.copytree(table, edited)
+visible = __import__("numpy").load(edited / "visible.npy")
+visible[0, 0] = 7.0
+__import__("numpy").save(edited / "visible.npy", visible)
+run5 = W / "run5"
+shutil.copytree(W / "run", run5)
+(run5 / "settings.json").write_text("[1, 2]")
+(W / "loops").mkdir()
+os.symlink(".", W / "loops" / "a")
+os.symlink("a", W / "loops" / "027")
 cases = [
+ ("resuming from a checkpoint with one flipped bit", ["train", "--method", "map", "--table", table, "--out", run4, "--episodes", 100, "--no-progress", "--device", "cpu", *SMALL]),
+ ("evaluate a policy file with one flipped bit", ["evaluate", flipped_policy, "--table", table, "--split", "hard"]),
+ ("evaluate on a table whose visible.npy was edited", ["evaluate", W / "run", "--table", edited, "--split", "hard"]),
+ ("train on a run folder whose settings.json is a JSON list", ["train", "--method", "map", "--table", table, "--out", run5, "--episodes", 100, *SMALL]),
+ ("an infinite learning rate", ["train", "--method", "map", "--table", table, "--out", W / "r8", "--set", "train.lr=inf"]),
+ ("a head with zero hidden units", ["train", "--method", "map", "--table", table, "--out", W / "r9", "--set", "head.hidden=0"]),
+ ("a negative state size", ["train", "--method", "map", "--table", table, "--out", W / "r10", "--set", "state.state_dim=-4"]),
+ ("a seed of 1e20", ["train", "--method", "map", "--table", table, "--out", W / "r11", "--seed", "1e20"]),
+ ("--max-epochs 0", ["train", "--method", "map", "--table", table, "--out", W / "r12", "--max-epochs", 0]),
+ ("synth with seed -1", ["synth", "--out", W / "s3", "--seed", -1, "--contexts", 1]),
+ ("synth with an empty context list", ["synth", "--out", W / "s4", "--contexts", ""]),
+ ("synth with 1000 workers for one scene", ["synth", "--out", W / "s5", "--contexts", 1, "--size", 16, "--workers", 1000]),
+ ("prepare with --threads -2", ["prepare", world, "--method", "map", "--threads", -2]),
+ ("prepare on a root holding two self-links", ["prepare", W / "loops", "--method", "map"]),
+ ("ablate --sweep thre on a method the preset does not sweep", ["ablate", "--methods", "map", "--sweep", "thre=0.4", "--out", W / "a5"]),
+ ("ablate --episodes 0", ["ablate", "--methods", "map", "--episodes", 0, "--out", W / "a6"]),
+ ("ablate with a billion seeds", ["ablate", "--seeds", 1000000000, "--out", W / "a7"]),
  ("a table folder that does not exist", ["train", "--method", "map", "--table", W / "nope", "--out", W / "r1"]),
  ("an unknown method", ["train", "--method", "mapp", "--table", table, "--out", W / "r2"]),
  ("a method file with a misspelled key", ["train", "--method", bad_toml, "--table", table, "--out", W / "r3"]),

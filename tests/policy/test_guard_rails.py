@@ -210,9 +210,14 @@ def test_a_corrupt_settings_json_is_named(table, tmp_path, capsys, monkeypatch):
     assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(run),
                  "--no-progress", "--device", "cpu", *_sets()]) == 0
     capsys.readouterr()
-    (run / "settings.json").write_text("{not json")
-    assert main(["evaluate", str(run), "--split", "hard"]) == 2
-    _one_line(capsys, f"{run / 'settings.json'}: unreadable")
+    for damaged, line in (("{not json", "unreadable"), ("[1, 2]", "not a uevavd run's settings")):
+        (run / "settings.json").write_text(damaged)
+        assert main(["evaluate", str(run), "--split", "hard"]) == 2
+        _one_line(capsys, f"{run / 'settings.json'}: {line}")
+        # a rerun of train on it (a resume) names the file too: a JSON list was a TypeError
+        assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(run),
+                     "--no-progress", "--device", "cpu", *_sets()]) == 2
+        _one_line(capsys, f"{run / 'settings.json'}: {line}")
 
 
 def test_a_killed_saves_temp_file_is_removed_on_resume(table, tmp_path):

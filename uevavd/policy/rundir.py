@@ -151,8 +151,7 @@ def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
         if out.exists() and any(p not in unstarted for p in out.iterdir()):
             raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
         return
-    old = json.loads(path.read_text(encoding="utf-8"))
-    old = with_legacy_settings(old)
+    old = with_legacy_settings(read_settings(out))  # a damaged file is named, as evaluate names it
     diffs = []
     for k in RUN_KEYS:
         if old.get(k) != settings.get(k):
