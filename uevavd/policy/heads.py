@@ -8,12 +8,13 @@ float32; masks: (..., 7, A) bool from the environment.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
 from torch import nn
 
-from ..config_rules import check_widths
+from ..config_rules import ConfigError, check_widths
 from . import targets as T
 
 
@@ -93,6 +94,52 @@ class JointDuelingHead(nn.Module):
         return torch.ones(*a_type.shape, 1, device=a_type.device)
 
 
+class EnsembleBranchingHead(nn.Module):
+    """``members`` two-channel dueling heads on one state (issue 38: an ensemble for acting).
+
+    Each member learns its own double-DQN target (its own greedy next action, valued by its own
+    target copy), so the members differ only by their initial weights and agree where the data
+    pins the values down. The ensemble acts greedily on each branch's ``mean - kappa * std``
+    over the members: ``kappa > 0`` prefers actions the members agree are good (on an unfamiliar
+    context they disagree, and a flight there costs), ``kappa = 0`` acts on the mean, ``kappa < 0``
+    on an optimistic bound (EDE's exploration where the members disagree)."""
+
+    def __init__(self, state_dim: int, hidden: int, n_types: int, n_ranges: int, td_target: str, members: int,
+                 kappa: float) -> None:
+        super().__init__()
+        self.state_dim, self.n_types, self.n_ranges, self.kappa = state_dim, n_types, n_ranges, kappa
+        self.members = nn.ModuleList(BranchingDuelingHead(state_dim, hidden, n_types, n_ranges, td_target)
+                                     for _ in range(members))
+        self.n_branches = 2 * members
+
+    def forward(self, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return tuple(q for member in self.members for q in member(s))
+
+    def _bound(self, q: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each branch's ``mean - kappa * std`` over the members (population std)."""
+        out = []
+        for branch in (torch.stack(q[0::2]), torch.stack(q[1::2])):
+            mean = branch.mean(0)
+            out.append(mean - self.kappa * branch.std(0, correction=0) if self.kappa else mean)
+        return out[0], out[1]
+
+    def greedy(self, q: tuple[torch.Tensor, ...], mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        return T.branch_greedy(*self._bound(q), mask)
+
+    def taken(self, q: tuple[torch.Tensor, ...], a_type: torch.Tensor, a_range: torch.Tensor) -> torch.Tensor:
+        """(..., 2 * members): each member's Q_type(s, a_type), Q_range(s, a_range)."""
+        return torch.cat([m.taken(q[2 * i:2 * i + 2], a_type, a_range) for i, m in enumerate(self.members)], -1)
+
+    def bootstrap(
+        self, q_online: tuple[torch.Tensor, ...], q_target: tuple[torch.Tensor, ...], mask: torch.Tensor | None
+    ) -> torch.Tensor:
+        return torch.cat([m.bootstrap(q_online[2 * i:2 * i + 2], q_target[2 * i:2 * i + 2], mask)
+                          for i, m in enumerate(self.members)], -1)
+
+    def weights(self, a_type: torch.Tensor) -> torch.Tensor:
+        return T.branch_weights(a_type).repeat(*([1] * a_type.dim()), len(self.members))
+
+
 def build_branching_dueling(
     *,
     state_dim: int = 512,
@@ -112,3 +159,22 @@ def build_joint_dueling(
     """Dueling head over the 28 joint (type, range) actions."""
     check_widths("head", state_dim=state_dim, hidden=hidden)
     return JointDuelingHead(state_dim, hidden, n_types, n_ranges)
+
+
+def build_ensemble_branching(
+    *,
+    state_dim: int = 512,
+    hidden: int = 256,
+    n_types: int = 7,
+    n_ranges: int = 4,
+    td_target: Literal["mean", "indep"] = "mean",
+    members: int = 5,
+    kappa: float = 1.0,
+) -> EnsembleBranchingHead:
+    """``members`` two-channel dueling heads acting on ``mean - kappa * std`` of their Q-values."""
+    check_widths("head", state_dim=state_dim, hidden=hidden)
+    if isinstance(members, bool) or not isinstance(members, int) or not 2 <= members <= 32:
+        raise ConfigError(f"head.members = {members!r}: expected an integer in 2..32")
+    if isinstance(kappa, bool) or not isinstance(kappa, int | float) or not math.isfinite(kappa):
+        raise ConfigError(f"head.kappa = {kappa!r}: expected a finite number (0: act on the members' mean)")
+    return EnsembleBranchingHead(state_dim, hidden, n_types, n_ranges, td_target, members, float(kappa))

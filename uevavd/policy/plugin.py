@@ -11,3 +11,5 @@ def register_heads(registry):
                  summary="Two-channel dueling head (type 7, range 4), shared value stream")
     registry.add("dueling_joint", "uevavd.policy.heads:build_joint_dueling",
                  summary="Joint 28-way dueling head over (type, range)")
+    registry.add("ensemble_branch", "uevavd.policy.heads:build_ensemble_branching",
+                 summary="Ensemble of two-channel dueling heads acting on mean - kappa * std (issue 38)")
