@@ -756,3 +756,16 @@ def test_a_plan_resolves_each_method_spec_once(tiny, monkeypatch, tmp_path):
     import pickle
 
     assert "_specs" not in pickle.loads(pickle.dumps(plan)).__dict__  # a worker gets the plan without them
+
+
+def test_the_baselines_env_of_a_setting_that_sweeps_another_methods_head(tmp_path):
+    """A swept head key of the second method only (ibe_map_ens's head.kappa) failed the
+    evaluation stage after every run had trained: the baselines' env config resolved the
+    setting on the first method, whose head has no such key."""
+    from uevavd.experiments.plan import env_config
+
+    plan = make_plan(preset="quick", out=tmp_path / "k", methods=["ibe_map", "ibe_map_ens"],
+                     sweep_methods=["ibe_map_ens"], sweeps={"head.kappa": [0.0], "env.xi2": [0.2]})
+    settings = dict(plan.all_settings())
+    assert env_config(plan, settings["head.kappa=0"]) == env_config(plan, settings["default"])
+    assert env_config(plan, settings["env.xi2=0.2"]).xi2 == 0.2

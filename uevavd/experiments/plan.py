@@ -339,5 +339,8 @@ def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict
 def env_config(plan: Plan, setting: dict[str, float]):
     """The env config of a setting as the runs see it: the preset's ``env.*`` overrides (of
     the first method; env keys are shared) with the setting's thre and C. The baselines and
-    the trajectories use it, so they are judged under the runs' own reward and horizon."""
-    return plan.spec(plan.methods[0], setting).env
+    the trajectories use it, so they are judged under the runs' own reward and horizon. Only
+    the setting's env keys apply: a swept key of another section (``head.kappa``) may not
+    exist in the first method, and does not change the env."""
+    env_only = {k: v for k, v in setting.items() if SWEEPABLE.get(k, k).startswith("env.")}
+    return plan.spec(plan.methods[0], env_only).env
