@@ -77,13 +77,15 @@ def roles_now() -> dict[str, Any]:
 
 
 #: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "ibe_map_sam", "sb3_dqn", "sb3_ppo",
+METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "sb3_dqn",
+                                  "sb3_ppo",
                                   "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
     "memo_map": "Memo-MAP",
     "ibe_map": "IBE-MAP",
     "ibe_map_sam": "IBE-MAP (SAM masks)",
+    "ibe_map_ens": "IBE-MAP (ensemble head)",
     "random": "Random",
     "passive": "Passive",
     "visibility_oracle": "Visibility oracle",
