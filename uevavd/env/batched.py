@@ -183,11 +183,17 @@ class BatchedAODEnv:
         self._scene, self._view, self._t, self._steps = z.clone(), z.clone(), z.clone(), z.clone()
         self._return = torch.zeros(n_envs, dtype=torch.float64, device=self.device)
         self._started = False
+        #: (S',) probabilities of the split's scenes for new episodes (None: uniform); a
+        #: context sampler (train.context_sampling) sets it before each step
+        self.scene_weights: torch.Tensor | None = None
 
     # -- starts -----------------------------------------------------------------------------
     def _sample_starts(self) -> tuple[torch.Tensor, torch.Tensor]:
         n, g, dev = self.n_envs, self.generator, self.device
-        scene = torch.randint(len(self.tensors.scenes), (n,), generator=g, device=dev)
+        if self.scene_weights is None:
+            scene = torch.randint(len(self.tensors.scenes), (n,), generator=g, device=dev)
+        else:
+            scene = torch.multinomial(self.scene_weights, n, replacement=True, generator=g)
         fixed = self.config.start_view
         if fixed is None:
             view = torch.randint(N_VIEWS, (n,), generator=g, device=dev)

@@ -15,6 +15,7 @@ import torch
 
 from ..env.batched import BatchedAODEnv
 from .acting import epsilon_greedy
+from .level_replay import LevelReplay
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,9 +54,11 @@ class EpisodeCollector:
     #: the running episodes' tensors a checkpoint holds (beside the env's state and the generator's)
     EPISODE_KEYS = ("ep_views", "ep_type", "ep_range", "ep_reward", "hidden")
 
-    def __init__(self, env: BatchedAODEnv, net: Any, *, seed: int, device: torch.device) -> None:
+    def __init__(self, env: BatchedAODEnv, net: Any, *, seed: int, device: torch.device,
+                 contexts: LevelReplay | None = None) -> None:
         n, tmax = env.n_envs, env.config.t_max
         self.env, self.net, self.n = env, net, n
+        self.contexts = contexts  # the new episodes' context sampler (None: uniform)
         self.generator = torch.Generator(device=device)
         self.generator.manual_seed(seed)
         self.rows = torch.arange(n, device=device)
@@ -68,7 +71,17 @@ class EpisodeCollector:
         self.obs: dict[str, torch.Tensor] | None = None
 
     def reset(self) -> None:
+        if self.contexts is not None:
+            self.env.scene_weights = self.contexts.weights()
         self.obs = self.env.reset()
+        if self.contexts is not None:
+            self.contexts.started(self.env.tensors.local[self.obs["scene"]])
+
+    def score(self, scene: torch.Tensor, td: torch.Tensor) -> None:
+        """A learner batch's episodes (table scene indices) and their mean |TD errors|, for the
+        context sampler."""
+        if self.contexts is not None:
+            self.contexts.score(self.env.tensors.local[scene], td)
 
     def step(self, epsilon: float) -> Finished | None:
         """One decision in every env; the episodes it ended, or None."""
@@ -84,10 +97,14 @@ class EpisodeCollector:
         self.ep_type[ar, t] = a_type
         self.ep_range[ar, t] = a_range
         scene = obs["scene"]
+        if self.contexts is not None:
+            self.env.scene_weights = self.contexts.weights()
         self.obs, reward, done, info = self.env.step(a_type, a_range)
         self.ep_reward[ar, t] = reward
         if not bool(done.any()):
             return None
+        if self.contexts is not None:
+            self.contexts.started(self.env.tensors.local[self.obs["scene"][done]])
         # finished episodes whole (at most T_max decisions, T_max + 1 views)
         idx = done.nonzero()[:, 0]
         self.ep_views[idx, t[idx] + 1] = info["final_view"][idx]
@@ -97,11 +114,14 @@ class EpisodeCollector:
         return out
 
     def state_dict(self) -> dict[str, Any]:
+        extra = {} if self.contexts is None else {"level_replay": self.contexts.state_dict()}
         return {"env": self.env.state_dict(), "act_rng": self.generator.get_state(),
-                **{k: getattr(self, k).cpu() for k in self.EPISODE_KEYS}}
+                **{k: getattr(self, k).cpu() for k in self.EPISODE_KEYS}, **extra}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.env.load_state_dict(state["env"])
+        if self.contexts is not None:
+            self.contexts.load_state_dict(state["level_replay"])
         self.generator.set_state(state["act_rng"])
         for key in self.EPISODE_KEYS:
             getattr(self, key).copy_(state[key])

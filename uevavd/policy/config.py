@@ -19,7 +19,10 @@ MAX_SEED = 2**32 - 1
 
 #: What a run recorded before a training setting existed trained with (see
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
-LEGACY_TRAIN = {"replay_sampling": "vectorised"}
+LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", "plr_temperature": 0.1,
+                "plr_staleness": 0.1}
+#: How training picks each new episode's context (``train.context_sampling``).
+CONTEXT_SAMPLINGS = ("uniform", "level_replay")
 
 
 @dataclass(frozen=True)
@@ -93,6 +96,15 @@ class TrainConfig:
     5), whose last bits depend on the CPU's vector width (AVX-512 or AVX2), so a CPU without
     AVX-512 trains other weights. Recorded in the run and checked on resume; a run recorded
     without it trained "vectorised" (docs/agents.md, "What a run's weights depend on")."""
+    context_sampling: Literal["uniform", "level_replay"] = "uniform"
+    """How training picks each new episode's context: "uniform" (the paper's), or
+    "level_replay", Prioritized Level Replay over the training contexts (Jiang et al. 2021;
+    :mod:`uevavd.policy.level_replay`): by each context's learning potential, the mean |TD
+    error| of its replayed episodes, mixed with how long ago it was last played."""
+    plr_temperature: float = 0.1
+    """Level replay: the rank prioritisation's temperature (lower: the top contexts dominate)."""
+    plr_staleness: float = 0.1
+    """Level replay: the share of the staleness term (contexts not played for long) in the mix."""
 
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
@@ -120,6 +132,11 @@ class TrainConfig:
         need(self.per_alpha >= 0, "per_alpha", "a number >= 0")
         need(self.per_eps > 0, "per_eps", "a number > 0")
         need(self.replay_sampling in SAMPLINGS, "replay_sampling", f"one of {SAMPLINGS}")
+        need(self.context_sampling in CONTEXT_SAMPLINGS, "context_sampling", f"one of {CONTEXT_SAMPLINGS}")
+        need(isinstance(self.plr_temperature, int | float) and 0.0 < self.plr_temperature <= 100.0,
+             "plr_temperature", "a temperature in (0, 100]")
+        need(isinstance(self.plr_staleness, int | float) and 0.0 <= self.plr_staleness <= 1.0, "plr_staleness",
+             "a share in [0, 1]")
         need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
         need(self.grad_clip >= 0, "grad_clip", "a number >= 0 (0 disables clipping)")
         need(self.learning_starts < self.episodes, "learning_starts",

@@ -45,6 +45,7 @@ from .collector import EpisodeCollector, RunSeeds
 from .config import TrainConfig
 from .contract import build_checked_network
 from .learner import FeatureLookup, Learner
+from .level_replay import level_replay
 from .replay import EpisodeReplay
 from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_lock, run_spec
 
@@ -288,7 +289,7 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     # writes leaves a run that resumes (method.toml is rewritten on every call)
     atomic_write_json(RunDir(out).settings, settings, sort_keys=True)
     spec.save(RunDir(out).method)
-    collector = EpisodeCollector(env, net, seed=seeds.acting, device=dev)
+    collector = EpisodeCollector(env, net, seed=seeds.acting, device=dev, contexts=level_replay(cfg, env))
     return _Run(out, spec, cfg, settings, net, learner, replay, collector, lookup, evaluator)
 
 
@@ -298,6 +299,7 @@ def _update(run: _Run, log: _Log) -> None:
     batch = run.replay.sample(cfg.batch_size, cfg.beta(run.loop["episodes"]))
     log.loss, td = run.learner.update(batch, run.lookup)
     run.replay.update_priorities(batch.index, td)
+    run.collector.score(batch.scene, td)  # the context sampler's scores (train.context_sampling)
     if run.learner.updates % cfg.target_update == 0:
         run.learner.sync_target()
     if run.learner.updates % TB_EVERY_UPDATES == 0:

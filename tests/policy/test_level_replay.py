@@ -1,0 +1,60 @@
+"""Level replay over the training contexts (issue 38): the sampler's weights, the env drawing
+from them, and a run that uses it trained and resumed like any other."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from uevavd.config import ConfigError, load_method
+from uevavd.env.batched import BatchedAODEnv
+from uevavd.policy.config import TrainConfig
+from uevavd.policy.level_replay import LevelReplay
+from uevavd.policy.trainer import train
+from uevavd.testing.policy import small_run, toy_table
+
+
+def test_unscored_contexts_first_then_by_rank_with_staleness():
+    plr = LevelReplay(4, temperature=1.0, staleness=0.0)
+    plr.score(torch.tensor([0, 1, 1]), torch.tensor([0.1, 0.4, 0.2]))
+    w = plr.weights()
+    # 2 and 3 unscored rank first (ties by index), then 1 (score 0.3), then 0: h = 1/rank
+    assert torch.allclose(w, torch.tensor([1 / 4, 1 / 3, 1, 1 / 2], dtype=torch.float64) / (25 / 12))
+    plr.score(torch.tensor([1]), torch.tensor([1.3]))  # moves 0.1 of the way: 0.3 -> 0.4
+    assert float(plr.scores[1]) == pytest.approx(0.4)
+    cold = LevelReplay(3, temperature=0.1, staleness=1.0)
+    for scene in (0, 1, 1, 2, 0):  # last started: 0 at 5, 1 at 3, 2 at 4
+        cold.started(torch.tensor([scene]))
+    assert torch.allclose(cold.weights(), torch.tensor([0.0, 2 / 3, 1 / 3], dtype=torch.float64))
+    assert torch.allclose(LevelReplay(5, temperature=0.1, staleness=0.5).weights().sum(),
+                          torch.tensor(1.0, dtype=torch.float64))
+
+
+def test_the_env_draws_new_episodes_from_the_weights():
+    table = toy_table(n_train=3, n_hard=1, feature_dim=8)
+    env = BatchedAODEnv(table, "train", 256, seed=0)
+    env.scene_weights = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    assert set(env.tensors.local[env.reset()["scene"]].tolist()) == {1}
+
+
+@pytest.mark.parametrize("bad", [{"context_sampling": "plr"}, {"plr_temperature": 0.0}, {"plr_staleness": 1.5}])
+def test_bad_level_replay_settings_are_refused(bad):
+    with pytest.raises(ConfigError, match=f"train.{next(iter(bad))}"):
+        TrainConfig(**bad)
+
+
+def test_a_level_replay_run_skews_its_contexts_and_resumes_bit_for_bit(tmp_path):
+    table = toy_table(n_train=4, n_hard=1, feature_dim=8)
+    spec = load_method("ibe_map_plr", overrides={**small_run("ibe_map"), "train.episodes": 900})
+    train(spec, table, out=tmp_path / "whole", seed=2, device="cpu", progress=False)
+    train(spec, table, out=tmp_path / "paused", seed=2, device="cpu", progress=False, max_epochs=1)
+    train(spec, table, out=tmp_path / "paused", seed=2, device="cpu", progress=False)
+    a = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "paused" / "checkpoint.pt", weights_only=False)
+    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
+    assert torch.equal(a["level_replay"]["scores"], b["level_replay"]["scores"])
+    assert bool(a["level_replay"]["scored"].all())  # every training context was scored
+    plr = LevelReplay(4, temperature=0.1, staleness=0.1)
+    plr.load_state_dict(a["level_replay"])
+    w = plr.weights()
+    assert float(w.max()) > 0.5 and int(w.argmax()) == int(plr.scores.argmax())  # the top context dominates
