@@ -166,6 +166,12 @@ class PerceptionSection:
     gray_seed: int
     raw: Mapping[str, Any]
 
+    @property
+    def recognizer_in_state(self) -> bool:
+        """The table's features end with the recognizer's class probabilities on the raw view
+        (issue 38; the paper's state has the image features and the box only)."""
+        return bool(self.raw.get("recognizer_in_state", False))
+
     def as_dict(self) -> dict[str, Any]:
         """The section as written, a plain dict (what tables record and their keys hash)."""
         return thaw(self.raw)

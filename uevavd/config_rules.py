@@ -31,7 +31,7 @@ DATACLASS_SECTIONS: dict[str, str] = {
     "train": "uevavd.policy.config:TrainConfig",
 }
 #: Plain keys of the perception section besides its component sections.
-PERCEPTION_KEYS: dict[str, Any] = {"decompose": bool, "gray_seed": int}
+PERCEPTION_KEYS: dict[str, Any] = {"decompose": bool, "gray_seed": int, "recognizer_in_state": bool}
 TOP_KEYS: dict[str, Any] = {"name": str, "description": str, "_base_": str}
 TOP_SECTIONS = ("perception", "state", "head", "env", "train")
 MAX_INHERITANCE = 16

@@ -642,3 +642,21 @@ def test_a_read_only_cache_serves_a_table_it_holds(built, tiny_world, tiny_class
     monkeypatch.setattr(prep, "_compute_scene", lambda *a, **k: pytest.fail("recomputed a finished table"))
     assert prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=path.parent,
                               progress=False) == path
+
+
+def test_a_table_with_the_recognizer_in_the_state(built, tiny_world, tiny_classifier, tmp_path):
+    """perception.recognizer_in_state (issue 38): the features end with the recognizer's class
+    probabilities of the raw view; another key, so a policy of one never reads the other's; the
+    encoder's cached features are shared; the keys of tables without it do not move."""
+    method, path = built
+    reco = tmp_path / "reco.toml"
+    reco.write_text(method.read_text().replace("gray_seed = 0", "gray_seed = 0\nrecognizer_in_state = true"))
+    out = tmp_path / "out"
+    shutil.copytree(path.parent / "features", out / "features")  # the encoder's work, reused
+    second = prep.prepare_table(tiny_world, reco, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    a, b = ObservationTable.load(path), ObservationTable.load(second)
+    assert second.name != path.name and b.perception_identity != a.perception_identity
+    assert b.features.shape == (2, N_VIEWS, 512 + 5)
+    np.testing.assert_array_equal(b.features[..., :512], a.features)
+    np.testing.assert_array_equal(b.features[..., 512:], a.probs.astype(np.float16))
+    assert prep.plan_table(tiny_world, method, classifier_path=tiny_classifier).key == path.name

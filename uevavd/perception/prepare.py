@@ -294,6 +294,7 @@ def plan_table(
         "gray_seed": gray_seed if decomposing else None,
         "encoder": encoder.identity(),
         "classifier": classifier.identity(),
+        **({"recognizer_in_state": True} if perception.recognizer_in_state else {}),  # other tables' keys as before
     }
     return TablePlan(perception, {"method": spec.name, "method_hash": spec.hash}, data_root, manifest, scenes,
                      segmenter, encoder, classifier, gray_seed, parts, table_key(parts), scene_fingerprints)
@@ -379,12 +380,9 @@ def prepare_table(
             return partial
         names = [s for s, _ in scenes]
         stack = {a: np.stack([shards[s][a] for s in names]) for a in SHARD_ARRAYS}
-        config = {
-            **p.provenance,
-            "perception": p.perception.as_dict(),
-            "key_parts": parts,
-            "data_root": str(data_root),
-        }
+        config = {**p.provenance, "perception": p.perception.as_dict(), "key_parts": parts, "data_root": str(data_root)}
+        if p.perception.recognizer_in_state:  # the state reads the recognizer's probabilities after the image's features
+            stack["features"] = np.concatenate([stack["features"], stack["probs"].astype(np.float16)], axis=-1)
         table = ObservationTable.from_arrays(
             stack["features"], stack["probs"], stack["boxes"], visible=stack["visible"],
             scenes=names,

@@ -56,8 +56,7 @@ TB_EVERY_UPDATES = 100
 def _versions() -> dict[str, str]:
     from .. import __version__
 
-    return {"uevavd": __version__, "torch": torch.__version__, "numpy": np.__version__,
-            "python": platform.python_version()}
+    return {"uevavd": __version__, "torch": torch.__version__, "numpy": np.__version__, "python": platform.python_version()}
 
 
 class PerceptionMismatch(RunDirError):
@@ -65,7 +64,8 @@ class PerceptionMismatch(RunDirError):
 
 
 #: The perception keys a table's recorded config must share with the method trained on it.
-TABLE_PERCEPTION_KEYS = ("segmenter.name", "decompose", "gray_seed", "encoder.name", "encoder.weights", "classifier.name")
+TABLE_PERCEPTION_KEYS = ("segmenter.name", "decompose", "gray_seed", "encoder.name", "encoder.weights", "classifier.name",
+                         "recognizer_in_state")
 
 
 def check_table_perception(perception: PerceptionSection, table: Any, method: str) -> None:
