@@ -20,7 +20,7 @@ MAX_SEED = 2**32 - 1
 #: What a run recorded before a training setting existed trained with (see
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
 LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", "plr_temperature": 0.1,
-                "plr_staleness": 0.1}
+                "plr_staleness": 0.1, "feature_dropout": 0.0}
 #: How training picks each new episode's context (``train.context_sampling``).
 CONTEXT_SAMPLINGS = ("uniform", "level_replay")
 
@@ -105,6 +105,9 @@ class TrainConfig:
     """Level replay: the rank prioritisation's temperature (lower: the top contexts dominate)."""
     plr_staleness: float = 0.1
     """Level replay: the share of the staleness term (contexts not played for long) in the mix."""
+    feature_dropout: float = 0.0
+    """Augmentation of the table's features in the updates: each feature of each replayed view
+    zeroed with this probability (the rest scaled up), from the run's own stream; 0 = none."""
 
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
@@ -137,6 +140,8 @@ class TrainConfig:
              "plr_temperature", "a temperature in (0, 100]")
         need(isinstance(self.plr_staleness, int | float) and 0.0 <= self.plr_staleness <= 1.0, "plr_staleness",
              "a share in [0, 1]")
+        need(isinstance(self.feature_dropout, int | float) and 0.0 <= self.feature_dropout < 1.0, "feature_dropout",
+             "a probability in [0, 1)")
         need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
         need(self.grad_clip >= 0, "grad_clip", "a number >= 0 (0 disables clipping)")
         need(self.learning_starts < self.episodes, "learning_starts",

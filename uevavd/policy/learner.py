@@ -1,6 +1,7 @@
 """Learning of the DQN agents (Tianshou's "algorithm" half; acting is in :mod:`.acting`).
 
 * :class:`FeatureLookup` - the observation table as device tensors, for replayed episodes.
+* :class:`FeatureDropout` - the optional augmentation of the features an update reads.
 * :class:`Learner` - the double-DQN update on a batch of whole episodes, with
   :func:`needed_observations` (what a batch encodes) and :func:`episode_q` (Q over episodes).
 
@@ -45,11 +46,36 @@ class FeatureLookup:
         return f, self.boxes.reshape(-1, 4).index_select(0, flat), self.mask[views]
 
 
+class FeatureDropout:
+    """Augmentation of the table's features in the updates (issue 38; ``train.feature_dropout``):
+    each feature of each gathered row zeroed with probability ``p`` and the rest scaled by
+    ``1 / (1 - p)``, from its own generator (saved with the run, so a resumed run draws the
+    same masks). The online and the target network read the same augmented rows; acting reads
+    the features as they are."""
+
+    def __init__(self, p: float, *, seed: int, device: torch.device | str) -> None:
+        self.p = float(p)
+        self.generator = torch.Generator(device=device)
+        self.generator.manual_seed(seed)
+
+    def __call__(self, feats: torch.Tensor) -> torch.Tensor:
+        keep = torch.rand(feats.shape, generator=self.generator, device=feats.device) >= self.p
+        return feats * keep / (1.0 - self.p)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"rng": self.generator.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.generator.set_state(state["rng"])
+
+
 class Learner:
     """Online and target networks, Adam, and the double-DQN update over episode batches."""
 
-    def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber") -> None:
+    def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber",
+                 augment: FeatureDropout | None = None) -> None:
         self.net = net
+        self.augment = augment
         self.target = copy.deepcopy(net).requires_grad_(False)
         for m in self.target.modules():  # a deep copy leaves cuDNN's RNN weights in pieces, which
             if isinstance(m, torch.nn.RNNBase):  # it would then compact on every call (no-op on CPU)
@@ -77,6 +103,8 @@ class Learner:
         # the target net evaluates the same observations.
         seen = needed_observations(batch)  # (B, T+1)
         feats, boxes, mask = lookup.gather_rows(batch.scene, batch.views, seen)
+        if self.augment is not None:
+            feats = self.augment(feats)
         q_all = episode_q(self.net, feats, boxes, seen)
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)

@@ -26,6 +26,7 @@ import torch
 
 from ..atomic import atomic_write, atomic_write_json, remove_temporaries
 from ..config import ConfigError, MethodSpec, PerceptionSection
+from ..config_rules import dotted_get
 from ..data.grid import N_TYPES
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
@@ -44,7 +45,7 @@ from .checkpoint import (
 from .collector import EpisodeCollector, RunSeeds
 from .config import TrainConfig
 from .contract import build_checked_network
-from .learner import FeatureLookup, Learner
+from .learner import FeatureDropout, FeatureLookup, Learner
 from .level_replay import level_replay
 from .replay import EpisodeReplay
 from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_lock, run_spec
@@ -77,16 +78,8 @@ def check_table_perception(perception: PerceptionSection, table: Any, method: st
     if not isinstance(recorded, dict):
         return
     want = perception.as_dict()
-
-    def get(d: dict, dotted: str):
-        head, _, rest = dotted.partition(".")
-        v = d.get(head)
-        if rest:
-            return v.get(rest) if hasattr(v, "get") else None
-        return v
-
-    diffs = [f"perception.{k}: table {get(recorded, k)!r}, method {get(want, k)!r}"
-             for k in TABLE_PERCEPTION_KEYS if get(recorded, k) != get(want, k)]
+    diffs = [f"perception.{k}: table {dotted_get(recorded, k)!r}, method {dotted_get(want, k)!r}"
+             for k in TABLE_PERCEPTION_KEYS if dotted_get(recorded, k) != dotted_get(want, k)]
     if diffs:
         raise PerceptionMismatch(f"table {table.path or table.key} was built for another perception config than "
                                  f"method {method!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA "
@@ -169,8 +162,9 @@ class _Run:
 
     def parts(self) -> dict[str, Any]:
         """What a checkpoint holds beside the collector's state and the counters, by key."""
+        augment = {"augment": self.learner.augment} if self.learner.augment is not None else {}
         return {"net": self.net, "target": self.learner.target, "optimizer": self.learner.optimizer,
-                "replay": self.replay}
+                "replay": self.replay, **augment}
 
     def save(self) -> None:
         save_checkpoint(RunDir(self.out).checkpoint, {
@@ -278,7 +272,8 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     # each component checked against its kind's rules (one line naming the broken one) before
     # anything of the run is written; a table without the train or an eval split is refused here too
     net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
-    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss)
+    augment = FeatureDropout(cfg.feature_dropout, seed=seeds.augment, device=dev) if cfg.feature_dropout else None
+    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss, augment=augment)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=seeds.replay, sampling=cfg.replay_sampling, device=dev)
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=seeds.env, features_dtype=torch.float16)

@@ -1,5 +1,6 @@
-"""Level replay over the training contexts (issue 38): the sampler's weights, the env drawing
-from them, and a run that uses it trained and resumed like any other."""
+"""Issue 38's training options: level replay over the training contexts (the sampler's weights,
+the env drawing from them, a run that uses it trained and resumed like any other) and the
+features' dropout in the updates."""
 
 from __future__ import annotations
 
@@ -58,3 +59,27 @@ def test_a_level_replay_run_skews_its_contexts_and_resumes_bit_for_bit(tmp_path)
     plr.load_state_dict(a["level_replay"])
     w = plr.weights()
     assert float(w.max()) > 0.5 and int(w.argmax()) == int(plr.scores.argmax())  # the top context dominates
+
+
+def test_feature_dropout_augments_the_updates_only_and_resumes_bit_for_bit(tmp_path):
+    """train.feature_dropout (issue 38): the updates read masked, rescaled features from the
+    run's own stream, saved with the run; 0 leaves the run as it was (no stream drawn)."""
+    from uevavd.policy.learner import FeatureDropout
+
+    drop = FeatureDropout(0.5, seed=0, device="cpu")
+    x = torch.ones(2000, 8)
+    y = drop(x)
+    assert set(y.unique().tolist()) == {0.0, 2.0} and abs(float((y == 0).float().mean()) - 0.5) < 0.03
+    with pytest.raises(ConfigError, match="train.feature_dropout"):
+        TrainConfig(feature_dropout=1.0)
+    table = toy_table(n_train=3, n_hard=1, feature_dim=8)
+    spec = load_method("ibe_map_aug", overrides={**small_run("ibe_map"), "train.episodes": 600,
+                                                 "train.feature_dropout": 0.3})
+    train(spec, table, out=tmp_path / "whole", seed=4, device="cpu", progress=False)
+    train(spec, table, out=tmp_path / "paused", seed=4, device="cpu", progress=False, max_epochs=1)
+    train(spec, table, out=tmp_path / "paused", seed=4, device="cpu", progress=False)
+    plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
+    train(plain, table, out=tmp_path / "plain", seed=4, device="cpu", progress=False)
+    a, b, c = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused", "plain"))
+    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"]) and "augment" in a
+    assert not all(torch.equal(a["net"][k], c["net"][k]) for k in a["net"]) and "augment" not in c
