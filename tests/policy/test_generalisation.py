@@ -83,3 +83,25 @@ def test_feature_dropout_augments_the_updates_only_and_resumes_bit_for_bit(tmp_p
     a, b, c = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused", "plain"))
     assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"]) and "augment" in a
     assert not all(torch.equal(a["net"][k], c["net"][k]) for k in a["net"]) and "augment" not in c
+
+
+def test_the_recognition_probe_trains_with_the_state_and_resumes_bit_for_bit(tmp_path):
+    """train.aux_recognition (issue 38): a probe on s_t learns the view's recognition beside the
+    TD loss; it shapes the network (other weights than without it), its weights and their Adam
+    state are saved with the run, and the policy file holds the network alone."""
+    from safetensors.torch import load_file
+
+    table = toy_table(n_train=3, n_hard=1, feature_dim=8)
+    spec = load_method("ibe_map_aux", overrides={**small_run("ibe_map"), "train.episodes": 600})
+    train(spec, table, out=tmp_path / "whole", seed=5, device="cpu", progress=False)
+    train(spec, table, out=tmp_path / "paused", seed=5, device="cpu", progress=False, max_epochs=1)
+    train(spec, table, out=tmp_path / "paused", seed=5, device="cpu", progress=False)
+    plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
+    train(plain, table, out=tmp_path / "plain", seed=5, device="cpu", progress=False)
+    a, b, c = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused", "plain"))
+    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
+    assert torch.equal(a["aux"]["linear.weight"], b["aux"]["linear.weight"]) and "aux" not in c
+    assert not all(torch.equal(a["net"][k], c["net"][k]) for k in a["net"])
+    assert set(load_file(str(tmp_path / "whole" / "policy.safetensors"))) == set(a["net"])
+    with pytest.raises(ConfigError, match="train.aux_recognition"):
+        TrainConfig(aux_recognition=-1.0)

@@ -20,7 +20,7 @@ MAX_SEED = 2**32 - 1
 #: What a run recorded before a training setting existed trained with (see
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
 LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", "plr_temperature": 0.1,
-                "plr_staleness": 0.1, "feature_dropout": 0.0}
+                "plr_staleness": 0.1, "feature_dropout": 0.0, "aux_recognition": 0.0}
 #: How training picks each new episode's context (``train.context_sampling``).
 CONTEXT_SAMPLINGS = ("uniform", "level_replay")
 
@@ -108,6 +108,9 @@ class TrainConfig:
     feature_dropout: float = 0.0
     """Augmentation of the table's features in the updates: each feature of each replayed view
     zeroed with this probability (the rest scaled up), from the run's own stream; 0 = none."""
+    aux_recognition: float = 0.0
+    """An auxiliary objective: the weight of a linear probe's loss predicting, from the state,
+    whether the recognizer recognises the current view (0 = none)."""
 
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
@@ -142,6 +145,8 @@ class TrainConfig:
              "a share in [0, 1]")
         need(isinstance(self.feature_dropout, int | float) and 0.0 <= self.feature_dropout < 1.0, "feature_dropout",
              "a probability in [0, 1)")
+        need(isinstance(self.aux_recognition, int | float) and 0.0 <= self.aux_recognition <= 100.0, "aux_recognition",
+             "a loss weight in [0, 100]")
         need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
         need(self.grad_clip >= 0, "grad_clip", "a number >= 0 (0 disables clipping)")
         need(self.learning_starts < self.episodes, "learning_starts",

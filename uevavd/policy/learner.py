@@ -1,7 +1,8 @@
 """Learning of the DQN agents (Tianshou's "algorithm" half; acting is in :mod:`.acting`).
 
 * :class:`FeatureLookup` - the observation table as device tensors, for replayed episodes.
-* :class:`FeatureDropout` - the optional augmentation of the features an update reads.
+* :class:`FeatureDropout` / :class:`RecognitionProbe` - the optional augmentation of the
+  features an update reads, and the optional auxiliary objective on the state.
 * :class:`Learner` - the double-DQN update on a batch of whole episodes, with
   :func:`needed_observations` (what a batch encodes) and :func:`episode_q` (Q over episodes).
 
@@ -30,6 +31,11 @@ class FeatureLookup:
 
     def __init__(self, tensors: Any) -> None:
         self.features, self.boxes, self.mask, self.local = tensors.features, tensors.boxes, tensors.mask, tensors.local
+        self.reco = tensors.reco
+
+    def recognized_rows(self, scene: torch.Tensor, views: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the recognizer recognises each view where ``seen``, in ``seen.nonzero()`` order."""
+        return self.reco[self.local[scene][:, None].expand_as(views)[seen], views[seen]]
 
     def gather(self, scene: torch.Tensor, views: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """scene (B,) table indices, views (B, L) -> features (B, L, D) float32, boxes (B, L, 4)
@@ -69,18 +75,34 @@ class FeatureDropout:
         self.generator.set_state(state["rng"])
 
 
+class RecognitionProbe(torch.nn.Module):
+    """An auxiliary objective (issue 38; ``train.aux_recognition``): a linear probe on the state
+    s_t predicts whether the recognizer recognises the current view (the reward's recognition
+    term, ``EnvConfig.recognized``), by binary cross-entropy added to the TD loss with weight
+    ``weight``. It shapes the state only: acting never reads it, and it is not part of the
+    policy's network (its weights stay in the run's checkpoint)."""
+
+    def __init__(self, state_dim: int, weight: float) -> None:
+        super().__init__()
+        self.linear = torch.nn.Linear(state_dim, 1)
+        self.weight = float(weight)
+
+    def loss(self, s: torch.Tensor, recognized: torch.Tensor) -> torch.Tensor:
+        return F.binary_cross_entropy_with_logits(self.linear(s)[:, 0], recognized.float())
+
+
 class Learner:
     """Online and target networks, Adam, and the double-DQN update over episode batches."""
 
     def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber",
-                 augment: FeatureDropout | None = None) -> None:
+                 augment: FeatureDropout | None = None, aux: RecognitionProbe | None = None) -> None:
         self.net = net
-        self.augment = augment
+        self.augment, self.aux = augment, aux
         self.target = copy.deepcopy(net).requires_grad_(False)
         for m in self.target.modules():  # a deep copy leaves cuDNN's RNN weights in pieces, which
             if isinstance(m, torch.nn.RNNBase):  # it would then compact on every call (no-op on CPU)
                 m.flatten_parameters()
-        params = self._params = list(net.parameters())
+        params = self._params = list(net.parameters()) + (list(aux.parameters()) if aux is not None else [])
         # fused Adam: one kernel over all parameters, ~3x faster than the per-tensor loop on
         # CPU (16 -> 5 ms per step for the paper-sized GRU agent), same update rule
         fused = all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params)
@@ -91,6 +113,10 @@ class Learner:
 
     def sync_target(self) -> None:
         self.target.load_state_dict(self.net.state_dict())
+
+    def parts(self) -> dict[str, Any]:
+        """The optional parts a checkpoint holds besides the networks and the optimizer."""
+        return {k: v for k, v in (("augment", self.augment), ("aux", self.aux)) if v is not None}
 
     def update(self, batch: EpisodeBatch, lookup: FeatureLookup) -> tuple[float, torch.Tensor]:
         """One gradient step. Returns (loss, per-episode mean |TD error| (B,))."""
@@ -105,7 +131,7 @@ class Learner:
         feats, boxes, mask = lookup.gather_rows(batch.scene, batch.views, seen)
         if self.augment is not None:
             feats = self.augment(feats)
-        q_all = episode_q(self.net, feats, boxes, seen)
+        q_all, s = episode_q(self.net, feats, boxes, seen, with_state=True)
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
             q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, boxes, seen, skip_first=True))
@@ -118,6 +144,8 @@ class Learner:
         else:
             per = 0.5 * (q_taken - y) ** 2
         loss = (per * w * batch.weight[:, None, None]).sum() / w.sum().clamp_min(1.0)
+        if self.aux is not None:  # s holds the seen rows in seen.nonzero() order, as the lookup's rows
+            loss = loss + self.aux.weight * self.aux.loss(s, lookup.recognized_rows(batch.scene, batch.views, seen))
         params = self._params
         for p in params:  # Adam.zero_grad(set_to_none=True) without its profiler hooks: 0.1 ms
             p.grad = None
@@ -176,12 +204,13 @@ def needed_observations(batch: EpisodeBatch) -> torch.Tensor:
 
 
 def episode_q(net: QNetwork, feats: torch.Tensor, boxes: torch.Tensor, seen: torch.Tensor,
-              *, skip_first: bool = False) -> tuple[torch.Tensor, ...]:
+              *, skip_first: bool = False, with_state: bool = False) -> Any:
     """Q-values (B, T+1, n) per branch of padded episodes, computed only where ``seen``
     (B, T+1) (zeros elsewhere). ``feats`` (N, D) / ``boxes`` (N, 4) hold the seen rows in
     ``seen.nonzero()`` order. A memoryless estimator reads just those rows (and, with
     ``skip_first``, not o_0); a recurrent one is unrolled from the episode start, over
-    packed sequences when it offers ``forward_packed`` (else over the padded batch)."""
+    packed sequences when it offers ``forward_packed`` (else over the padded batch). With
+    ``with_state``, also the states s_t of the rows the head read."""
     est = net.estimator
     b, t1 = seen.shape
     if not est.recurrent:
@@ -206,4 +235,4 @@ def episode_q(net: QNetwork, feats: torch.Tensor, boxes: torch.Tensor, seen: tor
         full = q.new_zeros(b, t1, q.shape[-1])
         full[rows] = q
         out.append(full)
-    return tuple(out)
+    return (tuple(out), s) if with_state else tuple(out)

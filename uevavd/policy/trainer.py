@@ -45,7 +45,7 @@ from .checkpoint import (
 from .collector import EpisodeCollector, RunSeeds
 from .config import TrainConfig
 from .contract import build_checked_network
-from .learner import FeatureDropout, FeatureLookup, Learner
+from .learner import FeatureDropout, FeatureLookup, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
 from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_lock, run_spec
@@ -162,9 +162,8 @@ class _Run:
 
     def parts(self) -> dict[str, Any]:
         """What a checkpoint holds beside the collector's state and the counters, by key."""
-        augment = {"augment": self.learner.augment} if self.learner.augment is not None else {}
         return {"net": self.net, "target": self.learner.target, "optimizer": self.learner.optimizer,
-                "replay": self.replay, **augment}
+                "replay": self.replay, **self.learner.parts()}
 
     def save(self) -> None:
         save_checkpoint(RunDir(self.out).checkpoint, {
@@ -273,7 +272,8 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     # anything of the run is written; a table without the train or an eval split is refused here too
     net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
     augment = FeatureDropout(cfg.feature_dropout, seed=seeds.augment, device=dev) if cfg.feature_dropout else None
-    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss, augment=augment)
+    aux = RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev) if cfg.aux_recognition else None
+    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss, augment=augment, aux=aux)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=seeds.replay, sampling=cfg.replay_sampling, device=dev)
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=seeds.env, features_dtype=torch.float16)
