@@ -78,7 +78,8 @@ def roles_now() -> dict[str, Any]:
 
 #: Display order and names of the methods (unknown methods follow, by name).
 METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
-                                  "ibe_map_reco", "ibe_map_aug", "sb3_dqn",
+                                  "ibe_map_reco", "ibe_map_aug", "ibe_map_aux",
+                                  "sb3_dqn",
                                   "sb3_ppo",
                                   "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
@@ -90,6 +91,7 @@ LABELS: dict[str, str] = {
     "ibe_map_plr": "IBE-MAP (level replay)",
     "ibe_map_reco": "IBE-MAP (recognizer in the state)",
     "ibe_map_aug": "IBE-MAP (feature dropout)",
+    "ibe_map_aux": "IBE-MAP (recognition probe)",
     "random": "Random",
     "passive": "Passive",
     "visibility_oracle": "Visibility oracle",
