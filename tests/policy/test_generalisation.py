@@ -1,6 +1,6 @@
 """Issue 38's training options: level replay over the training contexts (the sampler's weights,
-the env drawing from them, a run that uses it trained and resumed like any other) and the
-features' dropout in the updates."""
+the env drawing from them, a run that uses it trained and resumed like any other), the
+features' dropout in the updates and the recognition probe."""
 
 from __future__ import annotations
 
@@ -13,6 +13,23 @@ from uevavd.policy.config import TrainConfig
 from uevavd.policy.level_replay import LevelReplay
 from uevavd.policy.trainer import train
 from uevavd.testing.policy import small_run, toy_table
+
+
+def _runs(spec, table, tmp_path, seed: int, *, plain=None) -> tuple[dict, ...]:
+    """The checkpoints of ``spec`` trained whole and paused after one epoch then resumed (and of
+    ``plain``, the same run without the option, where given), by the same seed."""
+    train(spec, table, out=tmp_path / "whole", seed=seed, device="cpu", progress=False)
+    train(spec, table, out=tmp_path / "paused", seed=seed, device="cpu", progress=False, max_epochs=1)
+    train(spec, table, out=tmp_path / "paused", seed=seed, device="cpu", progress=False)
+    runs = ["whole", "paused"]
+    if plain is not None:
+        train(plain, table, out=tmp_path / "plain", seed=seed, device="cpu", progress=False)
+        runs.append("plain")
+    return tuple(torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in runs)
+
+
+def _same_net(a: dict, b: dict) -> bool:
+    return all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
 
 
 def test_unscored_contexts_first_then_by_rank_with_staleness():
@@ -47,12 +64,8 @@ def test_bad_level_replay_settings_are_refused(bad):
 def test_a_level_replay_run_skews_its_contexts_and_resumes_bit_for_bit(tmp_path):
     table = toy_table(n_train=4, n_hard=1, feature_dim=8)
     spec = load_method("ibe_map_plr", overrides={**small_run("ibe_map"), "train.episodes": 900})
-    train(spec, table, out=tmp_path / "whole", seed=2, device="cpu", progress=False)
-    train(spec, table, out=tmp_path / "paused", seed=2, device="cpu", progress=False, max_epochs=1)
-    train(spec, table, out=tmp_path / "paused", seed=2, device="cpu", progress=False)
-    a = torch.load(tmp_path / "whole" / "checkpoint.pt", weights_only=False)
-    b = torch.load(tmp_path / "paused" / "checkpoint.pt", weights_only=False)
-    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
+    a, b = _runs(spec, table, tmp_path, 2)
+    assert _same_net(a, b)
     assert torch.equal(a["level_replay"]["scores"], b["level_replay"]["scores"])
     assert bool(a["level_replay"]["scored"].all())  # every training context was scored
     plr = LevelReplay(4, temperature=0.1, staleness=0.1)
@@ -75,14 +88,10 @@ def test_feature_dropout_augments_the_updates_only_and_resumes_bit_for_bit(tmp_p
     table = toy_table(n_train=3, n_hard=1, feature_dim=8)
     spec = load_method("ibe_map_aug", overrides={**small_run("ibe_map"), "train.episodes": 600,
                                                  "train.feature_dropout": 0.3})
-    train(spec, table, out=tmp_path / "whole", seed=4, device="cpu", progress=False)
-    train(spec, table, out=tmp_path / "paused", seed=4, device="cpu", progress=False, max_epochs=1)
-    train(spec, table, out=tmp_path / "paused", seed=4, device="cpu", progress=False)
     plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
-    train(plain, table, out=tmp_path / "plain", seed=4, device="cpu", progress=False)
-    a, b, c = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused", "plain"))
-    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"]) and "augment" in a
-    assert not all(torch.equal(a["net"][k], c["net"][k]) for k in a["net"]) and "augment" not in c
+    a, b, c = _runs(spec, table, tmp_path, 4, plain=plain)
+    assert _same_net(a, b) and "augment" in a
+    assert not _same_net(a, c) and "augment" not in c
 
 
 def test_the_recognition_probe_trains_with_the_state_and_resumes_bit_for_bit(tmp_path):
@@ -93,15 +102,11 @@ def test_the_recognition_probe_trains_with_the_state_and_resumes_bit_for_bit(tmp
 
     table = toy_table(n_train=3, n_hard=1, feature_dim=8)
     spec = load_method("ibe_map_aux", overrides={**small_run("ibe_map"), "train.episodes": 600})
-    train(spec, table, out=tmp_path / "whole", seed=5, device="cpu", progress=False)
-    train(spec, table, out=tmp_path / "paused", seed=5, device="cpu", progress=False, max_epochs=1)
-    train(spec, table, out=tmp_path / "paused", seed=5, device="cpu", progress=False)
     plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
-    train(plain, table, out=tmp_path / "plain", seed=5, device="cpu", progress=False)
-    a, b, c = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused", "plain"))
-    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
+    a, b, c = _runs(spec, table, tmp_path, 5, plain=plain)
+    assert _same_net(a, b)
     assert torch.equal(a["aux"]["linear.weight"], b["aux"]["linear.weight"]) and "aux" not in c
-    assert not all(torch.equal(a["net"][k], c["net"][k]) for k in a["net"])
+    assert not _same_net(a, c)
     assert set(load_file(str(tmp_path / "whole" / "policy.safetensors"))) == set(a["net"])
     with pytest.raises(ConfigError, match="train.aux_recognition"):
         TrainConfig(aux_recognition=-1.0)
