@@ -48,6 +48,23 @@ def test_cuda_run_resumes_exactly_and_its_policy_acts_on_cpu(table, tmp_path, me
     np.testing.assert_allclose(on_cpu.ret.mean(), on_gpu.ret.mean(), atol=0.01)
 
 
+@pytest.mark.parametrize("method", ["ibe_map_ens", "ibe_map_plr", "ibe_map_aug", "ibe_map_aux"])
+def test_generalisation_techniques_train_and_resume_exactly_on_cuda(table, tmp_path, method):
+    """Issue 38's training options on CUDA: the ensemble head, level replay's sampler, the
+    features' dropout stream and the recognition probe keep their state on the run's device,
+    resume to the same weights, and the policy acts on a CPU-only machine."""
+    spec = load_method(method, overrides={**small_run("ibe_map"), "train.episodes": 400})
+    kw = dict(seed=1, progress=False, device="cuda")
+    straight = train(spec, table, out=tmp_path / "a", **kw)
+    train(spec, table, out=tmp_path / "b", max_epochs=1, **kw)
+    resumed = train(spec, table, out=tmp_path / "b", **kw)
+    a, b = load_checkpoint(straight / "checkpoint.pt"), load_checkpoint(resumed / "checkpoint.pt")
+    for k in a["net"]:
+        assert torch.equal(a["net"][k].cpu(), b["net"][k].cpu()), k
+    on_cpu = evaluate_policy(table, "hard", load_policy(resumed, device="cpu"))
+    assert np.isfinite(on_cpu.ret).all()
+
+
 def test_greedy_policy_acts_alike_on_cpu_and_cuda(table, tmp_path):
     run = train(load_method("ibe_map"), table, out=tmp_path / "r", episodes=200, seed=0, progress=False,
                 overrides=small_run("ibe_map"), device="cpu")
@@ -60,14 +77,15 @@ def test_greedy_policy_acts_alike_on_cpu_and_cuda(table, tmp_path):
     np.testing.assert_allclose(cpu.ret.mean(), gpu.ret.mean(), atol=0.01)
 
 
-def test_table_built_on_cuda_matches_cpu(tiny_world_gpu, tiny_classifier_gpu, tmp_path):
+@pytest.mark.parametrize("reco", [False, True], ids=["features", "recognizer_in_state"])
+def test_table_built_on_cuda_matches_cpu(tiny_world_gpu, tiny_classifier_gpu, tmp_path, reco):
     from uevavd.perception.prepare import prepare_table
     from uevavd.table import ObservationTable
 
     tables = {}
     for dev in ("cpu", "cuda"):
         method = tmp_path / f"{dev}.toml"
-        method.write_text(METHOD_TOML.format(device=dev))
+        method.write_text(METHOD_TOML.format(device=dev, reco=str(reco).lower()))
         path = prepare_table(tiny_world_gpu, method, classifier_path=tiny_classifier_gpu,
                              out_dir=tmp_path / dev, progress=False)
         tables[dev] = ObservationTable.load(path)
@@ -89,6 +107,7 @@ encoder = {{ name = "resnet18", weights = "random", seed = 0, device = "{device}
 classifier = {{ name = "resnet18", device = "{device}" }}
 decompose = true
 gray_seed = 0
+recognizer_in_state = {reco}
 """
 
 
