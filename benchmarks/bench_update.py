@@ -80,7 +80,7 @@ def main() -> None:
             spec = load_method(method)
             net = build_network(spec.state, spec.head, table.feature_dim, n_ranges=cfg.max_range)
             learner = learning.Learner(net, lr=1e-4, gamma=cfg.gamma, grad_clip=10.0)
-            replay = _replay(tensors, cfg.t_max)
+            replay = stand_in_replay(tensors, cfg.t_max)
             times: dict[str, list[float]] = {name: [] for name in paths}
             shares: dict[str, list[float]] = {name: [] for name in paths}
             floor_ms: dict[str, list[float]] = {name: [] for name in paths}
@@ -187,13 +187,14 @@ def _time_calls(calls, n: int) -> float:
     return 1000 * (time.perf_counter() - t0) / n
 
 
-def _replay(tensors, t_max: int, n: int = 5000):
-    """n episodes of 1..5 decisions (15/35/30/12/8 %, mean 2.6) on random views."""
+def stand_in_replay(tensors, t_max: int, n: int = 5000, device: str = "cpu"):
+    """n episodes of 1..5 decisions (15/35/30/12/8 %, mean 2.6) on random views (also
+    benchmarks/bench_crop_augmentation.py's)."""
     from uevavd.policy.replay import EpisodeReplay
 
     g = torch.Generator().manual_seed(0)
     length = torch.multinomial(torch.tensor([0.0, 0.15, 0.35, 0.30, 0.12, 0.08]), n, replacement=True, generator=g)
-    replay = EpisodeReplay(n, t_max, seed=1)
+    replay = EpisodeReplay(n, t_max, seed=1, device=device)
     replay.add(tensors.scenes[torch.randint(0, len(tensors.scenes), (n,), generator=g)],
                torch.randint(0, 605, (n, t_max + 1), generator=g), torch.randint(0, 6, (n, t_max), generator=g),
                torch.randint(0, 4, (n, t_max), generator=g), torch.randn(n, t_max, generator=g), length)
