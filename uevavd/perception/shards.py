@@ -7,13 +7,13 @@ from __future__ import annotations
 import logging
 import shutil
 from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..atomic import atomic_write, remove_temporaries
+from ..atomic import atomic_write, folder_lock, remove_temporaries
 from ..data.grid import N_VIEWS
 from ..hashing import json_digest
 
@@ -72,27 +72,26 @@ def save_array(path: Path, array: np.ndarray) -> None:
 
 @contextmanager
 def build_lock(out_dir: Path, key: str, usable: Any) -> Iterator[bool]:
-    """One build per table key at a time (``.KEY.lock`` in ``out_dir``): a second prepare of
-    the same table (another ablation on the same cache) waits, then finds it built. Yields True
-    holding the lock, after removing what a killed build of the key left (its temporaries; a
-    stale ``KEY.partial`` beside a built table). Where the lock file cannot be made (a read-only
-    cache) and ``usable(table folder)`` says the table is built, yields False: it is served
-    without the lock; otherwise the OS error stands."""
-    from filelock import FileLock
-
-    lock = FileLock(str(out_dir / f".{key}.lock"))
-    try:
-        lock.acquire()
-    except OSError:
-        if not usable(out_dir / key):
-            raise
-        yield False
-        return
-    try:
+    """One build per table key at a time (``atomic.folder_lock`` on the table's folder): a
+    second prepare of the same table (another ablation on the same cache) waits, then finds it
+    built. Yields True holding the lock, after removing what a killed build of the key left (its
+    temporaries; a stale ``KEY.partial`` beside a built table). Where the lock file cannot be
+    made (a read-only cache) and ``usable(table folder)`` says the table is built, yields False:
+    it is served without the lock; otherwise the OS error stands."""
+    with ExitStack() as held:
+        try:
+            held.enter_context(folder_lock(out_dir / key, busy=RuntimeError, wait=_say_waiting))
+        except OSError:
+            if not usable(out_dir / key):
+                raise
+            yield False
+            return
         for stale in remove_temporaries(out_dir, key):
             log.info("prepare: removed %s, left by a killed build", stale)
         if (out_dir / f"{key}.partial").is_dir() and usable(out_dir / key):
             shutil.rmtree(out_dir / f"{key}.partial", ignore_errors=True)  # a build killed after the save
         yield True
-    finally:
-        lock.release()
+
+
+def _say_waiting(lock_file: str) -> None:
+    log.info("prepare: another process builds this table (%s); waiting for it", lock_file)
