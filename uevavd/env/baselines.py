@@ -1,16 +1,21 @@
 """Baseline policies under the evaluation protocol of :mod:`uevavd.env.evaluate`.
 
-Both implement ``reset(n)`` / ``act(obs) -> (a_type (n,), a_range (n,))`` and read no
+Each implements ``reset(n)`` / ``act(obs) -> (a_type (n,), a_range (n,))`` and reads no
 features (``needs_features = False``).
 """
 
 from __future__ import annotations
 
+import json
+
 import torch
 
 from ..data.grid import STOP
 from ..plugins.manager import manager
-from .evaluate import evaluate_policy
+from ..table import TableError
+from .config import make_config
+from .evaluate import evaluate_gated, evaluate_policy, stopping_summary
+from .gate import box_visible
 from .oracle import OraclePolicy
 from .visibility_oracle import VisibilityOraclePolicy
 
@@ -60,12 +65,68 @@ class PassivePolicy:
         return torch.full((n,), STOP, dtype=torch.int64, device=dev), torch.zeros(n, dtype=torch.int64, device=dev)
 
 
+class BoxGatePolicy:
+    """Scripted, from the observation alone: stop where the observed target box is non-empty
+    (:func:`uevavd.env.gate.box_visible`), else the fixed move ``(a_type, a_range)``. Where that
+    move would be clamped at the grid's edge it flies the longest allowed range of its type
+    below the requested one, and where no range of that type is allowed it stops."""
+
+    needs_features = False
+
+    def __init__(self, a_type: int, a_range: int) -> None:
+        if not (0 <= a_type < STOP) or a_range < 0:  # the move types are 0..STOP - 1
+            raise ValueError(f"box_gate: ({a_type}, {a_range}) is not a move (type 0..{STOP - 1}, range index >= 0)")
+        self.a_type, self.a_range = int(a_type), int(a_range)
+
+    def reset(self, n: int) -> None:
+        pass
+
+    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        allowed = obs["mask"][:, self.a_type, :].sum(-1)  # ranges allowed: a prefix 0..k-1
+        fly = ~box_visible(obs["box"]) & (allowed > 0)
+        rng = torch.clamp(allowed - 1, max=self.a_range).clamp_min(0)
+        return torch.where(fly, self.a_type, STOP), torch.where(fly, rng, 0)
+
+
+def box_gate_move(table, config) -> tuple[int, int, dict[tuple[int, int], float]]:
+    """The box gate's fixed move, chosen on the table's training contexts alone (the
+    ``train`` split under ``config``, so ``env.train_per_block`` and a held-out validation split
+    are respected; never a test split): every move type x range is evaluated from every start
+    view, and the move with the highest mean return wins; ties (equal to 12 decimals) go to
+    the lowest type index, then the lowest range. Returns ``(type, range, {move: return})``.
+    Raises :class:`uevavd.table.TableError` for a table without training contexts."""
+    cfg = make_config(config)
+    key = (table.key, json.dumps(cfg.to_dict(), sort_keys=True))
+    if key not in _BOX_GATE_MOVES:  # 6 x A evaluations of the training split: once per table and config
+        returns = {}
+        for a_type in range(STOP):
+            for a_range in range(cfg.max_range):
+                res = evaluate_policy(table, "train", BoxGatePolicy(a_type, a_range), cfg)
+                returns[(a_type, a_range)] = float(res.ret.mean())
+        best = max(returns, key=lambda m: (round(returns[m], 12), -m[0], -m[1]))
+        _BOX_GATE_MOVES[key] = (best[0], best[1], returns)
+    return _BOX_GATE_MOVES[key]
+
+
+_BOX_GATE_MOVES: dict[tuple[str, str], tuple[int, int, dict[tuple[int, int], float]]] = {}
+
+
 def build_random(*, table=None, config=None, seed: int = 0) -> RandomPolicy:
     return RandomPolicy(seed)
 
 
 def build_passive(*, table=None, config=None, seed: int = 0) -> PassivePolicy:
     return PassivePolicy()
+
+
+def build_box_gate(*, table, config, seed: int = 0) -> BoxGatePolicy | None:
+    """The scripted box gate with its move chosen on ``table``'s training contexts
+    (:func:`box_gate_move`), or None for a table without training contexts."""
+    try:
+        a_type, a_range, _ = box_gate_move(table, config)
+    except TableError:
+        return None
+    return BoxGatePolicy(a_type, a_range)
 
 
 def build_visibility_oracle(*, table, config, seed: int = 0):
@@ -106,17 +167,36 @@ def reference_policies(table, config, *, seed: int = 0) -> dict:
     return out
 
 
+def evaluate_with_baselines(table, split: str, policy, name: str, config, *, device="cpu", baselines: bool = True,
+                            contexts=None) -> dict:
+    """``{policy name: (EvalResult, gated EvalResult or None)}``: ``policy`` as ``name``,
+    evaluated exhaustively on ``split`` (optionally only ``contexts``) under ``config`` and
+    again behind the stop gate (:func:`~uevavd.env.evaluate.evaluate_gated`), then each of
+    :func:`reference_policies` when ``baselines`` (not gated: they are the references)."""
+    out = {name: evaluate_gated(table, split, policy, config, device=device, contexts=contexts)}
+    for n, p in (reference_policies(table, config) if baselines else {}).items():
+        out[n] = (evaluate_policy(table, split, p, config, device=device, contexts=contexts), None)
+    return out
+
+
+def summary_row(res, gated) -> dict:
+    """An evaluation's summary with ``gated_return`` (NaN where it was not gated)."""
+    return stopping_summary(res, gated) if gated is not None else {**res.summary(), "gated_return": float("nan")}
+
+
 def evaluate_beside_baselines(table, split: str, policy, name: str, config, *, device="cpu", baselines: bool = True,
                               contexts=None):
-    """``(DataFrame, per-context DataFrame)``: one row per policy (``policy`` as ``name``,
-    then :func:`reference_policies` when ``baselines``), each evaluated exhaustively on
-    ``split`` (optionally only ``contexts``) under ``config``, with
-    :meth:`~uevavd.env.evaluate.EvalResult.summary`'s columns; and ``policy``'s rows per
-    context. What ``uevavd evaluate``, ``Run.evaluate`` and the model zoo print."""
+    """``(DataFrame, per-context DataFrame)``: one row per policy of
+    :func:`evaluate_with_baselines`, with :meth:`~uevavd.env.evaluate.EvalResult.summary`'s
+    columns (the stopping diagnosis among them) and ``gated_return``; and ``policy``'s rows
+    per context, with its gated return. What ``uevavd evaluate``, ``Run.evaluate`` and the
+    model zoo print."""
     import pandas as pd
 
-    policies = {name: policy, **(reference_policies(table, config) if baselines else {})}
-    results = {n: evaluate_policy(table, split, p, config, device=device, contexts=contexts)
-               for n, p in policies.items()}
-    frame = pd.DataFrame([{"policy": n, **r.summary()} for n, r in results.items()]).set_index("policy")
-    return frame, results[name].per_context()
+    results = evaluate_with_baselines(table, split, policy, name, config, device=device, baselines=baselines,
+                                      contexts=contexts)
+    frame = pd.DataFrame([{"policy": n, **summary_row(*r)} for n, r in results.items()]).set_index("policy")
+    res, gated = results[name]
+    per_context = res.per_context()
+    per_context["gated_return"] = gated.per_context()["mean_return"].to_numpy()
+    return frame, per_context

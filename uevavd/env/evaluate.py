@@ -30,6 +30,7 @@ from ..data.grid import N_VIEWS, STEP_M
 from ..table import ObservationTable, load_table
 from .batched import EnvTensors
 from .config import EnvConfig, make_config
+from .gate import StopGate, box_visible
 
 
 class Policy(Protocol):
@@ -46,7 +47,9 @@ class EvalResult:
     ``metres`` float64 and ``steps`` int64 actually flown, ``decisions`` int64 (1..T_max),
     ``scene`` int64 table scene index, ``context`` int64 id, ``target`` int64 class,
     ``start_view`` / ``final_view`` int64; ``trajectories`` (n, T_max + 1) int64 views
-    visited, padded with -1 after the end.
+    visited, padded with -1 after the end; ``start_box`` bool, the observed target box at the
+    start view is non-empty (:func:`uevavd.env.gate.box_visible`); ``start_recognized`` bool,
+    the recognizer recognises the start view.
     """
 
     ret: np.ndarray
@@ -62,6 +65,8 @@ class EvalResult:
     start_view: np.ndarray
     final_view: np.ndarray
     trajectories: np.ndarray
+    start_box: np.ndarray
+    start_recognized: np.ndarray
     split: str = ""
     config: dict[str, Any] = field(default_factory=dict)
     class_names: tuple[str, ...] = ()
@@ -71,6 +76,8 @@ class EvalResult:
 
     @staticmethod
     def _stats(r: EvalResult | Any, idx: np.ndarray | slice = slice(None)) -> dict[str, float]:
+        box, moved = r.start_box[idx], r.trajectories[idx, 1] >= 0
+        lost = ~r.recognized[idx]
         return {
             "episodes": int(np.size(r.ret[idx])),
             "mean_return": float(np.mean(r.ret[idx])),
@@ -80,11 +87,21 @@ class EvalResult:
             "path_steps": float(np.mean(r.steps[idx])),
             "stop_rate": float(np.mean(r.stopped[idx])),
             "steps_per_episode": float(np.mean(r.decisions[idx])),
+            # the stopping diagnosis: where the target is in view at the start, does the policy fly
+            # away from it, and does that lose a recognition the start view had?
+            "box_start": float(np.mean(box)),
+            "moved_if_box": float(np.mean(moved[box])) if box.any() else float("nan"),
+            "box_lost": float(np.mean(box & moved & lost)),
+            "reco_lost": float(np.mean(r.start_recognized[idx] & lost)),
         }
 
     def summary(self) -> dict[str, float]:
         """Means over all episodes: mean_return, accuracy (argmax), recognition_rate (thre),
-        path_m, path_steps, stop_rate (ended by stop, not T_max), steps_per_episode."""
+        path_m, path_steps, stop_rate (ended by stop, not T_max), steps_per_episode; and the
+        stopping diagnosis: box_start (share of starts whose observed box is non-empty),
+        moved_if_box (of those, the share where the first decision is a move; NaN without
+        any), box_lost (share of all episodes that start with the box non-empty, move, and end
+        unrecognised), reco_lost (share of all episodes that start recognised and end not)."""
         return self._stats(self)
 
     def _grouped(self, key: np.ndarray, name: str, label: Any) -> Any:
@@ -188,6 +205,8 @@ def evaluate_policy(
             break
     reco = tb.reco[scene, view]
     acc = tb.acc[scene, view]
+    start_box = box_visible(tb.boxes[scene, start])
+    start_reco = tb.reco[scene, start]
     table_scene = tb.scenes[scene]
 
     def np_(x: torch.Tensor) -> np.ndarray:
@@ -207,7 +226,25 @@ def evaluate_policy(
         start_view=np_(start),
         final_view=np_(view),
         trajectories=np_(traj),
+        start_box=np_(start_box),
+        start_recognized=np_(start_reco),
         split=tb.split,
         config=cfg.to_dict(),
         class_names=tuple(tb.class_names),
     )
+
+
+def evaluate_gated(table: ObservationTable | str | os.PathLike[str] | EnvTensors, split: str, policy: Policy,
+                   config: EnvConfig | dict[str, Any] | None = None, *, device: str | torch.device = "cpu",
+                   contexts: Any = None) -> tuple[EvalResult, EvalResult]:
+    """``(result, gated)``: :func:`evaluate_policy` of ``policy`` and of the same policy behind
+    the stop gate (:class:`~uevavd.env.gate.StopGate`), on the same episodes. The gated
+    result's mean return is the diagnosis's ``gated_return``."""
+    res = evaluate_policy(table, split, policy, config, device=device, contexts=contexts)
+    gated = evaluate_policy(table, split, StopGate(policy), config, device=device, contexts=contexts)
+    return res, gated
+
+
+def stopping_summary(res: EvalResult, gated: EvalResult) -> dict[str, float]:
+    """``res.summary()`` with ``gated_return``, the mean return behind the stop gate."""
+    return {**res.summary(), "gated_return": float(np.mean(gated.ret))}

@@ -10,6 +10,9 @@ def register_baselines(registry):
     registry.add("random", "uevavd.env.baselines:build_random", tags=("seeded",),
                  summary="uniform over the distinct allowed actions (one run per RL seed)")
     registry.add("passive", "uevavd.env.baselines:build_passive", summary="stop at once: classify the first view")
+    registry.add("box_gate", "uevavd.env.baselines:build_box_gate",
+                 summary="scripted, observation only: stop where the target's box is non-empty, else one fixed "
+                         "move chosen on the training contexts")
     registry.add("visibility_oracle", "uevavd.env.baselines:build_visibility_oracle",
                  summary="knows every view's visible fraction, flies the cheapest path to the most visible "
                          "reachable view (tables with visible fractions)")

@@ -77,7 +77,7 @@ def roles_now() -> dict[str, Any]:
 
 
 #: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = ("random", "passive", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
+METHOD_ORDER: tuple[str, ...] = ("random", "passive", "box_gate", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
                                   "ibe_map_reco", "ibe_map_aug", "ibe_map_aux",
                                   "sb3_dqn",
                                   "sb3_ppo",
@@ -94,6 +94,7 @@ LABELS: dict[str, str] = {
     "ibe_map_aux": "IBE-MAP (recognition probe)",
     "random": "Random",
     "passive": "Passive",
+    "box_gate": "Box gate (scripted)",
     "visibility_oracle": "Visibility oracle",
     "oracle": "Class-knowing oracle (upper bound)",
     "sb3_dqn": "SB3 DQN (reference)",
@@ -110,6 +111,9 @@ DEFAULT_C = EnvConfig.C
 METRICS: tuple[str, ...] = (
     "return", "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
 )
+#: The stopping diagnosis (:meth:`uevavd.env.evaluate.EvalResult.summary`) and a learned policy's
+#: return behind the stop gate (NaN for the baselines and the per-epoch rows); optional columns.
+STOPPING: tuple[str, ...] = ("box_start", "moved_if_box", "box_lost", "reco_lost", "gated_return")
 REQUIRED_COLUMNS: tuple[str, ...] = (
     "method", "seed", "setting", "thre", "C", "episodes", "final", "split", *METRICS,
 )
@@ -141,11 +145,11 @@ def label(method: str) -> str:
 
 #: Baselines drawn first (the floor) and last (the ceilings); other baselines sit between the
 #: learned methods and these.
-_FIRST, _LAST = ("random", "passive"), ("visibility_oracle", "oracle")
+_FIRST, _LAST = ("random", "passive", "box_gate"), ("visibility_oracle", "oracle")
 
 
 def order_methods(methods) -> list[str]:
-    """Methods in report order: random and passive, the learned methods (uevavd's in
+    """Methods in report order: random, passive and the box gate, the learned methods (uevavd's in
     :data:`METHOD_ORDER`, then others by name), the other baselines (SB3 references, a
     plugin's), then the two oracles: learned methods stay together whatever is installed."""
     ms = list(dict.fromkeys(methods))
@@ -207,7 +211,7 @@ def load_results(path: str | Path) -> pd.DataFrame:
             df[col] = pd.to_numeric(df[col], errors="raise").astype(np.int64)
         except (ValueError, TypeError):
             raise ValueError(f"{path}: column {col!r} must hold integers") from None
-    for col in ("thre", "C", *METRICS):
+    for col in ("thre", "C", *METRICS, *(c for c in STOPPING if c in df.columns)):
         try:
             df[col] = pd.to_numeric(df[col], errors="raise").astype(np.float64)
         except (ValueError, TypeError):
@@ -258,7 +262,7 @@ def final_rows(df: pd.DataFrame) -> pd.DataFrame:
         parts.append(pd.concat([flagged, rest]).groupby(keys, as_index=False).last())
     if not base.empty:
         parts.append(base.groupby(keys, as_index=False).agg({
-            **{m: "mean" for m in METRICS}, "thre": "first", "C": "first", "episodes": "max", "final": "first"}))
+            **{m: "mean" for m in (*METRICS, *(c for c in STOPPING if c in base))}, "thre": "first", "C": "first", "episodes": "max", "final": "first"}))
     if not parts:
         return df.iloc[0:0]
     return pd.concat(parts, ignore_index=True)

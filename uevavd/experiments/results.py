@@ -15,11 +15,12 @@ from ..atomic import read_sealed_json, write_sealed_json
 from ..data.grid import N_VIEWS
 from ..env.baselines import baseline_entries
 from ..env.config import make_config
-from ..env.evaluate import evaluate_policy
+from ..env.evaluate import evaluate_gated, evaluate_policy, stopping_summary
 from ..policy.acting import load_policy
 from ..policy.rundir import RunDir, read_settings
 from ..table import ObservationTable
 from .plan import SWEEPABLE, AblationError, Plan, env_config
+from .report_data import STOPPING
 
 log = logging.getLogger(__name__)
 
@@ -28,12 +29,12 @@ if TYPE_CHECKING:  # pragma: no cover
 
 RESULT_COLUMNS = [
     "method", "recognizer", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return",
-    "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s",
+    "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s", *STOPPING,
 ]
 #: Per-context rows of every final evaluation (``contexts.csv``).
 CONTEXT_COLUMNS = [
     "method", "recognizer", "seed", "setting", "split", "context", "target", "terrain", "return", "accuracy",
-    "recognition", "path_m", "stop_rate", "steps",
+    "recognition", "path_m", "stop_rate", "steps", *STOPPING,
 ]
 
 def is_done(job: Job) -> bool:
@@ -47,7 +48,7 @@ def _final_eval_key(run: Path) -> dict[str, Any]:
     settings = read_settings(run)
     done = json.loads(RunDir(run).done.read_text(encoding="utf-8"))
     splits = list(settings.get("train", {}).get("eval_splits") or ["train", "hard"])
-    return {"protocol": "every context of the split x all 605 start views, greedy policy",
+    return {"protocol": "every context of the split x all 605 start views, greedy policy, and behind the stop gate",
             "episodes": int(done["episodes"]), "updates": int(done.get("updates", -1)),
             "wall_s": float(done.get("wall_s", float("nan"))), "env": settings["env"],
             "table_key": settings["table_key"], "splits": splits}
@@ -87,16 +88,19 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
     policy = load_policy(run, device=dev)
     splits = {}
     for split in key["splits"]:
-        res = evaluate_policy(table, split, policy, config, device=dev)
-        splits[split] = {**res.summary(), "contexts": int(np.unique(res.context).size),
-                         "per_context": per_context_rows(res)}
+        res, gated = evaluate_gated(table, split, policy, config, device=dev)
+        splits[split] = {**stopping_summary(res, gated), "contexts": int(np.unique(res.context).size),
+                         "per_context": per_context_rows(res, gated)}
     out = {"key": key, "splits": splits}
     write_sealed_json(path, out, fsync=True)
     return out
 
-def per_context_rows(res) -> list[dict[str, Any]]:
-    """One record per context of an evaluation: context, target and the summary's means."""
+def per_context_rows(res, gated=None) -> list[dict[str, Any]]:
+    """One record per context of an evaluation: context, target and the summary's means; with
+    ``gated`` (the same evaluation behind the stop gate), its mean return as ``gated_return``."""
     df = res.per_context()
+    if gated is not None:
+        df["gated_return"] = gated.per_context()["mean_return"].to_numpy()
     return [{"context": int(r["context"]), "target": str(r["target"]), **metric_row(r)}
             for r in df.to_dict(orient="records")]
 
@@ -126,6 +130,8 @@ def metric_row(summary: dict[str, Any]) -> dict[str, Any]:
         "path_steps": summary["path_steps"],
         "stop_rate": summary["stop_rate"],
         "steps": summary["steps_per_episode"],
+        # absent from evaluations written before the diagnosis existed
+        **{k: summary.get(k, float("nan")) for k in STOPPING},
     }
 
 
@@ -202,7 +208,7 @@ def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], lo
             for split in splits:
                 for entry, seed in todo:
                     key = f"{tbl.key}|{setting_name}|{split}|{entry.name}|{seed}"
-                    if key not in done or "per_context" not in done[key]:
+                    if key not in done or "per_context" not in done[key] or "box_start" not in done[key]:
                         policy = entry.load()(table=tbl, config=config, seed=seed)
                         if policy is None:  # does not apply to this table
                             continue

@@ -236,17 +236,23 @@ def _split_table(path: Path, split: str) -> Any:
 
 
 def _print_beside_baselines(args: argparse.Namespace, table: Any, name: str, policy: Any, cfg: Any, out: Path) -> int:
-    from ..env.baselines import reference_policies
-    from ..env.evaluate import evaluate_policy
+    from ..env.baselines import evaluate_with_baselines, summary_row
 
-    policies = {name: policy, **reference_policies(table, cfg)}
-    results = {n: evaluate_policy(table, args.split, pol, cfg, device=args.device) for n, pol in policies.items()}
-    cols = ["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"]
-    print(f"{args.run_dir} on split {args.split!r} ({len(next(iter(results.values())))} episodes)")
-    print(f"{'policy':<18}" + "".join(f"{c:>18}" for c in cols))
-    for n, res in results.items():
-        summary = res.summary()
-        print(f"{n:<18}" + "".join(f"{summary[c]:>18.4f}" for c in cols))
-    atomic_write_json(out, {n: res.to_dict() for n, res in results.items()}, sort_keys=True)
+    results = evaluate_with_baselines(table, args.split, policy, name, cfg, device=args.device)
+    rows = {n: summary_row(*r) for n, r in results.items()}
+    print(f"{args.run_dir} on split {args.split!r} ({len(results[name][0])} episodes)")
+    _print_rows(rows, ["mean_return", "accuracy", "recognition_rate", "path_m", "path_steps", "stop_rate"])
+    print("stopping: box_start = starts with the target's box in view; moved_if_box = of those, the policy moves; "
+          "box_lost = starts with the box in view, moves, ends unrecognised; reco_lost = starts recognised, ends "
+          "not; gated_return = the policy behind the stop gate (stop wherever the box is non-empty)")
+    _print_rows(rows, ["box_start", "moved_if_box", "box_lost", "reco_lost", "gated_return"])
+    atomic_write_json(out, {n: {**res.to_dict(), "gated_return": rows[n]["gated_return"]}
+                            for n, (res, _) in results.items()}, sort_keys=True)
     print(f"wrote {out}")
     return 0
+
+
+def _print_rows(rows: dict[str, dict[str, float]], cols: list[str]) -> None:
+    print(f"{'policy':<18}" + "".join(f"{c:>18}" for c in cols))
+    for n, row in rows.items():
+        print(f"{n:<18}" + "".join(f"{row[c]:>18.4f}" for c in cols))
