@@ -33,6 +33,7 @@ from .checkpoint import (
     read_policy_file,
     save_policy_file,
 )
+from .config import TrainConfig
 from .network import QNetwork, build_network
 from .rundir import RunDir, read_settings, run_spec
 
@@ -183,11 +184,10 @@ class GreedyPolicy:
                     proj = self._projections(rows(obs["scene"]))
                     img = proj.view(-1, proj.shape[-1]).index_select(0, flat)
                     s, hidden = est.step_encoded(est.encoder.combine(img, boxes), hidden)
-                q = self.net.head(s)
             else:
-                feats = rows(obs["features"]).float()
-                q, hidden = self.net.step(feats, boxes, hidden)
-            greedy_type, greedy_range = self.net.head.greedy(q, mask)
+                s, hidden = est.step(rows(obs["features"]).float(), boxes, hidden)
+            q = self.net.head(s)
+            greedy_type, greedy_range = self.net.head.greedy(q, self.net.allowed(mask, boxes, s))
             if live is None:
                 self.hidden, a_type, a_range = hidden, greedy_type, greedy_range
             else:
@@ -208,7 +208,7 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
     settings = read_settings(run_dir)
     spec = run_spec(run_dir)
 
-    net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
+    net = method_network(spec, settings["feature_dim"], settings["env"]["max_range"])
     path = run_dir / weights if weights else RunDir(run_dir).checkpoint
     state = load_checkpoint(path, expect=settings, keys=ARCH_KEYS)  # the network, not a resume
     load_net_state(net, state["net"], path)
@@ -239,7 +239,7 @@ def load_policy_file(path: str | Path, *, table: Any = None, method: str | None 
     table = None if table is None else load_table(table)
     check_policy_fits(path, settings, table=table, method=method, env=cfg)
     spec = loads_method(method_toml, source=str(path))
-    net = build_network(spec.state, spec.head, settings["feature_dim"], n_ranges=settings["env"]["max_range"])
+    net = method_network(spec, settings["feature_dim"], settings["env"]["max_range"])
     load_net_state(net, state, path)
     # a copy: the table is memory-mapped read-only
     features = None if table is None else torch.from_numpy(np.array(table.features))
@@ -251,7 +251,15 @@ def policy_network(method: Any, table: Any) -> QNetwork:
     features and the method's action space: ``net(features (B, T, D), boxes (B, T, 4))``
     gives the head's Q branches (the built-in head: type (B, T, 7) and range (B, T, A))."""
     spec = as_method(method)
-    return build_network(spec.state, spec.head, load_table(table).feature_dim, n_ranges=spec.env.max_range)
+    return method_network(spec, load_table(table).feature_dim, spec.env.max_range)
+
+
+def method_network(spec: Any, feature_dim: int, n_ranges: int) -> QNetwork:
+    """The network of a method spec as a policy acts with it: its state estimator and head
+    (:func:`~uevavd.policy.network.build_network`) and its stop gate (``train.stop_gate``)."""
+    gate = spec.get("train.stop_gate", TrainConfig.stop_gate)
+    threshold = spec.get("train.stop_threshold", TrainConfig.stop_threshold)
+    return build_network(spec.state, spec.head, feature_dim, n_ranges=n_ranges).set_stop_gate(gate, threshold)
 
 
 def save_network(net: QNetwork, path: str | Path, *, method: Any, table: Any) -> Path:

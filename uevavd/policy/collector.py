@@ -92,8 +92,9 @@ class EpisodeCollector:
         with torch.no_grad():
             self.hidden = self.hidden * (t != 0)[:, None].to(self.hidden.dtype)
             q, self.hidden = self.net.step(obs["features"], obs["box"], self.hidden)
-            a_type, a_range = self.net.head.greedy(q, obs["mask"])
-            a_type, a_range = epsilon_greedy(a_type, a_range, obs["mask"], epsilon, self.generator)
+            mask = self.net.allowed(obs["mask"], obs["box"], training=True)  # train.stop_gate "box"
+            a_type, a_range = self.net.head.greedy(q, mask)
+            a_type, a_range = epsilon_greedy(a_type, a_range, mask, epsilon, self.generator)
         self.ep_views[ar, t] = obs["view"]
         self.ep_type[ar, t] = a_type
         self.ep_range[ar, t] = a_range

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from ..config import ConfigError
+from .network import STOP_GATES
 from .replay import SAMPLINGS
 
 #: ``TrainConfig.gamma``'s default; at this value it follows ``env.gamma``.
@@ -20,7 +21,8 @@ MAX_SEED = 2**32 - 1
 #: What a run recorded before a training setting existed trained with (see
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
 LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", "plr_temperature": 0.1,
-                "plr_staleness": 0.1, "feature_dropout": 0.0, "aux_recognition": 0.0}
+                "plr_staleness": 0.1, "feature_dropout": 0.0, "aux_recognition": 0.0,
+                "stop_gate": "none", "stop_threshold": 0.5}
 #: How training picks each new episode's context (``train.context_sampling``).
 CONTEXT_SAMPLINGS = ("uniform", "level_replay")
 
@@ -111,6 +113,16 @@ class TrainConfig:
     aux_recognition: float = 0.0
     """An auxiliary objective: the weight of a linear probe's loss predicting, from the state,
     whether the recognizer recognises the current view (0 = none)."""
+    stop_gate: Literal["none", "box", "learned"] = "none"
+    """Where the agent may only stop (:data:`uevavd.policy.network.STOP_GATES`): "none"; "box",
+    wherever the observed target box is non-empty, in training (its actions and its TD targets)
+    and in acting, so its values are learned on the decisions where the target is hidden;
+    "learned", wherever a stop probe on the state, trained beside the Q network on whether the
+    recognizer recognises the current view (its own loss and optimizer; the Q network's updates
+    are those of the method without it), predicts recognition above ``stop_threshold``, in
+    greedy acting only."""
+    stop_threshold: float = 0.5
+    """The learned stop gate's threshold on the stop probe's probability."""
 
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
@@ -147,6 +159,9 @@ class TrainConfig:
              "a probability in [0, 1)")
         need(isinstance(self.aux_recognition, int | float) and 0.0 <= self.aux_recognition <= 100.0, "aux_recognition",
              "a loss weight in [0, 100]")
+        need(self.stop_gate in STOP_GATES, "stop_gate", f"one of {STOP_GATES}")
+        need(isinstance(self.stop_threshold, int | float) and 0.0 <= self.stop_threshold <= 1.0, "stop_threshold",
+             "a probability in [0, 1]")
         need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
         need(self.grad_clip >= 0, "grad_clip", "a number >= 0 (0 disables clipping)")
         need(self.learning_starts < self.episodes, "learning_starts",

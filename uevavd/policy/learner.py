@@ -91,6 +91,31 @@ class RecognitionProbe(torch.nn.Module):
         return F.binary_cross_entropy_with_logits(self.linear(s)[:, 0], recognized.float())
 
 
+class StopProbeLearner:
+    """Trains the network's stop probe (``train.stop_gate = "learned"``) with its own Adam: the
+    binary cross-entropy of predicting, from the detached state s_t, whether the recognizer
+    recognises the current view. The probe reads the state but trains nothing under it, so the
+    Q network's updates are those of the same method without the gate."""
+
+    def __init__(self, net: QNetwork, *, lr: float) -> None:
+        self.net = net
+        self.optimizer = torch.optim.Adam(net.stop_probe.parameters(), lr=lr)
+
+    def update(self, s: torch.Tensor, recognized: torch.Tensor) -> float:
+        logits = self.net.stop_probe(s.detach())[:, 0]
+        loss = F.binary_cross_entropy_with_logits(logits, recognized.float())
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return float(loss.detach())
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.optimizer.state_dict()
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.optimizer.load_state_dict(state)
+
+
 class Learner:
     """Online and target networks, Adam, and the double-DQN update over episode batches."""
 
@@ -98,11 +123,12 @@ class Learner:
                  augment: FeatureDropout | None = None, aux: RecognitionProbe | None = None) -> None:
         self.net = net
         self.augment, self.aux = augment, aux
+        self.stop_probe = StopProbeLearner(net, lr=lr) if net.stop_probe is not None else None
         self.target = copy.deepcopy(net).requires_grad_(False)
         for m in self.target.modules():  # a deep copy leaves cuDNN's RNN weights in pieces, which
             if isinstance(m, torch.nn.RNNBase):  # it would then compact on every call (no-op on CPU)
                 m.flatten_parameters()
-        params = self._params = list(net.parameters()) + (list(aux.parameters()) if aux is not None else [])
+        params = self._params = net.q_parameters() + (list(aux.parameters()) if aux is not None else [])
         # fused Adam: one kernel over all parameters, ~3x faster than the per-tensor loop on
         # CPU (16 -> 5 ms per step for the paper-sized GRU agent), same update rule
         fused = all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params)
@@ -116,7 +142,8 @@ class Learner:
 
     def parts(self) -> dict[str, Any]:
         """The optional parts a checkpoint holds besides the networks and the optimizer."""
-        return {k: v for k, v in (("augment", self.augment), ("aux", self.aux)) if v is not None}
+        return {k: v for k, v in (("augment", self.augment), ("aux", self.aux), ("stop_probe", self.stop_probe))
+                if v is not None}
 
     def update(self, batch: EpisodeBatch, lookup: FeatureLookup) -> tuple[float, torch.Tensor]:
         """One gradient step. Returns (loss, per-episode mean |TD error| (B,))."""
@@ -135,6 +162,10 @@ class Learner:
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
             q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, boxes, seen, skip_first=True))
+            if self.net.stop_gate == "box":  # the next decision's allowed actions, as acting saw them
+                seen_boxes = boxes.new_zeros(*seen.shape, 4)
+                seen_boxes[seen] = boxes
+                mask = self.net.allowed(mask, seen_boxes, training=True)
             boot = head.bootstrap(q_next_online, q_next_target, mask[:, 1:])  # (B, T, K)
             y = T.td_target(batch.reward, batch.done, boot, self.gamma)
         q_taken = head.taken(tuple(q[:, :-1] for q in q_all), batch.a_type, batch.a_range)  # (B, T, K)
@@ -144,8 +175,13 @@ class Learner:
         else:
             per = 0.5 * (q_taken - y) ** 2
         loss = (per * w * batch.weight[:, None, None]).sum() / w.sum().clamp_min(1.0)
-        if self.aux is not None:  # s holds the seen rows in seen.nonzero() order, as the lookup's rows
-            loss = loss + self.aux.weight * self.aux.loss(s, lookup.recognized_rows(batch.scene, batch.views, seen))
+        if self.aux is not None or self.stop_probe is not None:
+            # s holds the seen rows in seen.nonzero() order, as the lookup's rows
+            recognized = lookup.recognized_rows(batch.scene, batch.views, seen)
+            if self.aux is not None:
+                loss = loss + self.aux.weight * self.aux.loss(s, recognized)
+            if self.stop_probe is not None:
+                self.stop_probe.update(s, recognized)
         params = self._params
         for p in params:  # Adam.zero_grad(set_to_none=True) without its profiler hooks: 0.1 ms
             p.grad = None

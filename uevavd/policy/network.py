@@ -8,7 +8,14 @@ import torch
 from torch import nn
 
 from ..config import Component
-from ..data.grid import DEFAULT_MAX_RANGE, N_TYPES
+from ..data.grid import DEFAULT_MAX_RANGE, N_TYPES, STOP
+from ..env.gate import gate_mask
+
+#: ``train.stop_gate``: where the policy may only stop. "none"; "box", wherever the observed
+#: target box is non-empty, in training (acting and TD targets) and in acting; "learned",
+#: wherever a stop probe on s_t predicts that the recognizer recognises the current view with
+#: probability above ``train.stop_threshold``, in greedy acting only.
+STOP_GATES = ("none", "box", "learned")
 
 
 class QNetwork(nn.Module):
@@ -26,6 +33,41 @@ class QNetwork(nn.Module):
                 f"{estimator.state_dim}; set head.state_dim = state.state_dim in the method config"
             )
         self.estimator, self.head = estimator, head
+        self.stop_gate, self.stop_threshold = "none", 0.5
+        self.stop_probe: nn.Linear | None = None
+
+    def set_stop_gate(self, kind: str, threshold: float = 0.5) -> QNetwork:
+        """Give the network its stop gate (:data:`STOP_GATES`); "learned" adds the stop probe,
+        a linear layer on s_t (its weights are part of the network and of its policy file).
+        Call it where the network is built, before its weights are loaded. Returns self."""
+        if kind not in STOP_GATES:
+            raise ValueError(f"stop gate {kind!r}: expected one of {STOP_GATES}")
+        self.stop_gate, self.stop_threshold = kind, float(threshold)
+        self.stop_probe = nn.Linear(self.estimator.state_dim, 1) if kind == "learned" else None
+        return self
+
+    def q_parameters(self) -> list[nn.Parameter]:
+        """The parameters the TD loss trains: all but the stop probe's (trained on its own)."""
+        return [p for n, p in self.named_parameters() if not n.startswith("stop_probe.")]
+
+    def stop_probability(self, s: torch.Tensor) -> torch.Tensor:
+        """(N, state_dim) -> (N,) the stop probe's probability that the recognizer recognises
+        the current view (the network must have the learned gate)."""
+        assert self.stop_probe is not None, "the network has no stop probe (train.stop_gate != 'learned')"
+        return torch.sigmoid(self.stop_probe(s)[..., 0])
+
+    def allowed(self, mask: torch.Tensor, box: torch.Tensor, s: torch.Tensor | None = None, *,
+                training: bool = False) -> torch.Tensor:
+        """The (..., 7, A) action mask narrowed by the stop gate: where it closes, only stop is
+        allowed. ``box`` (..., 4) the observed boxes; ``s`` (..., state_dim) the states, read
+        by the learned gate when acting greedily (``training`` False)."""
+        if self.stop_gate == "box":
+            return gate_mask(mask, box)
+        if self.stop_gate == "learned" and not training and s is not None:
+            gated = mask.clone()
+            gated[..., :STOP, :][self.stop_probability(s) > self.stop_threshold] = False
+            return gated
+        return mask
 
     @property
     def recurrent(self) -> bool:

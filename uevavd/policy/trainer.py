@@ -99,7 +99,8 @@ class _Evaluator:
         net.train()
         self.tensors = {}
         for split in cfg.eval_splits:
-            ctx = table.contexts[table.select(split, train_per_block=env_cfg.train_per_block)]
+            ctx = table.contexts[table.select(split, train_per_block=env_cfg.train_per_block,
+                                              holdout_block=env_cfg.holdout_block)]
             if cfg.eval_contexts and cfg.eval_contexts < len(ctx):
                 ctx = ctx[np.linspace(0, len(ctx) - 1, cfg.eval_contexts).round().astype(int)]
             self.tensors[split] = EnvTensors(table, split, env_cfg, device=device, contexts=ctx,
@@ -270,7 +271,8 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
             torch.cuda.manual_seed(seeds.network)
     # each component checked against its kind's rules (one line naming the broken one) before
     # anything of the run is written; a table without the train or an eval split is refused here too
-    net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range).to(dev)
+    net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range)
+    net = net.set_stop_gate(cfg.stop_gate, cfg.stop_threshold).to(dev)
     augment = FeatureDropout(cfg.feature_dropout, seed=seeds.augment, device=dev) if cfg.feature_dropout else None
     aux = RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev) if cfg.aux_recognition else None
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss, augment=augment, aux=aux)

@@ -1,0 +1,107 @@
+"""The stop gates a method takes (``train.stop_gate``): "box" inside training and acting, and
+"learned", a stop probe on the state that gates greedy acting only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from uevavd.config import ConfigError, load_method
+from uevavd.env import evaluate_policy
+from uevavd.env.baselines import PassivePolicy
+from uevavd.env.batched import BatchedAODEnv
+from uevavd.env.gate import box_visible
+from uevavd.policy.acting import load_policy
+from uevavd.policy.collector import EpisodeCollector
+from uevavd.policy.config import TrainConfig
+from uevavd.policy.network import build_network
+from uevavd.policy.trainer import train
+from uevavd.table import ObservationTable
+from uevavd.testing.policy import small_run, toy_table
+
+
+def hidden_table(seed: int = 0) -> ObservationTable:
+    """The toy table with the target's box hidden at about half of each scene's views (where
+    its recognisability signal is low), so the gate has both cases to decide."""
+    t = toy_table(n_train=3, n_hard=1, feature_dim=8, seed=seed)
+    feats, boxes = np.array(t.features), np.array(t.boxes)
+    hide = feats[..., 3] < np.median(feats[..., 3], axis=1, keepdims=True)
+    boxes[hide] = 0.0
+    return ObservationTable.from_arrays(feats, np.array(t.probs), boxes, scenes=list(t.scenes),
+                                        targets=list(t.targets), splits=list(t.splits), contexts=list(t.contexts),
+                                        config={"toy-hidden": seed})
+
+
+def _spec(method: str, **overrides):
+    return load_method(method, overrides={**small_run("ibe_map"), "train.episodes": 600, **overrides})
+
+
+def test_bad_stop_gate_settings_are_refused():
+    with pytest.raises(ConfigError, match="train.stop_gate"):
+        TrainConfig(stop_gate="always")
+    with pytest.raises(ConfigError, match="train.stop_threshold"):
+        TrainConfig(stop_threshold=1.5)
+
+
+def test_the_box_gate_shapes_exploration_in_training():
+    table = hidden_table()
+    spec = _spec("ibe_map_gate")
+    net = build_network(spec.state, spec.head, table.feature_dim).set_stop_gate("box")
+    env = BatchedAODEnv(table, "train", 256, seed=0)
+    col = EpisodeCollector(env, net, seed=0, device=torch.device("cpu"))
+    col.reset()
+    for _ in range(6):
+        obs = col.obs
+        visible = box_visible(obs["box"])
+        t = obs["t"].clone()
+        col.step(epsilon=1.0)  # random actions: the gate still holds
+        rows = torch.arange(len(t))
+        taken = col.ep_type[rows, t]
+        assert visible.any() and (~visible).any()
+        assert (taken[visible] == 6).all()
+        assert (taken[~visible] != 6).any()
+
+
+def test_a_box_gated_run_never_flies_from_a_visible_target_and_resumes_bit_for_bit(tmp_path):
+    table = hidden_table()
+    spec = _spec("ibe_map_gate")
+    for d, epochs in (("whole", None), ("paused", 1), ("paused", None)):
+        train(spec, table, out=tmp_path / d, seed=3, device="cpu", progress=False, max_epochs=epochs)
+    a, b = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused"))
+    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
+    res = evaluate_policy(table, "hard", load_policy(tmp_path / "whole"), spec.env)
+    boxes = np.array(table.boxes)
+    for i in range(len(res)):
+        views = res.trajectories[i][res.trajectories[i] >= 0]
+        assert not any((boxes[res.scene[i], v] != 0).any() for v in views[:-1])
+    assert res.summary()["moved_if_box"] == 0.0 and res.summary()["box_start"] > 0.2
+
+
+def test_the_learned_gate_trains_a_probe_beside_an_unchanged_q_network(tmp_path):
+    table = hidden_table()
+    train(_spec("ibe_map_stop"), table, out=tmp_path / "stop", seed=1, device="cpu", progress=False)
+    train(_spec("ibe_map"), table, out=tmp_path / "plain", seed=1, device="cpu", progress=False)
+    stop, plain = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("stop", "plain"))
+    # the Q network's updates are the plain method's, bit for bit; the probe learned
+    assert set(stop["net"]) - set(plain["net"]) == {"stop_probe.weight", "stop_probe.bias"}
+    assert all(torch.equal(stop["net"][k], plain["net"][k]) for k in plain["net"])
+    assert "stop_probe" in stop and "stop_probe" not in plain
+    policy = load_policy(tmp_path / "stop")
+    probe = policy.net.stop_probe
+    assert probe is not None and not torch.equal(probe.weight, torch.zeros_like(probe.weight))
+
+
+@pytest.mark.parametrize("threshold", [0.0, 1.0])
+def test_the_learned_gates_threshold_acts_at_its_ends(tmp_path, threshold):
+    """Threshold 0: every probability is above it, so the policy stops at once (passive's
+    episodes); threshold 1: never, so it acts as the network without the gate."""
+    table = hidden_table()
+    spec = _spec("ibe_map_stop", **{"train.stop_threshold": threshold})
+    train(spec, table, out=tmp_path / "stop", seed=1, device="cpu", progress=False)
+    train(_spec("ibe_map"), table, out=tmp_path / "plain", seed=1, device="cpu", progress=False)
+    got = evaluate_policy(table, "hard", load_policy(tmp_path / "stop"), spec.env)
+    want = evaluate_policy(table, "hard", PassivePolicy() if threshold == 0.0 else load_policy(tmp_path / "plain"),
+                           spec.env)
+    np.testing.assert_array_equal(got.ret, want.ret)
+    np.testing.assert_array_equal(got.trajectories, want.trajectories)
