@@ -39,7 +39,7 @@ import numpy as np
 
 from .atomic import atomic_dir
 from .data.grid import N_VIEWS
-from .data.splits import SPLITS, TARGETS, VALIDATION, first_per_block, resolve_split
+from .data.splits import SPLITS, TARGETS, VALIDATION, block_of, first_per_block, resolve_split
 from .hashing import file_sha256, json_digest
 from .paths import tables_dir
 
@@ -235,19 +235,25 @@ class ObservationTable:
         return np.array([i for i, s in enumerate(self.splits) if s in wanted], dtype=np.int64)
 
     # -- selection --------------------------------------------------------------------------
-    def select(self, split: str, contexts: Any = None, *, train_per_block: int = 0) -> np.ndarray:
+    def select(self, split: str, contexts: Any = None, *, train_per_block: int = 0,
+               holdout_block: int = 0) -> np.ndarray:
         """(n,) int64 scene indices of ``split``, optionally only the given context ids: the
         scenes an env, a trainer or an evaluation of that split serves.
 
         ``train_per_block`` (``EnvConfig.train_per_block``; 0 = all) keeps of the split's
-        training contexts the first N of each block, by id; test contexts are never dropped.
+        training contexts the first N of each block, by id; ``holdout_block``
+        (``EnvConfig.holdout_block``; 0 = none) drops the training contexts of that target
+        block (1..5) whole; test contexts are never dropped.
         ``split="validation"`` (:data:`~uevavd.data.splits.VALIDATION`) is the other training
-        contexts: those a run with this ``train_per_block`` never trains on.
+        contexts: those a run with these settings never trains on.
         Raises :class:`TableError` when the selection is empty (a table without contexts of
         that split) or a block holds fewer than ``train_per_block`` training contexts, and
         ``ValueError`` naming context ids that are not in the split.
         """
-        idx = self._validation(train_per_block) if split == VALIDATION else self._trained(split, train_per_block)
+        if split == VALIDATION:
+            idx = self._validation(train_per_block, holdout_block)
+        else:
+            idx = self._trained(split, train_per_block, holdout_block)
         if contexts is not None:
             wanted = [int(c) for c in np.atleast_1d(np.asarray(contexts))]
             have = {int(self.contexts[i]): int(i) for i in idx}
@@ -261,13 +267,16 @@ class ObservationTable:
                              f"{sorted(set(self.splits))}); build the table over contexts of that split")
         return idx
 
-    def _trained(self, split: str, train_per_block: int) -> np.ndarray:
-        """The scenes of ``split``, its training contexts cut to the first ``train_per_block``
-        of each block (0 = all)."""
+    def _trained(self, split: str, train_per_block: int, holdout_block: int = 0) -> np.ndarray:
+        """The scenes of ``split``, its training contexts less those of ``holdout_block`` (0:
+        none) and cut to the first ``train_per_block`` of each block (0 = all)."""
         idx = self.scene_indices(split)
+        is_train = np.asarray(self.splits)[idx] == "train"
+        if holdout_block:
+            held = np.array([block_of(int(c)) + 1 == holdout_block for c in self.contexts[idx]], bool)
+            idx, is_train = idx[~(is_train & held)], is_train[~(is_train & held)]
         if not train_per_block:
             return idx
-        is_train = np.asarray(self.splits)[idx] == "train"
         try:
             keep = set(first_per_block(self.contexts[idx[is_train]], train_per_block))
         except ValueError as exc:
@@ -275,16 +284,18 @@ class ObservationTable:
                              "the table over a world with more training contexts, or lower it") from None
         return idx[~is_train | np.isin(self.contexts[idx], sorted(keep))]
 
-    def _validation(self, train_per_block: int) -> np.ndarray:
-        """The training scenes past the first ``train_per_block`` of each block."""
-        if not train_per_block:
+    def _validation(self, train_per_block: int, holdout_block: int = 0) -> np.ndarray:
+        """The training scenes a run with these settings leaves out: those past the first
+        ``train_per_block`` of each block, and every one of ``holdout_block``."""
+        if not (train_per_block or holdout_block):
             raise TableError("split 'validation' is the training contexts a run leaves out of its training: set "
-                             "env.train_per_block (e.g. 16 of the 20 per block) to hold some out")
+                             "env.train_per_block (e.g. 16 of the 20 per block) or env.holdout_block (a target "
+                             "block, 1..5) to hold some out")
         idx = self.scene_indices("train")
-        idx = idx[~np.isin(idx, self._trained("train", train_per_block))]
+        idx = idx[~np.isin(idx, self._trained("train", train_per_block, holdout_block))]
         if idx.size == 0:
-            raise TableError(f"env.train_per_block = {train_per_block} leaves no training context of table "
-                             f"{self.key!r} out: nothing to validate on; lower it")
+            raise TableError(f"env.train_per_block = {train_per_block} and env.holdout_block = {holdout_block} "
+                             f"leave no training context of table {self.key!r} out: nothing to validate on")
         return idx
 
     def true_class_probs(self) -> np.ndarray:
@@ -447,11 +458,11 @@ def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationT
     raise TypeError(f"table={table!r}: expected an ObservationTable or the path of a table folder")
 
 
-def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, train_per_block: int = 0
-                  ) -> np.ndarray:
-    """``table.select(split, contexts, train_per_block=...)`` (:meth:`ObservationTable.select`),
-    for code written against ``uevavd.env.select_scenes``."""
-    return table.select(split, contexts, train_per_block=train_per_block)
+def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, train_per_block: int = 0,
+                  holdout_block: int = 0) -> np.ndarray:
+    """``table.select(split, contexts, ...)`` (:meth:`ObservationTable.select`), for code
+    written against ``uevavd.env.select_scenes``."""
+    return table.select(split, contexts, train_per_block=train_per_block, holdout_block=holdout_block)
 
 
 def _versions() -> dict[str, str]:

@@ -321,3 +321,30 @@ def test_the_validation_split_is_the_training_contexts_a_run_leaves_out():
         AODEnv(t, "validation")
     with pytest.raises(TableError, match="block 1 .* holds only 2"):
         AODEnv(t, "validation", EnvConfig(train_per_block=3))
+
+
+def test_a_held_out_block_leaves_the_train_split_whole_and_is_the_validation_split():
+    """env.holdout_block = k: every training context of target block k joins the validation
+    split (a held-out set that is a distribution shift); with train_per_block the two combine;
+    test contexts are never dropped, and the trainer, the batched env and evaluation agree."""
+    from uevavd.env.batched import EnvTensors
+
+    contexts = [1, 2, 3, 31, 32, 26, 56]
+    t = ObservationTable.from_arrays(
+        np.zeros((7, N_VIEWS, 4)), np.full((7, N_VIEWS, 5), 0.2), np.zeros((7, N_VIEWS, 4)),
+        scenes=[f"{c:03d}" for c in contexts], contexts=contexts, targets=[0, 0, 0, 1, 1, 0, 1],
+        splits=["train"] * 5 + ["hard"] * 2)
+    cfg = EnvConfig(holdout_block=2)
+    assert sorted(t.contexts[AODEnv(t, "train", cfg).scenes]) == [1, 2, 3]
+    assert sorted(EnvTensors(t, "validation", cfg).contexts) == [31, 32]
+    assert sorted(EnvTensors(t, "hard", cfg).contexts) == [26, 56]  # a test split is never cut
+    both = EnvConfig(holdout_block=2, train_per_block=1)
+    assert sorted(EnvTensors(t, "train", both).contexts) == [1]
+    assert sorted(EnvTensors(t, "validation", both).contexts) == [2, 3, 31, 32]
+    alone = ObservationTable.from_arrays(
+        np.zeros((1, N_VIEWS, 4)), np.full((1, N_VIEWS, 5), 0.2), np.zeros((1, N_VIEWS, 4)), scenes=["001"],
+        contexts=[1], targets=[0], splits=["train"])
+    with pytest.raises(TableError, match="no scenes in split 'train'"):
+        AODEnv(alone, "train", EnvConfig(holdout_block=1))
+    with pytest.raises(EnvConfigError, match="holdout_block"):
+        EnvConfig(holdout_block=6)

@@ -104,7 +104,8 @@ class AODEnv(gym.Env):
         self.table = load_table(table)
         self.config = cfg = make_config(config, **overrides)
         self.split = split
-        self.scenes = self.table.select(split, contexts, train_per_block=cfg.train_per_block)
+        self.scenes = self.table.select(split, contexts, train_per_block=cfg.train_per_block,
+                                        holdout_block=cfg.holdout_block)
         self._tr = transitions(cfg.max_range)
         self._mask_i8 = self._tr.mask.astype(np.int8)
         self._coords = view_coords(np.arange(N_VIEWS))  # (605, 3) float64 metres

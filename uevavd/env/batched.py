@@ -59,7 +59,8 @@ class EnvTensors:
         dev = torch.device(device)
         self.device = dev
         self.config = config
-        sel = table.select(split, contexts, train_per_block=config.train_per_block)
+        sel = table.select(split, contexts, train_per_block=config.train_per_block,
+                           holdout_block=config.holdout_block)
         self.scenes = torch.as_tensor(sel, dtype=torch.int64, device=dev)
         local = np.full(len(table), -1, np.int64)
         local[sel] = np.arange(len(sel))

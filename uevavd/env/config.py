@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..data.grid import N_TYPES, N_VIEWS, NX, NY
-from ..data.splits import TRAIN_PER_BLOCK
+from ..data.splits import N_BLOCKS, TRAIN_PER_BLOCK
 
 
 def _where(cond: Any, a: Any, b: Any) -> Any:
@@ -34,7 +34,7 @@ def _where(cond: Any, a: Any, b: Any) -> Any:
 
 #: What a run recorded before an env setting existed ran with: read into its recorded ``env``
 #: section on resume (:func:`uevavd.policy.rundir.with_legacy_settings`).
-LEGACY_ENV = {"train_per_block": 0}
+LEGACY_ENV = {"train_per_block": 0, "holdout_block": 0}
 #: The longest move that can stay on the grid (across its wider side), and a cap on the
 #: decisions of an episode (the paper's 5; buffers are allocated for t_max + 1 observations).
 MAX_RANGE = max(NX, NY) - 1
@@ -76,6 +76,11 @@ class EnvConfig:
     training contexts is an experiment axis of its own (``uevavd ablate --sweep
     env.train_per_block=4,10,20``); a run trains, and is evaluated on "train", on those
     contexts only, and the test splits are untouched. A block holding fewer is an error."""
+    holdout_block: int = 0
+    """A target block (1..5: contexts 1-30, 31-60, ...) whose training contexts a run leaves out
+    of its "train" split whole (0 = none): they join the "validation" split, a held-out set
+    that is itself a distribution shift (an unseen target in unseen contexts), for choosing a
+    setting on training data only. The test splits are untouched."""
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> EnvConfigError:
@@ -89,6 +94,10 @@ class EnvConfig:
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= TRAIN_PER_BLOCK:
             raise bad("train_per_block", f"an integer in 0..{TRAIN_PER_BLOCK} (training contexts per target "
                       "block; 0 = all the table holds)")
+        v = self.holdout_block
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= N_BLOCKS:
+            raise bad("holdout_block", f"an integer in 0..{N_BLOCKS} (a target block whose training contexts are "
+                      "held out; 0 = none)")
         for name in ("gamma", "xi1", "xi2", "C", "thre"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
