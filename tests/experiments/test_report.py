@@ -416,3 +416,32 @@ def test_curve_bands_stay_in_the_metrics_range():
     rec = curve_bands(data, "recognition").iloc[0]
     assert 0.0 <= rec["lo"] and rec["hi"] <= 1.0
     assert curve_bands(data, "path_m").iloc[0]["lo"] >= 0.0
+
+
+def test_the_report_shows_the_stopping_diagnosis_per_split_and_terrain(tmp_path):
+    df = make_results({"map": (0.5, 0.05), "ibe_map": (0.4, 0.1)})
+    df["box_start"], df["moved_if_box"], df["box_lost"], df["reco_lost"] = 0.6, 0.3, 0.05, 0.04
+    df.loc[df["method"].isin(("passive", "box_gate")), ["moved_if_box", "box_lost"]] = 0.0
+    df["gated_return"] = np.where(df["episodes"] >= 0, df["return"] + 0.05, np.nan)
+    d = tmp_path / "abl"
+    d.mkdir()
+    df.to_csv(d / "results.csv", index=False)
+    ctx = []
+    for m, ret in (("ibe_map", 0.1), ("passive", 0.2)):
+        for c, terrain, moved in ((26, "urban (shifted)", 0.2), (56, "woodland", 0.6)):
+            ctx.append({"method": m, "recognizer": 0, "seed": 0, "setting": "default", "split": "hard", "context": c,
+                        "target": "sedan", "terrain": terrain, "return": ret, "accuracy": 0.5, "recognition": 0.6,
+                        "path_m": 10.0, "stop_rate": 1.0, "steps": 1.0, "box_start": 0.5,
+                        "moved_if_box": moved if m == "ibe_map" else 0.0, "box_lost": 0.1,
+                        "reco_lost": 0.1, "gated_return": ret + 0.05 if m == "ibe_map" else np.nan})
+    pd.DataFrame(ctx).to_csv(d / "contexts.csv", index=False)
+    text = write_report(d, window=2).read_text(encoding="utf-8")
+    section = text[text.index("## Stopping"):]
+    assert "| hard | IBE-MAP | 60% | 30% | 5% |" in section and "| hard | Box gate (scripted) |" in section
+    # the gated difference is paired by run: every run gains exactly 0.05
+    assert "0.050 [0.050, 0.050]" in section
+    assert "| woodland | IBE-MAP | 1 | 50% | 60% |" in section and "| urban (shifted) | Passive |" in section
+    old = tmp_path / "old"  # results written before the diagnosis: no section, no error
+    old.mkdir()
+    make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)
+    assert "## Stopping" not in write_report(old, window=2).read_text(encoding="utf-8")
