@@ -253,6 +253,7 @@ def _print_beside_baselines(args: argparse.Namespace, table: Any, name: str, pol
 
 
 def _print_rows(rows: dict[str, dict[str, float]], cols: list[str]) -> None:
+    """One line per policy; '-' where a figure does not apply (a baseline's gated return)."""
     print(f"{'policy':<18}" + "".join(f"{c:>18}" for c in cols))
     for n, row in rows.items():
-        print(f"{n:<18}" + "".join(f"{row[c]:>18.4f}" for c in cols))
+        print(f"{n:<18}" + "".join(f"{row[c]:>18.4f}" if row[c] == row[c] else f"{'-':>18}" for c in cols))
