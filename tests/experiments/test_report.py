@@ -439,8 +439,14 @@ def test_the_report_shows_the_stopping_diagnosis_per_split_and_terrain(tmp_path)
     section = text[text.index("## Stopping"):]
     assert "| hard | IBE-MAP | 60% | 30% | 5% |" in section and "| hard | Box gate (scripted) |" in section
     # the gated difference is paired by run: every run gains exactly 0.05
-    assert "0.050 [0.050, 0.050]" in section
+    assert "+0.050 [+0.050, +0.050]" in section
     assert "| woodland | IBE-MAP | 1 | 50% | 60% |" in section and "| urban (shifted) | Passive |" in section
+    # each learned method against IBE-MAP, passive and the box gate: MAP's hard return is 0.05 below
+    # IBE-MAP's, 0.25 above passive's, 0.20 above the box gate's; per terrain from contexts.csv
+    against = section[section.index("| split | policy | return | minus IBE-MAP | minus passive | minus box gate |"):]
+    map_hard = next(line for line in against.splitlines() if line.startswith("| hard | MAP |"))
+    assert "| -0.050 [" in map_hard and "| +0.250 [" in map_hard and "| +0.200 [" in map_hard
+    assert "| hard, woodland | IBE-MAP | 0.100 | | -0.100 |" in against.replace("|  |", "| |")
     old = tmp_path / "old"  # results written before the diagnosis: no section, no error
     old.mkdir()
     make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)

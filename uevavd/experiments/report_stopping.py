@@ -12,11 +12,13 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from .report_data import (
     SPLITS,
     STOPPING,
+    UNIT,
     baselines,
     estimate,
     is_baseline,
@@ -25,7 +27,7 @@ from .report_data import (
     md_table,
     order_methods,
 )
-from .stats import Estimate
+from .stats import Estimate, difference
 
 #: The rows besides the learned methods: what the gate is measured against.
 REFERENCES = ("passive", "box_gate")
@@ -37,6 +39,15 @@ def _cell(e: Estimate, digits: int = 3) -> str:
     if e.n == 1 or not math.isfinite(e.lo):
         return f"{e.mean:.{digits}f}"
     return f"{e.mean:.{digits}f} [{e.lo:.{digits}f}, {e.hi:.{digits}f}]"
+
+
+def _diff_cell(d: Estimate, digits: int = 3) -> str:
+    """A difference with its sign, and its interval where one exists."""
+    if d.n == 0 or not math.isfinite(d.mean):
+        return "–"
+    if not (math.isfinite(d.lo) and math.isfinite(d.hi)):
+        return f"{d.mean:+.{digits}f}"
+    return f"{d.mean:+.{digits}f} [{d.lo:+.{digits}f}, {d.hi:+.{digits}f}]"
 
 
 def _share(x: float) -> str:
@@ -95,16 +106,14 @@ def stopping_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> l
                 continue
             gated = estimate(final, m, split, "gated_return", setting)
             rows.append([split, label(m), _share(box), _share(moves), _share(lost), _cell(ret), _cell(gated),
-                         _cell(_paired(final, m, split, setting))])
+                         _diff_cell(_paired(final, m, split, setting))])
     out += md_table(["split", "policy", "box starts", "moves", "lost", "return", "gated return",
                      "gated minus return"], rows) + [""]
-    ctx_path = ablation_dir / "contexts.csv"
-    if ctx_path.is_file():
-        try:
-            contexts = pd.read_csv(ctx_path, dtype={"setting": str, "method": str, "split": str})
-        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError):
-            contexts = pd.DataFrame()
-        terr = terrain_rows(contexts, setting) if not contexts.empty else pd.DataFrame()
+    contexts = _read_contexts(ablation_dir / "contexts.csv")
+    by_terrain = terrain_final(contexts, setting)
+    out += _against_section(final, by_terrain, setting, methods, splits)
+    if not contexts.empty:
+        terr = terrain_rows(contexts, setting)
         if not terr.empty:
             out += ["Hard split per terrain (means over runs and contexts):", ""]
             rank = {m: i for i, m in enumerate(order_methods(terr["method"].unique()))}
@@ -119,6 +128,59 @@ def stopping_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> l
             out += md_table(["terrain", "policy", "contexts", "box starts", "moves", "lost", "return",
                              "gated return", "path (m)"], trows) + [""]
     return out
+
+
+#: What each learned method is compared with, paired as the report pairs runs.
+AGAINST = (("ibe_map", "IBE-MAP"), ("passive", "passive"), ("box_gate", "box gate"))
+
+
+def _read_contexts(path: Path) -> pd.DataFrame:
+    if not path.is_file():
+        return pd.DataFrame()
+    try:
+        return pd.read_csv(path, dtype={"setting": str, "method": str, "split": str, "terrain": str})
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError, OSError):
+        return pd.DataFrame()
+
+
+def terrain_final(contexts: pd.DataFrame, setting: str, split: str = "hard") -> pd.DataFrame:
+    """Final rows per terrain, as :func:`~uevavd.experiments.report_data.final_rows` has them per
+    split: one row per (method, run, terrain) of ``split`` with the mean return over the
+    terrain's contexts, the terrain in column ``split`` (so the report's estimates apply)."""
+    need = {"method", "recognizer", "seed", "setting", "split", "terrain", "return"}
+    if contexts.empty or not need <= set(contexts.columns):
+        return pd.DataFrame()
+    sel = contexts[(contexts["setting"] == setting) & (contexts["split"] == split)]
+    sel = sel.assign(terrain=sel["terrain"].fillna("").astype(str).replace("", "(unrecorded)"))
+    rows = sel.groupby(["method", "recognizer", "seed", "terrain"], as_index=False)["return"].mean()
+    rows["seed"] = rows["recognizer"].astype(np.int64) * UNIT + rows["seed"].astype(np.int64)
+    return rows.rename(columns={"terrain": "split"}).assign(setting=setting)
+
+
+def _against_section(final: pd.DataFrame, by_terrain: pd.DataFrame, setting: str, methods: list[str],
+                     splits: list[str]) -> list[str]:
+    """Each learned method's return minus IBE-MAP's, passive's and the box gate's, per split and,
+    on the hard split, per terrain: the report's intervals, paired by recognizer draws."""
+    refs = [(r, name) for r, name in AGAINST if r in set(final["method"])]
+    groups = [(split, final) for split in splits]
+    if not by_terrain.empty:
+        groups += [(f"hard, {t}", by_terrain.replace({"split": {t: f"hard, {t}"}}))
+                   for t in sorted(by_terrain["split"].unique())]
+    rows = []
+    for where, frame in groups:
+        for m in methods:
+            e = estimate(frame, m, where, "return", setting)
+            if e.n == 0:
+                continue
+            cells = [_diff_cell(difference(e, estimate(frame, r, where, "return", setting)))
+                     if r != m and estimate(frame, r, where, "return", setting).n else "" for r, _ in refs]
+            rows.append([where, label(m), _cell(e), *cells])
+    if not rows or not refs:
+        return []
+    return ["Each learned method's return minus each reference's (95 % interval of the difference as the "
+            "report computes it: with several recognizers the two-stage bootstrap, paired by its draws; with one, "
+            "Welch's t; per terrain from the runs' means over the terrain's hard contexts):", "",
+            *md_table(["split", "policy", "return", *[f"minus {name}" for _, name in refs]], rows), ""]
 
 
 def _paired(final: pd.DataFrame, method: str, split: str, setting: str) -> Estimate:
