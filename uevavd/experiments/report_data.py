@@ -79,7 +79,7 @@ def roles_now() -> dict[str, Any]:
 #: Display order and names of the methods (unknown methods follow, by name).
 METHOD_ORDER: tuple[str, ...] = ("random", "passive", "box_gate", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
                                   "ibe_map_reco", "ibe_map_aug", "ibe_map_aux", "ibe_map_gate", "ibe_map_stop",
-                                  "ibe_map_pess",
+                                  "ibe_map_pess", "ibe_map_gate_pess",
                                   "sb3_dqn",
                                   "sb3_ppo",
                                   "visibility_oracle", "oracle")
@@ -96,6 +96,7 @@ LABELS: dict[str, str] = {
     "ibe_map_gate": "IBE-MAP (box gate in training)",
     "ibe_map_stop": "IBE-MAP (learned stop gate)",
     "ibe_map_pess": "IBE-MAP (pessimistic ensemble)",
+    "ibe_map_gate_pess": "IBE-MAP (box gate + pessimistic ensemble)",
     "random": "Random",
     "passive": "Passive",
     "box_gate": "Box gate (scripted)",
