@@ -19,7 +19,8 @@ def test_the_ensemble_keeps_the_head_protocol_and_refuses_bad_settings():
     check_head_rules(head, state_dim=16)
     assert head.n_branches == 6
     for bad, key in (({"members": 1}, "head.members"), ({"members": 2.5}, "head.members"),
-                     ({"kappa": float("nan")}, "head.kappa"), ({"kappa": "1"}, "head.kappa")):
+                     ({"kappa": float("nan")}, "head.kappa"), ({"kappa": "1"}, "head.kappa"),
+                     ({"kappa": 1e300}, r"head.kappa = 1e\+300: expected a number in \[-1000, 1000\]")):
         with pytest.raises(ConfigError, match=key):
             build_ensemble_branching(state_dim=16, hidden=8, **bad)
 

@@ -33,14 +33,22 @@ from .test_cli import _sets
     ("train.buffer_episodes", 10**9, "train.buffer_episodes = 1000000000: expected at most 10,000,000"),
     ("train.n_envs", 10**7, "train.n_envs = 10000000: expected at most 65,536"),
     ("env.t_max", 10**9, "EnvConfig.t_max=1000000000: expected an integer in 1..100"),
+    # an infinite count of updates hung the run; infinite priorities crashed it mid-run and on resume
+    ("train.updates_per_step", float("inf"), "train.updates_per_step = inf: expected a finite number"),
+    ("train.updates_per_step", 5000, "train.updates_per_step = 5000: expected a number in (0, 1024]"),
+    ("train.per_alpha", float("inf"), "train.per_alpha = inf: expected a finite number"),
+    ("train.per_eps", float("inf"), "train.per_eps = inf: expected a finite number"),
 ])
 def test_out_of_range_training_values_are_refused_before_the_run_starts(table, tmp_path, capsys, monkeypatch,
                                                                         key, value, needle):
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     path = table.save(tmp_path / "table")
     out = tmp_path / "run"
+    sets = _sets(**{key: value})
+    if value == float("inf"):  # as a user types it: TOML's spelling
+        sets[sets.index(f"{key}={json.dumps(value)}")] = f"{key}=inf"
     rc = main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(out),
-               "--no-progress", "--device", "cpu", *_sets(**{key: value})])
+               "--no-progress", "--device", "cpu", *sets])
     assert rc == 2
     _one_line(capsys, needle)
     assert not out.exists()  # nothing written: the directory is not locked to a bad config

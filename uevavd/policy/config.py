@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -17,6 +18,8 @@ DEFAULT_GAMMA = 0.9
 MAX_BUFFER_EPISODES = 10_000_000
 MAX_N_ENVS = 65_536
 MAX_SEED = 2**32 - 1
+#: Gradient updates per batched env step: far above any schedule that learns (the presets use 4).
+MAX_UPDATES_PER_STEP = 1024
 
 #: What a run recorded before a training setting existed trained with (see
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
@@ -143,7 +146,11 @@ class TrainConfig:
         need(self.seed <= MAX_SEED, "seed", f"an integer in 0..{MAX_SEED} (2**32 - 1)")
         need(isinstance(self.lr, int | float) and 0 < self.lr <= 1, "lr",
              "a learning rate in (0, 1] (Adam's; a larger or infinite one diverges mid-run)")
-        need(self.updates_per_step > 0, "updates_per_step", "a number > 0 (gradient updates per step)")
+        for f in dataclasses.fields(self):  # inf or NaN in any number would hang or crash a run mid-way
+            v = getattr(self, f.name)
+            need(not isinstance(v, float) or math.isfinite(v), f.name, "a finite number")
+        need(0 < self.updates_per_step <= MAX_UPDATES_PER_STEP, "updates_per_step",
+             f"a number in (0, {MAX_UPDATES_PER_STEP}] (gradient updates per batched step)")
         for key in ("eps_start", "eps_end", "per_beta"):
             need(0.0 <= getattr(self, key) <= 1.0, key, "a number in [0, 1]")
         need(0.0 < self.eps_fraction <= 1.0, "eps_fraction", "a share of training in (0, 1]")

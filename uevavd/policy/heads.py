@@ -161,6 +161,11 @@ def build_joint_dueling(
     return JointDuelingHead(state_dim, hidden, n_types, n_ranges)
 
 
+#: The largest |kappa| of the ensemble head: Q-values are O(1), so beyond it the members' spread
+#: alone decides, and a far larger one overflows float32.
+MAX_KAPPA = 1000.0
+
+
 def build_ensemble_branching(
     *,
     state_dim: int = 512,
@@ -175,6 +180,7 @@ def build_ensemble_branching(
     check_widths("head", state_dim=state_dim, hidden=hidden)
     if isinstance(members, bool) or not isinstance(members, int) or not 2 <= members <= 32:
         raise ConfigError(f"head.members = {members!r}: expected an integer in 2..32")
-    if isinstance(kappa, bool) or not isinstance(kappa, int | float) or not math.isfinite(kappa):
-        raise ConfigError(f"head.kappa = {kappa!r}: expected a finite number (0: act on the members' mean)")
+    if isinstance(kappa, bool) or not isinstance(kappa, int | float) or not abs(kappa) <= MAX_KAPPA:
+        raise ConfigError(f"head.kappa = {kappa!r}: expected a number in [-{MAX_KAPPA:g}, {MAX_KAPPA:g}] (0: act "
+                          "on the members' mean; past that bound the spread alone decides and the Q-values overflow)")
     return EnsembleBranchingHead(state_dim, hidden, n_types, n_ranges, td_target, members, float(kappa))
