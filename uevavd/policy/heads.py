@@ -8,7 +8,6 @@ float32; masks: (..., 7, A) bool from the environment.
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import torch
