@@ -304,3 +304,26 @@ def test_a_resumed_world_s_progress_rate_counts_only_the_views_it_renders(world,
     assert f"{N_VIEWS}/{N_VIEWS}" in err
     rates = [float(r) for r in re.findall(r"([0-9.]+)view/s", err)]
     assert all(r == 0 for r in rates), err  # nothing rendered: no rate, or 0
+
+
+def test_a_folder_that_is_not_a_world_is_refused_and_left_as_it_was(tmp_path, capsys, monkeypatch):
+    """synth --out a folder holding something else (a model zoo's copy: its own manifest.json)
+    overwrote that manifest; it is refused before anything is written, while a world a killed
+    call left unfinished (scene folders, no card yet) still resumes."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    other = tmp_path / "zoo-copy"
+    (other / "quick").mkdir(parents=True)
+    (other / layout.MANIFEST).write_text('{"mine": true}\n')
+    argv = ["--contexts", "5", "--size", str(SIZE), "--seed", "3", "--no-unoccluded", "--quiet"]
+    assert main(["synth", "--out", str(other), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"{other} is not a synthetic world (it holds 'quick')" in err
+    assert (other / layout.MANIFEST).read_text() == '{"mine": true}\n' and sorted(p.name for p in other.iterdir()) == [
+        "manifest.json", "quick"]
+    partial = tmp_path / "partial"
+    assert main(["synth", "--out", str(partial), *argv]) == 0
+    (partial / layout.DATASET_CARD).unlink()
+    (partial / layout.MANIFEST).unlink()
+    (partial / f".{layout.MANIFEST}.abc123.tmp").write_text("killed mid-write")
+    assert main(["synth", "--out", str(partial), *argv]) == 0
+    assert (partial / layout.DATASET_CARD).is_file()

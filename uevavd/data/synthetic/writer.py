@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import as_completed
 from pathlib import Path
@@ -201,6 +202,29 @@ def _job(root: str, name: str, size: int, seed: int) -> tuple[str, int]:
     return name, _views_in(name)
 
 
+#: What a synthetic world's folder holds besides its card and manifest: its scenes' folders, and
+#: the temporary files of a card or manifest whose write was killed.
+_WORLD_ENTRY = re.compile(r"^(\d{3}|00|train_605|\.(uevavd|manifest)\.json\..*\.tmp)$")
+
+
+def _check_foreign(root: Path) -> None:
+    """Refuse a folder that holds something other than a synthetic world (a world of its own,
+    or one a killed call left unfinished): its files would be overwritten."""
+    if not root.is_dir():
+        return
+    card = root / layout.DATASET_CARD
+    try:
+        foreign = card.is_file() and json.loads(card.read_text()).get("format") != FORMAT
+    except (ValueError, AttributeError, OSError):
+        foreign = False  # an unreadable card of ours: rewritten at the end
+    others = sorted(p.name for p in root.iterdir()
+                    if p.name not in (layout.DATASET_CARD, layout.MANIFEST) and not _WORLD_ENTRY.match(p.name))
+    if foreign or others:
+        what = f"{card.name} of another format" if foreign else f"{others[0]!r}"
+        raise ValueError(f"{root} is not a synthetic world (it holds {what}); writing one there would overwrite "
+                         "its files: choose an empty or new folder")
+
+
 def _check_card(root: Path, size: int, seed: int) -> None:
     card = root / layout.DATASET_CARD
     if not card.is_file():
@@ -253,6 +277,7 @@ def _write_world(root: Path, contexts: list[int], size: int, seed: int, include_
                  progress: bool) -> Path:
     from tqdm.auto import tqdm
 
+    _check_foreign(root)
     root.mkdir(parents=True, exist_ok=True)
     _check_card(root, size, seed)
     names = _scene_jobs(contexts, include_unoccluded)
