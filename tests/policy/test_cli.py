@@ -1,4 +1,5 @@
 import json
+import shutil
 
 import pytest
 
@@ -146,3 +147,31 @@ def test_train_threads_option_sets_the_runs_thread_count(table, tmp_path, capsys
     assert main([*base, "--out", str(tmp_path / "bad"), "--threads", "-1"]) == 2
     _one_line_error(capsys, "train.threads = -1", "expected an integer >= 0")
     assert not (tmp_path / "bad").exists()
+
+
+def test_evaluate_never_writes_over_the_run_it_evaluates_nor_into_the_package(run, tmp_path, capsys, monkeypatch):
+    """--json pointed at the run's own settings.json (or its checkpoint, its policy file) replaced
+    it; a shipped policy's evaluation wrote its JSON into the installed package's folder."""
+    from uevavd.policy import cli as policy_cli
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    table = json.loads((run / "settings.json").read_text())["table_path"]
+    for own in ("settings.json", "checkpoint.pt", "policy.safetensors", "tb/events.json"):
+        before = (run / own).read_bytes() if (run / own).is_file() else None
+        assert main(["evaluate", str(run), "--split", "hard", "--json", str(run / own)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "the evaluated run's own file" in err
+        assert ((run / own).read_bytes() if (run / own).is_file() else None) == before
+    assert main(["evaluate", str(run / "policy.safetensors"), "--table", table, "--split", "hard", "--json",
+                 str(run / "policy.safetensors")]) == 2
+    assert "the evaluated run's own file" in capsys.readouterr().err
+    # a policy file inside the installed package (here a stand-in): the JSON goes to the current folder
+    package = tmp_path / "site" / "uevavd"
+    shipped = package / "model_zoo" / "pretrained" / "shipped.safetensors"
+    shipped.parent.mkdir(parents=True)
+    shutil.copy(run / "policy.safetensors", shipped)
+    monkeypatch.setattr(policy_cli, "PACKAGE_DIR", package)
+    monkeypatch.chdir(tmp_path)
+    assert main(["evaluate", str(shipped), "--table", table, "--split", "hard"]) == 0
+    assert (tmp_path / "shipped.eval_hard.json").is_file()
+    assert not shipped.with_name("shipped.eval_hard.json").exists()

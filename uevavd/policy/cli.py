@@ -204,9 +204,11 @@ def _evaluate(args: argparse.Namespace) -> int:
     if table.key != settings["table_key"]:
         return _error("evaluate", f"table {table_path} has key {table.key} but the run was trained on "
                                   f"{settings['table_key']}; pass the run's table with --table")
+    out = _json_path(args, args.run_dir / f"eval_{args.split}.json")
+    if isinstance(out, str):
+        return _error("evaluate", out)
     policy = load_policy(args.run_dir, device=args.device)
-    return _print_beside_baselines(args, table, settings["method"], policy, make_config(settings["env"]),
-                                   args.json or args.run_dir / f"eval_{args.split}.json")
+    return _print_beside_baselines(args, table, settings["method"], policy, make_config(settings["env"]), out)
 
 
 def _evaluate_file(args: argparse.Namespace) -> int:
@@ -219,9 +221,32 @@ def _evaluate_file(args: argparse.Namespace) -> int:
     table = _split_table(args.table, args.split)
     if isinstance(table, str):
         return _error("evaluate", table)
+    out = _json_path(args, args.run_dir.with_name(f"{args.run_dir.stem}.eval_{args.split}.json"))
+    if isinstance(out, str):
+        return _error("evaluate", out)
     policy, cfg = load_policy_file(args.run_dir, table=table, device=args.device)
-    out = args.json or args.run_dir.with_name(f"{args.run_dir.stem}.eval_{args.split}.json")
     return _print_beside_baselines(args, table, args.run_dir.stem, policy, cfg, out)
+
+
+#: The installed uevavd package: ``evaluate`` never writes its JSON there by default.
+PACKAGE_DIR = Path(__file__).parents[1]
+
+
+def _json_path(args: argparse.Namespace, default: Path) -> Path | str:
+    """Where ``evaluate`` writes its JSON: ``--json``, else ``default`` beside the run or policy
+    file, except beside a policy shipped inside the installed package (then the current
+    folder); a str saying why not where ``--json`` would replace the evaluated run's own files
+    or the policy file itself."""
+    package = PACKAGE_DIR.resolve()
+    out = args.json if args.json else default
+    if not args.json and package in default.resolve().parents:
+        out = Path.cwd() / default.name  # never write into the installed package
+    target = Path(out).resolve()
+    run = args.run_dir if args.run_dir.is_dir() else args.run_dir.parent
+    if target == args.run_dir.resolve() or RunDir(run).owns(target):
+        return (f"--json {out}: that is the evaluated run's own file, which the evaluation would replace; "
+                "choose another path")
+    return Path(out)
 
 
 def _split_table(path: Path, split: str) -> Any:

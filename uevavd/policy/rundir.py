@@ -76,6 +76,14 @@ class RunDir:
     def finished(self) -> bool:
         return self.done.is_file()
 
+    def owns(self, path: str | os.PathLike[str]) -> bool:
+        """Whether ``path`` is one of the files (or inside the folders) a run writes and reads
+        back: writing anything else there would destroy the run."""
+        own = (self.settings, self.method, self.checkpoint, self.evals, self.done, self.policy, self.final_eval)
+        p = Path(path).resolve()
+        tb = self.tensorboard.resolve()
+        return p in {f.resolve() for f in own} or p == tb or tb in p.parents
+
 
 #: Settings whose change makes a run directory another run (check_run_dir also refuses to resume an
 #: unfinished run on another kind of device; progress may change).
