@@ -129,11 +129,13 @@ class Run:
                              f"trained on {self.settings['table_key']}")
         return table
 
-    def policy(self, device: str = "cpu"):
-        """The greedy policy of the run's latest checkpoint (``act(obs)`` over batched obs)."""
+    def policy(self, device: str = "cpu", *, table: Any = None):
+        """The greedy policy of the run's latest checkpoint (``act(obs)`` over batched obs), acting
+        on the run's own table, or on ``table`` (another table of the run's perception config;
+        one of another config is refused)."""
         from .policy.acting import load_policy
 
-        return load_policy(self.path, device=device)
+        return load_policy(self.path, device=device, table=table)
 
     def evaluate(self, split: str = "hard", *, baselines: bool = True, device: str = "cpu"):
         """A pandas DataFrame, one row per policy (this run's method, then random, passive,

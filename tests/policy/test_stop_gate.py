@@ -105,3 +105,34 @@ def test_the_learned_gates_threshold_acts_at_its_ends(tmp_path, threshold):
                            spec.env)
     np.testing.assert_array_equal(got.ret, want.ret)
     np.testing.assert_array_equal(got.trajectories, want.trajectories)
+
+
+def test_a_policy_acts_on_the_table_it_is_given_or_is_refused(tmp_path):
+    """load_run(run).policy() read the run's own table's features by (scene, view) whatever table
+    it was evaluated on: a same-shape table with other features gave the run's own numbers."""
+    from uevavd.api import load_run
+    from uevavd.env.gate import StopGate
+
+    # two tables of one perception config (as prepare records it) over other data, on disk as runs' are
+    parts = {"encoder": "toy", "classifier": "toy", "dataset": "a"}
+    t = hidden_table()
+    table = ObservationTable.load(ObservationTable.from_arrays(
+        np.array(t.features), np.array(t.probs), np.array(t.boxes), scenes=list(t.scenes), targets=list(t.targets),
+        splits=list(t.splits), contexts=list(t.contexts), config={"key_parts": parts}).save(tmp_path / "a"))
+    spec = _spec("ibe_map")
+    train(spec, table, out=tmp_path / "run", seed=1, device="cpu", progress=False)
+    other = ObservationTable.from_arrays(  # the scenes' features, probabilities and boxes permuted
+        np.array(t.features)[::-1].copy(), np.array(t.probs)[::-1].copy(), np.array(t.boxes)[::-1].copy(),
+        scenes=list(t.scenes), targets=list(t.targets)[::-1], splits=list(t.splits), contexts=list(t.contexts),
+        config={"key_parts": {**parts, "dataset": "b"}})
+    run = load_run(tmp_path / "run")
+    with pytest.raises(ValueError, match=f"reads the features of table {table.key}, but the evaluation is on table "
+                                         f"{other.key}"):
+        evaluate_policy(other, "hard", run.policy(), spec.env)
+    with pytest.raises(ValueError, match="reads the features of table"):
+        evaluate_policy(other, "hard", StopGate(run.policy()), spec.env)
+    # given the other table, it acts on its features: as the network reading them from the observations
+    got = evaluate_policy(other, "hard", run.policy(table=other), spec.env)
+    plain = load_policy(tmp_path / "run", with_table=False)
+    want = evaluate_policy(other, "hard", plain, spec.env)
+    np.testing.assert_array_equal(got.trajectories, want.trajectories)

@@ -59,6 +59,7 @@ class EnvTensors:
         dev = torch.device(device)
         self.device = dev
         self.config = config
+        self.table_key = table.key
         sel = table.select(split, contexts, train_per_block=config.train_per_block,
                            holdout_block=config.holdout_block)
         self.scenes = torch.as_tensor(sel, dtype=torch.int64, device=dev)

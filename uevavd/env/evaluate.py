@@ -165,8 +165,10 @@ def evaluate_policy(
     if isinstance(table, EnvTensors):
         tb = table
         cfg = tb.config
+        _check_features_key(policy, tb.table_key)
     else:
         obs_table = load_table(table)
+        _check_features_key(policy, obs_table.key)
         cfg = make_config(config)
         tb = EnvTensors(
             obs_table, split, cfg, device=device, contexts=contexts,
@@ -232,6 +234,14 @@ def evaluate_policy(
         config=cfg.to_dict(),
         class_names=tuple(tb.class_names),
     )
+
+
+def _check_features_key(policy: Policy, key: str) -> None:
+    mine = getattr(policy, "features_key", None)
+    if mine is not None and mine != key:
+        raise ValueError(f"the policy reads the features of table {mine}, but the evaluation is on table {key}: "
+                         "it would act on the other table's features; load it for this table (load_policy(run, "
+                         "table=...), uevavd.load_run(run).policy(table=...) or load_policy_file(file, table=...))")
 
 
 def evaluate_gated(table: ObservationTable | str | os.PathLike[str] | EnvTensors, split: str, policy: Policy,

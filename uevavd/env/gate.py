@@ -49,6 +49,11 @@ class StopGate:
     def needs_features(self) -> bool:
         return getattr(self.policy, "needs_features", True)
 
+    @property
+    def features_key(self) -> str | None:
+        """The wrapped policy's (see :mod:`uevavd.env.evaluate`)."""
+        return getattr(self.policy, "features_key", None)
+
     def reset(self, n: int) -> None:
         self.policy.reset(n)
 

@@ -55,7 +55,7 @@ def make_policy(name_or_run: str, table: Any, config: EnvConfig, seed: int = 0) 
     if not (path / "settings.json").is_file():
         raise ValueError(f"--policy {name_or_run!r}: expected one of {list(BASELINES)} or a trained run's folder "
                          "(one holding settings.json)")
-    return load_policy(path, device="cpu")
+    return load_policy(path, device="cpu", table=table)  # acting on the exported table's features
 
 
 def _batched_obs(obs: dict[str, Any], info: dict[str, Any]) -> dict[str, torch.Tensor]:

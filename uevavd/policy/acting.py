@@ -81,8 +81,11 @@ class GreedyPolicy:
     """
 
     def __init__(self, net: QNetwork, *, device: torch.device | str = "cpu", epsilon: float = 0.0,
-                 seed: int = 0, features: torch.Tensor | None = None) -> None:
+                 seed: int = 0, features: torch.Tensor | None = None, features_key: str | None = None) -> None:
         self.net = net.to(device).eval()
+        #: the key of the table whose ``features`` the policy reads by (scene, view): evaluating it
+        #: on another table is refused (:func:`uevavd.env.evaluate.evaluate_policy`)
+        self.features_key = features_key if features is not None else None
         self.device = torch.device(device)
         self.epsilon = epsilon
         self.generator = torch.Generator(device=self.device)
@@ -200,19 +203,29 @@ class GreedyPolicy:
 
 
 def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None = None,
-                with_table: bool = True) -> GreedyPolicy:
+                with_table: bool = True, table: Any = None) -> GreedyPolicy:
     """The greedy policy of a training run directory (its latest checkpoint). With
     ``with_table`` it reads the run's table features to evaluate faster (see GreedyPolicy);
-    its actions are the same either way."""
+    its actions are the same either way. With ``table`` (an ObservationTable or its folder:
+    another table of the run's perception config, other contexts say) it reads that table's
+    features instead, and a table of another perception config is refused naming what differs.
+    The policy acts on the table it read; evaluating it on another one is refused."""
     run_dir = Path(run_dir)
     settings = read_settings(run_dir)
     spec = run_spec(run_dir)
+    if table is not None:
+        table = load_table(table)
+        check_policy_fits(run_dir, settings, table=table)
 
     net = method_network(spec, settings["feature_dim"], settings["env"]["max_range"])
     path = run_dir / weights if weights else RunDir(run_dir).checkpoint
     state = load_checkpoint(path, expect=settings, keys=ARCH_KEYS)  # the network, not a resume
     load_net_state(net, state["net"], path)
-    return GreedyPolicy(net, device=device, features=table_features(settings) if with_table else None)
+    if table is not None:
+        return GreedyPolicy(net, device=device, features=torch.from_numpy(np.array(table.features)),
+                            features_key=table.key)
+    features = table_features(settings) if with_table else None
+    return GreedyPolicy(net, device=device, features=features, features_key=settings.get("table_key"))
 
 
 def table_features(settings: dict[str, Any]) -> torch.Tensor | None:
@@ -243,7 +256,7 @@ def load_policy_file(path: str | Path, *, table: Any = None, method: str | None 
     load_net_state(net, state, path)
     # a copy: the table is memory-mapped read-only
     features = None if table is None else torch.from_numpy(np.array(table.features))
-    return GreedyPolicy(net, device=device, features=features), cfg
+    return GreedyPolicy(net, device=device, features=features, features_key=None if table is None else table.key), cfg
 
 
 def policy_network(method: Any, table: Any) -> QNetwork:
