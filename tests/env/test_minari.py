@@ -157,3 +157,20 @@ def test_behaviour_cloning_on_an_oracle_dataset_is_evaluated_by_uevavd_evaluate(
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     assert main(["evaluate", str(path), "--split", "hard"]) == 2
     assert "pass --table" in capsys.readouterr().err
+
+
+def test_the_random_policys_stream_runs_on_across_exported_episodes(table):
+    """collect_episodes resets the policy per episode; the random policy reseeded on each reset, so
+    2,000 episodes held a few dozen distinct action sequences and stopped far less often than the
+    same policy does in an evaluation."""
+    from uevavd.env import EnvConfig, RandomPolicy, evaluate_policy
+    from uevavd.env.minari_export import collect_episodes
+
+    buffers, _ = collect_episodes(table, "train", RandomPolicy(seed=0), episodes=300, progress=False)
+    sequences = {tuple(map(tuple, b.actions.tolist())) for b in buffers}
+    assert len(sequences) > 250
+    first = np.array([b.actions[0][0] for b in buffers])
+    stop_share = float(np.mean(first == 6))
+    want = evaluate_policy(table, "train", RandomPolicy(seed=0), EnvConfig())
+    first_eval = (want.trajectories[:, 1] < 0).mean()  # the first decision was a stop
+    assert abs(stop_share - first_eval) < 0.06

@@ -36,7 +36,10 @@ class RandomPolicy:
         self._gen: torch.Generator | None = None
 
     def reset(self, n: int) -> None:
-        self._gen = None  # re-seeded on the first act, on the observations' device
+        # the stream is seeded once, on the first act (on the observations' device), and runs on
+        # across episodes: a caller resetting it per episode (a dataset's collector) gets other
+        # actions in each, not the first episode's again
+        pass
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         mask = obs["mask"]  # (n, 7, A) bool
