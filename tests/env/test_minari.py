@@ -76,9 +76,19 @@ def test_a_trained_run_exports_like_a_baseline(table, tmp_path, monkeypatch):
                                          "train.eval_contexts": 1, "state.input_dim": 64, "state.state_dim": 32,
                                          "head.hidden": 32})
     run = tmp_path / "run"
-    train(spec, table, out=run, device="cpu", progress=False)
+    train(spec.with_overrides({"env.thre": 0.5, "env.C": 0.05}), table, out=run, device="cpu", progress=False)
     trained = export_minari(folder, "train", str(run), "uevavd/trained-v0", episodes=8, progress=False)
     assert trained.total_episodes == 8 and "trained run" in trained.storage.metadata["algorithm_name"]
+    # recorded under the run's own reward (thre 0.5, C 0.05), not the default's; --set changes it
+    env = trained.recover_environment()
+    assert (env.unwrapped.config.thre, env.unwrapped.config.C) == (0.5, 0.05)
+    from uevavd.cli import main
+
+    assert main(["export-minari", str(folder), "--split", "train", "--policy", str(run), "--id", "uevavd/c0-v0",
+                 "--episodes", "4", "--set", "env.C=0"]) == 0
+    assert minari.load_dataset("uevavd/c0-v0").recover_environment().unwrapped.config.C == 0.0
+    assert main(["export-minari", str(folder), "--policy", str(run), "--id", "uevavd/x-v0", "--episodes", "4",
+                 "--set", "train.lr=1"]) == 2
 
 
 def test_minari_data_collector_records_infos_with_a_portable_spec(table, tmp_path, monkeypatch):

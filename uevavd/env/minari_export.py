@@ -29,12 +29,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config_rules import check_count
+from ..config_rules import check_count, parse_override
 from ..policy.acting import load_policy
+from ..policy.rundir import read_settings
 from ..table import load_table
 from .aod_env import AODEnv
 from .baselines import PassivePolicy, RandomPolicy
-from .config import EnvConfig
+from .config import EnvConfig, make_config
 from .oracle import OraclePolicy
 from .visibility_oracle import VisibilityOraclePolicy
 
@@ -56,6 +57,15 @@ def make_policy(name_or_run: str, table: Any, config: EnvConfig, seed: int = 0) 
         raise ValueError(f"--policy {name_or_run!r}: expected one of {list(BASELINES)} or a trained run's folder "
                          "(one holding settings.json)")
     return load_policy(path, device="cpu", table=table)  # acting on the exported table's features
+
+
+def policy_env_config(name_or_run: str, overrides: dict[str, Any] | None = None) -> EnvConfig:
+    """The env config an export records episodes under: a trained run's own (its reward's thre,
+    C, ... as it trained), the paper's defaults for a baseline; ``overrides`` (``env`` keys) win."""
+    base = EnvConfig()
+    if name_or_run not in BASELINES and (Path(name_or_run) / "settings.json").is_file():
+        base = make_config(read_settings(Path(name_or_run))["env"])
+    return base.replace(**overrides) if overrides else base
 
 
 def _batched_obs(obs: dict[str, Any], info: dict[str, Any]) -> dict[str, torch.Tensor]:
@@ -139,7 +149,7 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
     if not table.key:
         raise ValueError("the table has no key (it was not written by `uevavd prepare`): a portable dataset names "
                          "its table by key; save it with `uevavd prepare` first")
-    config = config or EnvConfig()
+    config = config or policy_env_config(policy)
     pol = make_policy(policy, table, config, seed)
     buffers, env = collect_episodes(table, split, pol, episodes=episodes, seed=seed, config=config,
                                     progress=progress)
@@ -169,6 +179,9 @@ def add_export_minari(p: Any):
     p.add_argument("--seed", type=int, default=0, help="seed of the starts (and of the random policy)")
     p.add_argument("--id", required=True, dest="dataset_id", help="Minari dataset id, e.g. uevavd/quick-hard-oracle-v0")
     p.add_argument("--out", default=None, help="datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
+    p.add_argument("--set", action="append", default=[], metavar="env.KEY=VALUE",
+                   help="an env setting the episodes are recorded under, e.g. env.thre=0.4 or env.C=0 (default: a "
+                        "trained run's own env config, the paper's for a baseline)")
 
     def run(args) -> int:
         check_count("--episodes", args.episodes)
@@ -177,8 +190,15 @@ def add_export_minari(p: Any):
             import minari  # noqa: F401
         except ImportError:
             raise ValueError("export-minari needs minari: pip install \"uevavd[clients]\"") from None
+        env = {}
+        for text in args.set:
+            key, value = parse_override(text)
+            if not key.startswith("env."):
+                raise ValueError(f"--set {text}: export-minari takes env settings only (env.thre=0.4, env.C=0, ...)")
+            env[key[len("env."):]] = value
+        config = policy_env_config(args.policy, env)
         ds = export_minari(args.table, args.split, args.policy, args.dataset_id, episodes=args.episodes,
-                           seed=args.seed, out=args.out)
+                           seed=args.seed, out=args.out, config=config)
         print(f"wrote {ds.spec.dataset_id}: {ds.total_episodes} episodes, {ds.total_steps} steps")
         return 0
 
