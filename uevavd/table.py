@@ -452,7 +452,10 @@ def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationT
         return table
     if isinstance(table, str | os.PathLike):
         path = Path(table)
-        if not path.exists() and len(path.parts) == 1 and (tables_dir() / path).is_dir():
+        if not path.exists() and len(path.parts) == 1:  # a key: the cache's copy, or how to make one
+            if not (tables_dir() / path).is_dir():
+                raise TableError(f"table {path} is neither a folder nor in the table cache {tables_dir()}: rebuild it "
+                                 "with `uevavd prepare` (the same data and method give the same key) or copy it there")
             path = tables_dir() / path
         return ObservationTable.load(path)
     raise TypeError(f"table={table!r}: expected an ObservationTable or the path of a table folder")
@@ -460,8 +463,7 @@ def load_table(table: ObservationTable | str | os.PathLike[str]) -> ObservationT
 
 def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, train_per_block: int = 0,
                   holdout_block: int = 0) -> np.ndarray:
-    """``table.select(split, contexts, ...)`` (:meth:`ObservationTable.select`), for code
-    written against ``uevavd.env.select_scenes``."""
+    """``table.select(...)`` (:meth:`ObservationTable.select`), for ``uevavd.env.select_scenes``."""
     return table.select(split, contexts, train_per_block=train_per_block, holdout_block=holdout_block)
 
 

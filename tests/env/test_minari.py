@@ -184,3 +184,44 @@ def test_the_random_policys_stream_runs_on_across_exported_episodes(table):
     want = evaluate_policy(table, "train", RandomPolicy(seed=0), EnvConfig())
     first_eval = (want.trajectories[:, 1] < 0).mean()  # the first decision was a stop
     assert abs(stop_share - first_eval) < 0.06
+
+
+def test_a_table_outside_the_cache_is_refused_before_collecting_and_nothing_is_left(table, tmp_path, monkeypatch,
+                                                                                   capsys):
+    """It failed after collecting every episode with a wrong "not an observation table" message,
+    leaving a dataset folder that blocked a rerun with the same id; a write that fails midway
+    leaves nothing either, and recover_environment's missing table says how to get it back."""
+    from uevavd.cli import main
+    from uevavd.env import minari_export
+    from uevavd.paths import tables_dir
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    outside = table.save(tmp_path / "elsewhere" / "t")
+    collected = []
+    monkeypatch.setattr(minari_export, "collect_episodes",
+                        lambda *a, **k: collected.append(1) or (_ for _ in ()).throw(AssertionError("collected")))
+    assert main(["export-minari", str(outside), "--policy", "passive", "--id", "uevavd/out-v0", "--episodes", "3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"table {table.key} is not in the table cache" in err and not collected
+    assert not (tmp_path / "datasets" / "uevavd").exists()
+    monkeypatch.undo()
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    cached = table.save(tables_dir() / table.key)
+
+    def broken(**kwargs):  # the folder made, then the write fails
+        (tmp_path / "datasets" / "uevavd" / "half-v0" / "data").mkdir(parents=True)
+        raise OSError("disk full")
+
+    monkeypatch.setattr(minari, "create_dataset_from_buffers", broken)
+    with pytest.raises(OSError, match="disk full"):
+        minari_export.export_minari(cached, "hard", "passive", "uevavd/half-v0", episodes=3, progress=False)
+    assert not (tmp_path / "datasets" / "uevavd" / "half-v0").exists()
+    monkeypatch.undo()
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    from uevavd.table import TableError, load_table
+
+    with pytest.raises(TableError, match="neither a folder nor in the table cache .*rebuild it with `uevavd prepare`"):
+        load_table("0123456789abcdef01234567")

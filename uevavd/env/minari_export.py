@@ -21,6 +21,7 @@ same data and method), and the dataset itself loads anywhere. Needs ``minari`` (
 from __future__ import annotations
 
 import os
+import shutil
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 
 from ..config_rules import check_count, parse_override
+from ..paths import tables_dir
 from ..policy.acting import load_policy
 from ..policy.rundir import read_settings
 from ..table import load_table
@@ -151,6 +153,10 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
                          "its table by key; save it with `uevavd prepare` first")
     config = config or policy_env_config(policy)
     pol = make_policy(policy, table, config, seed)
+    if not (tables_dir() / table.key).is_dir():  # checked before any episode is collected
+        raise ValueError(f"table {table.key} is not in the table cache {tables_dir()}: a dataset names its table by "
+                         "key, and recover_environment() loads it from there; copy the table's folder there (or "
+                         "build it there with `uevavd prepare`) first")
     buffers, env = collect_episodes(table, split, pol, episodes=episodes, seed=seed, config=config,
                                     progress=progress)
     spec = gym.spec(ENV_ID)
@@ -158,7 +164,7 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
         id=spec.id, entry_point=spec.entry_point, max_episode_steps=None,
         kwargs={"table": table.key, "split": split, "config": config.to_dict()},
     )
-    with _datasets_path(out), warnings.catch_warnings():
+    with _datasets_path(out), warnings.catch_warnings(), _removed_on_failure(dataset_id):
         warnings.filterwarnings("ignore", message="`author_email` is set to None", category=UserWarning)
         return minari.create_dataset_from_buffers(
             dataset_id=dataset_id, buffer=buffers, env=portable, eval_env=portable, author="uevavd export-minari",
@@ -168,6 +174,22 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
             description=f"{episodes} episodes of {policy} on the {split} split of table {table.key} "
                         f"(starts uniform over its contexts and views, seed {seed})",
         )
+
+
+@contextmanager
+def _removed_on_failure(dataset_id: str):
+    """The dataset's folder removed when its writing fails or is interrupted, where this call
+    made it: a half-written dataset loads as empty, and its folder blocks a rerun."""
+    from minari.storage import get_dataset_path
+
+    folder = get_dataset_path(dataset_id)
+    existed = folder.exists()
+    try:
+        yield
+    except BaseException:
+        if not existed and folder.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+        raise
 
 
 def add_export_minari(p: Any):
