@@ -62,8 +62,8 @@ def register_state_estimators(registry: KindRegistry) -> None:
     ``state_dim``: accept them, or refuse them by name), and returns a ``torch.nn.Module``
     following :class:`uevavd.state.base.StateEstimator`: ``forward(features (B, T, D), boxes
     (B, T, 4)) -> s_t (B, T, state_dim)``, causal (position t reads no later position);
-    ``initial_hidden(n)`` the (n, H) memory at an episode start and ``step(features (N, D),
-    boxes (N, 4), hidden (N, H)) -> (s_t, new hidden)``, with attributes ``feature_dim``,
+    ``initial_hidden(n, device)`` the (n, H) memory on ``device`` at an episode start and
+    ``step(features (N, D), boxes (N, 4), hidden (N, H)) -> (s_t, new hidden)``, with attributes ``feature_dim``,
     ``state_dim`` and ``recurrent``. The memory is one 2-D tensor; training and evaluation
     start each episode from ``initial_hidden``'s zeros (a memory whose start is learned is
     not honoured). Example::
