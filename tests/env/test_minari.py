@@ -225,3 +225,18 @@ def test_a_table_outside_the_cache_is_refused_before_collecting_and_nothing_is_l
 
     with pytest.raises(TableError, match="neither a folder nor in the table cache .*rebuild it with `uevavd prepare`"):
         load_table("0123456789abcdef01234567")
+
+
+@pytest.mark.parametrize("dataset_id", ["uevavd/noversion", "uevavd/bad-vX", "", "../../outside-v0", "uevavd/../x-v0",
+                                        "uevavd/a b-v0"])
+def test_a_dataset_id_that_is_not_one_is_refused_before_anything_is_written(table, tmp_path, monkeypatch, capsys,
+                                                                            dataset_id):
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    folder = table.save(tmp_path / "t")
+    assert main(["export-minari", str(folder), "--policy", "passive", "--id", dataset_id, "--out",
+                 str(tmp_path / "ds" / "inner")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"--id {dataset_id!r}: expected a dataset id namespace/name-vN" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t"]  # no folder made, inside or outside

@@ -21,6 +21,7 @@ same data and method), and the dataset itself loads anywhere. Needs ``minari`` (
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import warnings
 from contextlib import contextmanager
@@ -42,6 +43,17 @@ from .oracle import OraclePolicy
 from .visibility_oracle import VisibilityOraclePolicy
 
 BASELINES = ("oracle", "visibility_oracle", "passive", "random")
+#: A Minari dataset id as export-minari writes it: ``[namespace/...]name-vN``, each part letters,
+#: digits, '_' and '-' (so it cannot name a folder outside the datasets folder).
+DATASET_ID = re.compile(r"^(?:[A-Za-z0-9_-]+/)*[A-Za-z0-9_-]*[A-Za-z0-9]-v\d+$")
+
+
+def check_dataset_id(dataset_id: str) -> str:
+    """``dataset_id``, or a ValueError saying what a dataset id must look like."""
+    if not DATASET_ID.match(dataset_id or ""):
+        raise ValueError(f"--id {dataset_id!r}: expected a dataset id namespace/name-vN (letters, digits, '_' and '-', "
+                         "ending in a version), e.g. uevavd/quick-hard-oracle-v0")
+    return dataset_id
 
 
 def make_policy(name_or_run: str, table: Any, config: EnvConfig, seed: int = 0) -> Any:
@@ -147,6 +159,7 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
     from .. import __version__
     from . import ENV_ID
 
+    check_dataset_id(dataset_id)
     table = load_table(table)
     if not table.key:
         raise ValueError("the table has no key (it was not written by `uevavd prepare`): a portable dataset names "
