@@ -49,10 +49,13 @@ OS_FAULT_ADVICE = {
     errno.EISDIR: "a folder stands where a file is expected: pass a file's path",
     errno.ENOTDIR: _FILE_FOR_FOLDER, errno.EEXIST: _FILE_FOR_FOLDER,  # mkdir over a file (nothing creates exclusively)
     errno.ECHILD: "a worker process died (out of memory?): run the command again; finished work is kept",
+    errno.ENAMETOOLONG: "a name in that path is longer than the file system allows: choose a shorter path",
+    errno.EFBIG: "a file would pass the file-size limit (ulimit -f, or the file system's): raise it, or write elsewhere",
 }
 #: OS faults that are the machine's state, not a bug: a full disk, a read-only or forbidden
 #: folder, a path that is a file where a folder is needed (and the reverse), a worker process
-#: that was killed (ECHILD): the faults there is advice for.
+#: that was killed (ECHILD), a name too long or a file too large for the file system: the faults
+#: there is advice for.
 OS_FAULTS = frozenset(OS_FAULT_ADVICE)
 
 

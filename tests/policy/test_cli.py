@@ -175,3 +175,17 @@ def test_evaluate_never_writes_over_the_run_it_evaluates_nor_into_the_package(ru
     assert main(["evaluate", str(shipped), "--table", table, "--split", "hard"]) == 0
     assert (tmp_path / "shipped.eval_hard.json").is_file()
     assert not shipped.with_name("shipped.eval_hard.json").exists()
+
+
+def test_names_too_long_for_the_file_system_are_one_line_before_any_work(run, table, tmp_path, capsys, monkeypatch):
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    long = "x" * 250
+    assert main(["evaluate", str(run), "--split", "hard", "--json", str(tmp_path / f"{long}.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "a name in that path is longer than the file system allows" in err
+    path = table.save(tmp_path / "table")
+    assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out",
+                 str(tmp_path / ("y" * 300)), "--no-progress", "--device", "cpu", *_sets()]) == 2
+    assert "longer than the file system allows" in capsys.readouterr().err
+    assert main(["synth", "--out", str(tmp_path / ("z" * 300)), "--contexts", "1", "--size", "16", "--quiet"]) == 2
+    assert "longer than the file system allows" in capsys.readouterr().err

@@ -241,6 +241,10 @@ def _json_path(args: argparse.Namespace, default: Path) -> Path | str:
     out = args.json if args.json else default
     if not args.json and package in default.resolve().parents:
         out = Path.cwd() / default.name  # never write into the installed package
+    try:  # a name the file system refuses (too long, say) is an OS fault now, not after the evaluation
+        os.stat(Path(out).parent / f".{Path(out).name}.xxxxxxxx.tmp")  # the longest name the write uses
+    except FileNotFoundError:
+        pass
     target = Path(out).resolve()
     run = args.run_dir if args.run_dir.is_dir() else args.run_dir.parent
     if target == args.run_dir.resolve() or RunDir(run).owns(target):
