@@ -166,6 +166,13 @@ def test_the_command_line_check(tmp_path, capsys, monkeypatch):
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     assert main(["plugins", "--check", "no_such_module_xyz"]) == 2
     assert "no module named 'no_such_module_xyz' is importable" in capsys.readouterr().err
+    # a plugin module whose own import fails: one line naming it and the error, not a traceback
+    (tmp_path / "failing_import_mod.py").write_text("import no_such_dependency_xyz\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert main(["plugins", "--check", "failing_import_mod"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "importing 'failing_import_mod' failed: ModuleNotFoundError: No module named " \
+        "'no_such_dependency_xyz'" in err
     # a module of hooks: exit 1 listing the problems
     mod = tmp_path / "broken_hooks_mod.py"
     mod.write_text("from uevavd.plugins import hookimpl\n\n@hookimpl\ndef register_state_estimators(registry):\n"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Any
 
@@ -86,7 +87,14 @@ def _check(module: str) -> int:
     from ..plugins.registry import import_target
     from ..testing.plugins import check_plugin
 
-    target = import_target(source) if ":" in source else importlib.import_module(source)
+    try:
+        target = import_target(source) if ":" in source else importlib.import_module(source)
+    except Exception as exc:  # the plugin's own code failed: the module and the error, one line
+        print(f"uevavd plugins --check: importing {source!r} failed: {type(exc).__name__}: {exc}; fix the plugin "
+              "module (UEVAVD_DEBUG=1 shows the traceback)", file=sys.stderr)
+        if os.environ.get("UEVAVD_DEBUG"):
+            raise
+        return 2
     try:
         report = check_plugin(target)
     except AssertionError as exc:
