@@ -224,11 +224,7 @@ def test_train_per_block_keeps_the_first_training_contexts_of_each_block():
     from uevavd.env.batched import EnvTensors
     from uevavd.env.evaluate import evaluate_policy
 
-    contexts = [1, 2, 3, 31, 32, 26, 56]
-    t = ObservationTable.from_arrays(
-        np.zeros((7, N_VIEWS, 4)), np.full((7, N_VIEWS, 5), 0.2), np.zeros((7, N_VIEWS, 4)),
-        scenes=[f"{c:03d}" for c in contexts], contexts=contexts, targets=[0, 0, 0, 1, 1, 0, 1],
-        splits=["train"] * 5 + ["hard"] * 2)
+    t = _two_block_table()
     two = EnvConfig(train_per_block=2)
     assert sorted(t.contexts[AODEnv(t, "train", two).scenes]) == [1, 2, 31, 32]
     # the rule is the table's own (issue 40): the env, the trainer and the evaluation ask it
@@ -326,14 +322,10 @@ def test_the_validation_split_is_the_training_contexts_a_run_leaves_out():
 def test_a_held_out_block_leaves_the_train_split_whole_and_is_the_validation_split():
     """env.holdout_block = k: every training context of target block k joins the validation
     split (a held-out set that is a distribution shift); with train_per_block the two combine;
-    test contexts are never dropped, and the trainer, the batched env and evaluation agree."""
+    test contexts are never dropped, and the Gymnasium env and the batched env agree."""
     from uevavd.env.batched import EnvTensors
 
-    contexts = [1, 2, 3, 31, 32, 26, 56]
-    t = ObservationTable.from_arrays(
-        np.zeros((7, N_VIEWS, 4)), np.full((7, N_VIEWS, 5), 0.2), np.zeros((7, N_VIEWS, 4)),
-        scenes=[f"{c:03d}" for c in contexts], contexts=contexts, targets=[0, 0, 0, 1, 1, 0, 1],
-        splits=["train"] * 5 + ["hard"] * 2)
+    t = _two_block_table()
     cfg = EnvConfig(holdout_block=2)
     assert sorted(t.contexts[AODEnv(t, "train", cfg).scenes]) == [1, 2, 3]
     assert sorted(EnvTensors(t, "validation", cfg).contexts) == [31, 32]
@@ -348,3 +340,12 @@ def test_a_held_out_block_leaves_the_train_split_whole_and_is_the_validation_spl
         AODEnv(alone, "train", EnvConfig(holdout_block=1))
     with pytest.raises(EnvConfigError, match="holdout_block"):
         EnvConfig(holdout_block=6)
+
+
+def _two_block_table() -> ObservationTable:
+    """Training contexts 1-3 (block 1) and 31-32 (block 2), hard contexts 26 and 56."""
+    contexts = [1, 2, 3, 31, 32, 26, 56]
+    return ObservationTable.from_arrays(
+        np.zeros((7, N_VIEWS, 4)), np.full((7, N_VIEWS, 5), 0.2), np.zeros((7, N_VIEWS, 4)),
+        scenes=[f"{c:03d}" for c in contexts], contexts=contexts, targets=[0, 0, 0, 1, 1, 0, 1],
+        splits=["train"] * 5 + ["hard"] * 2)
