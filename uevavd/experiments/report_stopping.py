@@ -21,6 +21,7 @@ from .report_data import (
     UNIT,
     baselines,
     estimate,
+    estimate_units,
     is_baseline,
     label,
     learned,
@@ -184,12 +185,11 @@ def _against_section(final: pd.DataFrame, by_terrain: pd.DataFrame, setting: str
 
 
 def _paired(final: pd.DataFrame, method: str, split: str, setting: str) -> Estimate:
-    """Gated minus ungated return of ``method``, paired by run: the interval of the per-run
-    differences (the report's estimate over units)."""
+    """Gated minus ungated return of ``method``, paired by run: the report's estimate over the
+    runs' differences."""
     sel = final[(final["method"] == method) & (final["split"] == split) & (final["setting"] == setting)]
-    diff = sel.assign(d=sel["gated_return"] - sel["return"])
-    diff = diff.assign(method="__paired__", **{"return": diff["d"]})
-    return estimate(diff, "__paired__", split, "return", setting)
+    sel = sel.sort_values("seed")
+    return estimate_units(sel["seed"].to_numpy(), (sel["gated_return"] - sel["return"]).to_numpy(dtype=float))
 
 
 __all__ = ["stopping_section", "terrain_rows"]
