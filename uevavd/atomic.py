@@ -21,7 +21,7 @@ from glob import escape as glob_escape
 from pathlib import Path
 from typing import IO, Any
 
-from .hashing import json_digest
+from .hashing import DamagedFileError, seal, unseal
 
 
 def _umask() -> int:
@@ -155,29 +155,34 @@ def atomic_write_json(path: str | os.PathLike[str], obj: Any, *, sort_keys: bool
     return atomic_write(path, json_text(obj, sort_keys=sort_keys), fsync=fsync)
 
 
-#: The key of a sealed JSON file's digest (:func:`write_sealed_json`).
-SEAL = "sha256"
-
-
-def write_sealed_json(path: str | os.PathLike[str], obj: dict[str, Any], *, fsync: bool = False) -> Path:
-    """:func:`atomic_write_json` of ``obj`` with the sha256 of its JSON under :data:`SEAL`:
-    a cache of numbers (a run's final evaluation, the baselines') that a later reader checks
-    with :func:`read_sealed_json`, so a hand-edited value never reaches a result."""
-    plain = json.loads(json_text(obj))  # what a reader gets back
-    return atomic_write_json(path, {**plain, SEAL: json_digest(plain)}, fsync=fsync)
+def write_sealed_json(path: str | os.PathLike[str], obj: dict[str, Any], *, sort_keys: bool = False,
+                      fsync: bool = False) -> Path:
+    """:func:`atomic_write_json` of ``obj`` :func:`~uevavd.hashing.seal`-ed (its digest under
+    ``"sha256"``), for a file a reported number depends on; a reader checks it with
+    :func:`read_sealed_json` (a cache, recomputed when edited) or :func:`load_sealed_json`
+    (a record, refused when edited)."""
+    return atomic_write_json(path, seal(obj), sort_keys=sort_keys, fsync=fsync)
 
 
 def read_sealed_json(path: str | os.PathLike[str]) -> dict[str, Any] | None:
-    """A :func:`write_sealed_json` file's object, or None where it is missing, unreadable,
+    """A :func:`write_sealed_json` cache's object, or None where it is missing, unreadable,
     unsealed or edited since it was written (a cache is then recomputed)."""
     try:
-        obj = json.loads(Path(path).read_text(encoding="utf-8"))
+        return unseal(json.loads(Path(path).read_text(encoding="utf-8")), str(path), "")
     except (OSError, ValueError):
         return None
-    if not isinstance(obj, dict) or SEAL not in obj:
-        return None
-    seal = obj.pop(SEAL)
-    return obj if seal == json_digest(obj) else None
+
+
+def load_sealed_json(path: str | os.PathLike[str], advice: str, *, legacy: bool = False) -> dict[str, Any]:
+    """A :func:`write_sealed_json` record's object, checked: unreadable, edited or damaged is a
+    :class:`~uevavd.hashing.DamagedFileError` naming the file and saying ``advice``;
+    ``legacy`` takes an object without a seal as it is (files of earlier versions)."""
+    path = Path(path)
+    try:
+        obj = json.loads(path.read_text(encoding="utf-8"))
+    except ValueError as exc:  # not JSON, not UTF-8 (an OS fault is reported as one)
+        raise DamagedFileError(f"{path}: unreadable ({exc}); {advice}") from None
+    return unseal(obj, str(path), advice, legacy=legacy)
 
 
 def atomic_save(path: str | os.PathLike[str], save: Callable[[str], None]) -> Path:

@@ -5,6 +5,11 @@
 with sorted keys. Each cuts to ``n`` hex digits where the digest names a cache folder or a
 file. Digests that stream many parts of one thing (a state dict's tensors, a table's arrays,
 a dataset's files) feed ``hashlib`` in the module that knows those parts.
+
+``seal`` / ``unseal`` are how a JSON object uevavd writes carries its own digest (under
+:data:`SEAL`) and how a reader checks it: a run's settings, its evaluation rows, its finished
+mark, a policy file's header, the caches of numbers. An edited or damaged object is a
+:class:`DamagedFileError` naming where it was read.
 """
 
 from __future__ import annotations
@@ -24,6 +29,55 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
 def sha256_hex(data: bytes | str, n: int | None = None) -> str:
     """sha256 of ``data`` (a str as UTF-8), the first ``n`` hex digits (all 64 when None)."""
     digest = hashlib.sha256(data.encode() if isinstance(data, str) else data).hexdigest()
+    return digest if n is None else digest[:n]
+
+
+#: The key under which a sealed JSON object carries the sha256 of the rest of it.
+SEAL = "sha256"
+
+
+class DamagedFileError(ValueError):
+    """A file (or a line of one) no longer matches the digest written with it: edited by hand,
+    or damaged on the disk. Its message names the file and what to do."""
+
+
+def seal(obj: dict[str, Any]) -> dict[str, Any]:
+    """``obj`` as it reads back from JSON, with its digest under :data:`SEAL`."""
+    plain = json.loads(json.dumps(obj, default=str))
+    plain.pop(SEAL, None)
+    return {**plain, SEAL: json_digest(plain)}
+
+
+def unseal(obj: Any, where: str, advice: str, *, legacy: bool = False) -> dict[str, Any]:
+    """The sealed object ``obj`` read from ``where`` without its seal, after checking it. A
+    digest that does not match, or an object that is not one, is a :class:`DamagedFileError`
+    naming ``where`` and saying ``advice``. ``legacy``: an object without a seal (written
+    before the file kind was sealed) is taken as it is."""
+    if not isinstance(obj, dict):
+        raise DamagedFileError(f"{where}: damaged (expected a JSON object, found {type(obj).__name__}); {advice}")
+    if SEAL not in obj:
+        if legacy:
+            return obj
+        raise DamagedFileError(f"{where}: damaged (no {SEAL} digest was found in it); {advice}")
+    obj = dict(obj)
+    recorded = obj.pop(SEAL)
+    if recorded != json_digest(obj):
+        raise DamagedFileError(f"{where}: edited or damaged since it was written (its content no longer matches "
+                               f"the {SEAL} digest written with it); {advice}")
+    return obj
+
+
+def arrays_sha256(*arrays: Any, n: int | None = None) -> str:
+    """sha256 over numpy arrays, each by its dtype, shape and bytes (C order), the first ``n``
+    hex digits (all 64 when None)."""
+    import numpy as np
+
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(memoryview(a).cast("B"))
+    digest = h.hexdigest()
     return digest if n is None else digest[:n]
 
 

@@ -27,7 +27,6 @@ scans everything.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -40,7 +39,7 @@ import numpy as np
 from .atomic import atomic_dir
 from .data.grid import N_VIEWS
 from .data.splits import SPLITS, TARGETS, VALIDATION, block_of, first_per_block, resolve_split
-from .hashing import file_sha256, json_digest
+from .hashing import arrays_sha256, file_sha256, json_digest
 from .paths import tables_dir
 
 SCHEMA_VERSION = 1
@@ -62,15 +61,6 @@ _BACKDATE_NS = 10**9
 def _meta_digest(meta: dict) -> str:
     """sha256 of a table's metadata (without its own digest), as JSON with sorted keys."""
     return json_digest({k: v for k, v in meta.items() if k != "meta_sha256"})
-
-
-def _digest_arrays(*arrays: np.ndarray) -> str:
-    h = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(str((a.dtype.str, a.shape)).encode())
-        h.update(memoryview(a).cast("B"))
-    return h.hexdigest()[:16]
 
 
 @dataclass(frozen=True)
@@ -127,7 +117,7 @@ class ObservationTable:
             "schema_version": SCHEMA_VERSION,
             "class_names": list(class_names),
             "config": config,
-            "key": key or _digest_arrays(features, probs, boxes, visible)
+            "key": key or arrays_sha256(features, probs, boxes, visible, n=16)
             + json_digest(config, 8),
             "versions": _versions(),
         }

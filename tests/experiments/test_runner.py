@@ -680,8 +680,26 @@ def test_a_truncated_evals_jsonl_is_one_line_naming_it(ablation, tmp_path, capsy
     evals = copy / "evals.jsonl"
     evals.write_text(evals.read_text()[:-25])
     damaged = dataclasses.replace(job, out=str(copy))
-    with pytest.raises(ValueError, match=r"evals.jsonl, line \d+: damaged .*remove the run's folder"):
+    with pytest.raises(ValueError, match=r"evals.jsonl, line \d+: damaged .*train the run again"):
         run_rows(damaged, {})
+
+
+def test_an_edited_settings_json_of_an_ablation_run_is_refused_not_folded_into_its_setting(ablation, tmp_path):
+    """thre edited in a finished run's settings.json became the run's rows under "default" on
+    the ablation's rerun (its final evaluation redone under the edited value)."""
+    import dataclasses
+    import shutil
+
+    from uevavd.experiments.results import run_rows
+    from uevavd.hashing import DamagedFileError
+
+    job = next(j for j in ablation["jobs"] if j.method == "map")
+    copy = tmp_path / "run"
+    shutil.copytree(job.out, copy)
+    settings = copy / "settings.json"
+    settings.write_text(settings.read_text().replace('"thre": 0.2', '"thre": 0.3'))
+    with pytest.raises(DamagedFileError, match="settings.json: edited or damaged"):
+        run_rows(dataclasses.replace(job, out=str(copy)), {"thre": 0.2, "C": 0.02})
 
 
 def test_an_edited_final_eval_or_baselines_cache_is_not_used(ablation, tmp_path):
@@ -714,6 +732,17 @@ def test_an_edited_final_eval_or_baselines_cache_is_not_used(ablation, tmp_path)
     shutil.copy(baselines, tmp_path / "baselines.json")
     (tmp_path / "baselines.json").write_text(json.dumps(data))
     assert read_sealed_json(tmp_path / "baselines.json") is None  # the edit is seen
+    # and the rows are evaluated again, said in the ablation's log (this was an AttributeError)
+    from uevavd.experiments.results import baseline_rows
+
+    plan = dataclasses.replace(ablation["plan"], out=tmp_path)
+    tables = {0: Path(next(j for j in ablation["jobs"] if j.method == plan.methods[0]).table)}
+    said: list[str] = []
+    rows, _ = baseline_rows(plan, tables, ["hard"], said.append)
+    passive = [r for r in rows if r["method"] == "passive"]
+    assert passive and all(r["return"] != 0.99 for r in passive)
+    assert any("baselines.json is damaged or was edited" in line for line in said)
+    assert read_sealed_json(tmp_path / "baselines.json") is not None
 
 
 def test_result_rows_state_the_reward_constants_the_run_recorded(ablation):

@@ -200,8 +200,9 @@ def test_killed_inside_the_real_shard_writer_leaves_no_shard(built, tiny_world, 
     real_savez = np.savez
     written = []
 
-    def savez_dies_on_second(fh, **arrays):
-        written.append(fh)
+    def savez_dies_on_second(fh, **arrays):  # the second scene's shard (caches are .npz files too)
+        if "boxes" in arrays:
+            written.append(fh)
         if len(written) == 2:
             fh.write(b"PK\x03\x04 half a zip")
             raise _Killed
@@ -479,7 +480,7 @@ def test_decomposed_table_reuses_the_raw_views_probabilities(built, tiny_world, 
     of the same data and classifier (another segmenter or encoder) classifies nothing again."""
     method, path = built
     probs_dirs = list((path.parent / "probs").iterdir())
-    assert len(probs_dirs) == 1 and len(list(probs_dirs[0].glob("*.npy"))) == 2
+    assert len(probs_dirs) == 1 and len(list(probs_dirs[0].glob("*.npz"))) == 2
     other = tmp_path / "other.toml"
     other.write_text(method.read_text().replace("gray_seed = 0", "gray_seed = 1"))
     out = tmp_path / "out"
@@ -498,8 +499,8 @@ def test_each_scene_is_keyed_by_its_own_files(built, tiny_world, tiny_classifier
     method, path = built
     p = prep.plan_table(tiny_world, method, classifier_path=tiny_classifier)
     assert p.scene_fingerprints == {s: prep.dataset_fingerprint(p.manifest, [(s, r)]) for s, r in p.scenes}
-    cached = {f.name for f in (path.parent / "probs").glob("*/*.npy")}
-    assert cached == {f"{s}-{fp}.npy" for s, fp in p.scene_fingerprints.items()}
+    cached = {f.name for f in (path.parent / "probs").glob("*/*.npz")}
+    assert cached == {f"{s}-{fp}.npz" for s, fp in p.scene_fingerprints.items()}
     img = next((tiny_world / "031").glob("*.png"))
     st = img.stat()
     os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
@@ -660,3 +661,36 @@ def test_a_table_with_the_recognizer_in_the_state(built, tiny_world, tiny_classi
     np.testing.assert_array_equal(b.features[..., :512], a.features)
     np.testing.assert_array_equal(b.features[..., 512:], a.probs.astype(np.float16))
     assert prep.plan_table(tiny_world, method, classifier_path=tiny_classifier).key == path.name
+
+
+def test_a_damaged_feature_or_probability_cache_is_computed_again_not_baked_into_a_table(
+        built, tiny_world, tiny_classifier, tmp_path, caplog):
+    """The per-scene caches a rebuild reuses had no digest: a flipped bit there went into a
+    rebuilt table under the same key with a fresh digest (or, in a high bit of a probability,
+    failed with "probabilities do not sum to 1" naming no file)."""
+    import logging
+
+    method, path = built
+    out = tmp_path / "out"
+    for name in ("features", "probs"):
+        shutil.copytree(path.parent / name, out / name)
+    damaged = [sorted((out / name).glob("*/*.npz"))[0] for name in ("features", "probs")]
+    for f in damaged:
+        data = bytearray(f.read_bytes())
+        data[len(data) // 2] ^= 0x40
+        f.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING, logger="uevavd.perception.prepare"):
+        rebuilt = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    assert rebuilt.name == path.name
+    a, b = ObservationTable.load(path), ObservationTable.load(rebuilt)
+    for name in ("features", "probs", "boxes", "visible"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    said = " ".join(r.getMessage() for r in caplog.records)
+    for f in damaged:
+        assert str(f) in said
+    # computed again and cached again: a second rebuild reads the caches without a warning
+    caplog.clear()
+    shutil.rmtree(rebuilt)
+    with caplog.at_level(logging.WARNING, logger="uevavd.perception.prepare"):
+        prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    assert not [r for r in caplog.records if "damaged" in r.getMessage() or "unreadable" in r.getMessage()]

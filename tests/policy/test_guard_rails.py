@@ -12,6 +12,7 @@ import pytest
 from uevavd.cli import main
 from uevavd.config import ConfigError, load_method
 from uevavd.policy.checkpoint import CheckpointError
+from uevavd.policy.rundir import read_settings, write_settings
 from uevavd.policy.trainer import RunDirError, train
 
 from .conftest import small
@@ -218,7 +219,7 @@ def test_a_corrupt_settings_json_is_named(table, tmp_path, capsys, monkeypatch):
     assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out", str(run),
                  "--no-progress", "--device", "cpu", *_sets()]) == 0
     capsys.readouterr()
-    for damaged, line in (("{not json", "unreadable"), ("[1, 2]", "not a uevavd run's settings")):
+    for damaged, line in (("{not json", "unreadable"), ("[1, 2]", "damaged (expected a JSON object, found list)")):
         (run / "settings.json").write_text(damaged)
         assert main(["evaluate", str(run), "--split", "hard"]) == 2
         _one_line(capsys, f"{run / 'settings.json'}: {line}")
@@ -284,7 +285,7 @@ def test_the_replays_sampling_is_a_recorded_setting_checked_on_resume(table, tmp
     old = load_method("map", overrides={**small("map"), "train.episodes": 300, "train.replay_sampling": "vectorised"})
     legacy = train(old, table, out=tmp_path / "legacy", device="cpu", progress=False, max_epochs=1)
     settings = json.loads((legacy / "settings.json").read_text())
-    del settings["train"]["replay_sampling"], settings["env"]["train_per_block"]
+    del settings["train"]["replay_sampling"], settings["env"]["train_per_block"], settings["sha256"]  # unsealed then
     (legacy / "settings.json").write_text(json.dumps(settings))
     ck = torch.load(legacy / "checkpoint.pt", weights_only=True)
     del ck["meta"]["train"]["replay_sampling"], ck["meta"]["env"]["train_per_block"]
@@ -427,11 +428,11 @@ def test_an_unfinished_run_resumes_only_on_the_kind_of_device_it_started_on(tabl
             "--no-progress", "--device", "cpu", *_sets()]
     assert main([*args, "--max-epochs", "1"]) == 0
     capsys.readouterr()
-    settings = json.loads((run / "settings.json").read_text())
-    (run / "settings.json").write_text(json.dumps({**settings, "device": "cuda:0"}))
+    settings = read_settings(run)
+    write_settings(run, {**settings, "device": "cuda:0"})  # as a run started on a GPU records it
     assert main(args) == 2
     _one_line(capsys, f"{run} was trained on cuda:0 so far; resuming it on cpu", "resume with --device cuda:0")
-    (run / "settings.json").write_text(json.dumps(settings))
+    write_settings(run, settings)
     assert main(args) == 0 and (run / "done.json").is_file()  # on its own device it resumes
-    (run / "settings.json").write_text(json.dumps({**settings, "device": "cuda:0"}))
+    write_settings(run, {**settings, "device": "cuda:0"})
     assert main(args) == 0  # a finished run is finished on any device

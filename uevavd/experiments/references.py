@@ -15,7 +15,6 @@ resumed ablation does not train it again.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -27,7 +26,7 @@ from ..config import load_method
 from ..env.aod_env import AODEnv
 from ..env.evaluate import evaluate_policy
 from ..env.wrappers import DiscreteActions
-from ..policy.rundir import RunDir
+from ..policy.rundir import RunDir, read_done
 from ..runtime import torch_threads
 from ..table import ObservationTable
 from .plan import DEFAULT_SETTING, SB3_AGENTS, env_config
@@ -49,7 +48,7 @@ def sb3_rows(plan: Any, jobs: list, tables: dict[int, Path], splits: list[str], 
                 done = read_sealed_json(cache)  # None where missing, damaged or edited: trained again
                 if done is None:
                     job = runs[(r, seed)]
-                    steps = int(json.loads(RunDir(job.out).done.read_text(encoding="utf-8"))["env_steps"])
+                    steps = int(read_done(job.out)["env_steps"])
                     log(f"  {agent} rec{r} seed{seed}: {steps:,} env steps on {first}'s table")
                     done = _train_and_evaluate(agent, job, tables[r], config, steps, seed, splits)
                     write_sealed_json(cache, done)

@@ -17,7 +17,7 @@ from ..env.baselines import baseline_entries
 from ..env.config import make_config
 from ..env.evaluate import evaluate_gated, evaluate_policy, stopping_summary
 from ..policy.acting import load_policy
-from ..policy.rundir import RunDir, read_settings
+from ..policy.rundir import RunDir, read_done, read_evals, read_settings
 from ..table import ObservationTable
 from .plan import SWEEPABLE, AblationError, Plan, env_config
 from .report_data import STOPPING
@@ -46,7 +46,7 @@ def _final_eval_key(run: Path) -> dict[str, Any]:
     update counts), its env config, its table and the splits."""
 
     settings = read_settings(run)
-    done = json.loads(RunDir(run).done.read_text(encoding="utf-8"))
+    done = read_done(run)
     splits = list(settings.get("train", {}).get("eval_splits") or ["train", "hard"])
     return {"protocol": "every context of the split x all 605 start views, greedy policy, and behind the stop gate",
             "episodes": int(done["episodes"]), "updates": int(done.get("updates", -1)),
@@ -148,23 +148,13 @@ def run_rows(job: Job, setting: dict[str, float], *, device: str | None = None) 
     ``train.eval_contexts`` contexts each, ``final=False``) and, for a finished run, the
     exhaustive evaluation of its final policy (:func:`final_eval`: every context,
     ``final=True``, at the run's last episode count)."""
-    path = RunDir(job.out).evals
     rows = []
     base = {"method": job.method, "recognizer": job.recognizer, "seed": job.seed, "setting": job.setting,
             **recorded_setting(job, setting)}
-    if path.is_file():
-        for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
-            if not line.strip():
-                continue
-            try:
-                r = json.loads(line)
-                int(r["episodes"]), r["split"]
-            except (ValueError, KeyError, TypeError) as exc:
-                raise ValueError(f"{path}, line {n}: damaged ({type(exc).__name__}: {exc}); remove the run's folder "
-                                 f"{job.out} and run the ablation again with the same --out to retrain it") from None
-            rows.append({**base, "episodes": int(r["episodes"]), "final": False, "split": r["split"],
-                         "eval_contexts": contexts_covered(r), **metric_row(r),
-                         "wall_s": float(r.get("wall_s", float("nan")))})
+    for r in read_evals(job.out):  # each row checked: an edited digit is refused, naming the line
+        rows.append({**base, "episodes": int(r["episodes"]), "final": False, "split": r["split"],
+                     "eval_contexts": contexts_covered(r), **metric_row(r),
+                     "wall_s": float(r.get("wall_s", float("nan")))})
     final = final_eval(job, device=device)
     if final is not None:
         for split, summary in final["splits"].items():
@@ -179,10 +169,9 @@ def recorded_setting(job: Job, setting: dict[str, Any]) -> dict[str, Any]:
     ``settings.json`` (the env config it trained and was evaluated under), so a row never
     states another value than its run used; the plan's for a run not started yet, and for
     the other swept keys (the results' columns of those hold each method's resolved value)."""
-    try:
-        env = read_settings(job.out).get("env") or {}
-    except (OSError, ValueError):
+    if not RunDir(job.out).settings.is_file():  # not started; a damaged or edited one is refused
         return dict(setting)
+    env = read_settings(job.out).get("env") or {}
     return {k: env.get(SWEEPABLE[k].partition(".")[2], v) if k in SWEEPABLE else v for k, v in setting.items()}
 
 
@@ -195,7 +184,7 @@ def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], lo
     cache = plan.out / "baselines.json"
     done = read_sealed_json(cache) if cache.is_file() else {}
     if done is None:  # damaged, or edited since written: its numbers are not used
-        log.warning("%s is damaged or was edited since it was written: evaluating the baselines again", cache)
+        log(f"  {cache} is damaged or was edited since it was written: evaluating the baselines again")
         done = {}
     entries = baseline_entries()
     rows, ctx_rows = [], []

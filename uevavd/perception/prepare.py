@@ -186,7 +186,7 @@ def _probs_path(probs_dir: Path | None, scene: str, fingerprint: str) -> Path | 
     (MAP's and IBE-MAP's) classify each raw view once."""
     if probs_dir is None:
         return None
-    return probs_dir / f"{scene}-{fingerprint}.npy"
+    return probs_dir / f"{scene}-{fingerprint}.npz"
 
 
 def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_seed, image_hw,
@@ -208,18 +208,21 @@ def _compute_scene(scene, recs, loaded, *, segmenter, encoder, classifier, gray_
             decompose(img, s.target, s.segments, seed=view_seed(gray_seed, scene, r.view, r.target))
             for img, s, r in zip(images, segs, recs, strict=True)
         ])
+    n_classes = len(classifier.classes)
     if enc_in is images and getattr(classifier, "shares_backbone", lambda e: False)(encoder):
         # the encoder is the recognizer's own backbone on the same raw views: one forward
         features = encoder.encode(images)
-        probs = classifier.proba_from_features(features)
+        probs = classifier.proba_from_features(features).astype(np.float32)
+        if probs_path is not None and cached_probs(probs_path, n_classes) is None:  # a good cache is kept
+            save_array(probs_path, probs)
     else:
         features = encoder.encode(enc_in)
-        probs = cached_probs(probs_path, len(classifier.classes))
-        if probs is None:
+        probs = cached_probs(probs_path, n_classes)
+        if probs is None:  # missing or damaged: computed, and cached
             probs = classifier.predict_proba(images).astype(np.float32)
-    if probs_path is not None and not probs_path.is_file():
-        save_array(probs_path, probs.astype(np.float32))
-    if features_path is not None and not features_path.is_file():
+            if probs_path is not None:
+                save_array(probs_path, probs)
+    if features_path is not None:  # the cache was missing or damaged (else returned above)
         save_array(features_path, features.astype(np.float16))
     return _scene_arrays(recs, features, probs, image_hw)
 

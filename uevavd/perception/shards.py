@@ -1,6 +1,8 @@
 """What ``prepare`` keeps on disk while it works: one shard per scene (written atomically,
 so a killed build resumes), and the caches of classifier probabilities and encoder features
-per scene, shared between tables that differ only in the other component."""
+per scene, shared between tables that differ only in the other component. Each is an
+``.npz`` with the digest of its arrays: a damaged one is computed again, never baked into a
+table."""
 
 from __future__ import annotations
 
@@ -15,31 +17,51 @@ import numpy as np
 
 from ..atomic import atomic_write, folder_lock, remove_temporaries
 from ..data.grid import N_VIEWS
-from ..hashing import json_digest
+from ..hashing import SEAL, arrays_sha256, json_digest
 
 log = logging.getLogger("uevavd.perception.prepare")
 SHARD_ARRAYS = ("features", "probs", "boxes", "visible")
 
 
+def save_sealed_arrays(path: Path, arrays: Mapping[str, np.ndarray], *, fsync: bool = False) -> None:
+    """Arrays as one ``.npz``, written atomically, with the sha256 of their dtypes, shapes and
+    bytes beside them (under :data:`~uevavd.hashing.SEAL`), so a reader tells a damaged
+    cache from a good one."""
+    digest = arrays_sha256(*(arrays[k] for k in sorted(arrays)))
+    atomic_write(path, lambda fh: np.savez(fh, **arrays, **{SEAL: np.array(digest)}), fsync=fsync)
+
+
+def load_sealed_arrays(path: Path | None, expected: Mapping[str, tuple[tuple[int, ...], Any]]
+                       ) -> dict[str, np.ndarray] | None:
+    """The arrays of a :func:`save_sealed_arrays` file, or None where it is absent, unreadable,
+    of other shapes or dtypes (``expected``: name -> (shape, dtype)), or damaged or edited since
+    it was written (said in a warning naming it): a cache then recomputes."""
+    if path is None or not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in expected}
+            digest = str(z[SEAL])
+    except Exception:  # noqa: BLE001 - anything unreadable (or written before caches were sealed) is redone
+        log.warning("prepare: %s is unreadable; computing it again", path)
+        return None
+    if any(arrays[k].shape != shape or arrays[k].dtype != dtype for k, (shape, dtype) in expected.items()):
+        return None
+    if digest != arrays_sha256(*(arrays[k] for k in sorted(arrays))):
+        log.warning("prepare: %s was damaged or edited since it was written; computing it again", path)
+        return None
+    return arrays
+
+
 def write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    atomic_write(path, lambda fh: np.savez(fh, **arrays), fsync=True)
+    save_sealed_arrays(path, arrays, fsync=True)
 
 
 def read_shard(path: Path, feature_dim: int, n_classes: int) -> dict[str, np.ndarray] | None:
     """A complete shard's arrays, or None when it is absent or unusable (then redone)."""
-    if not path.is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in SHARD_ARRAYS}
-    except Exception:  # noqa: BLE001 - anything unreadable is redone
-        log.warning("prepare: shard %s unreadable; recomputing it", path)
-        return None
-    expected = {"features": (N_VIEWS, feature_dim), "probs": (N_VIEWS, n_classes),
-                "boxes": (N_VIEWS, 4), "visible": (N_VIEWS,)}
-    if any(arrays[k].shape != s for k, s in expected.items()):
-        return None
-    return arrays
+    return load_sealed_arrays(path, {"features": ((N_VIEWS, feature_dim), np.float16),
+                                     "probs": ((N_VIEWS, n_classes), np.float32),
+                                     "boxes": ((N_VIEWS, 4), np.float32), "visible": ((N_VIEWS,), np.float32)})
 
 
 def features_folder(out_dir: Path, parts: Mapping[str, Any]) -> Path:
@@ -51,14 +73,9 @@ def features_folder(out_dir: Path, parts: Mapping[str, Any]) -> Path:
 
 
 def cached_array(path: Path | None, shape: tuple[int, int], dtype) -> np.ndarray | None:
-    if path is None or not path.is_file():
-        return None
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except Exception:  # noqa: BLE001 - unreadable: recomputed
-        return None
-    ok = arr.shape == shape and arr.dtype == dtype and bool(np.isfinite(arr).all())
-    return arr if ok else None
+    """A per-scene cache (:func:`save_array`) of that shape and dtype, or None (then computed)."""
+    arrays = load_sealed_arrays(path, {"array": (shape, np.dtype(dtype))})
+    return arrays["array"] if arrays is not None and np.isfinite(arrays["array"]).all() else None
 
 
 def cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
@@ -66,8 +83,8 @@ def cached_probs(path: Path | None, n_classes: int) -> np.ndarray | None:
 
 
 def save_array(path: Path, array: np.ndarray) -> None:
-    """``np.save`` written atomically (temp file, then rename)."""
-    atomic_write(path, lambda fh: np.save(fh, array))
+    """One array as a per-scene cache: :func:`save_sealed_arrays`."""
+    save_sealed_arrays(path, {"array": array})
 
 
 @contextmanager

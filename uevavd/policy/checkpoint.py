@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from ..atomic import atomic_save, atomic_write
+from ..hashing import seal, unseal
 from ..perception.weights import state_dict_hash
 from .rundir import RunDir, with_legacy_settings
 
@@ -102,9 +103,10 @@ def save_policy_file(path: str | os.PathLike[str], net_state: dict[str, torch.Te
     from safetensors.torch import save_file
 
     tensors = {k: v.detach().cpu().contiguous() for k, v in net_state.items()}
-    meta = {"format": POLICY_FORMAT, "method_toml": method_toml,
-            "settings": json.dumps({k: settings.get(k) for k in POLICY_KEYS}),
-            "weights_hash": state_dict_hash(tensors)}  # checked on read: a flipped bit is refused
+    # the weights' digest, and the header's own over it (method, settings): both checked on read
+    meta = seal({"format": POLICY_FORMAT, "method_toml": method_toml,
+                 "settings": json.dumps({k: settings.get(k) for k in POLICY_KEYS}),
+                 "weights_hash": state_dict_hash(tensors)})
     return atomic_save(Path(path), lambda tmp: save_file(tensors, tmp, metadata=meta))
 
 
@@ -126,7 +128,10 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any],
     if meta.get("format") != POLICY_FORMAT:
         raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected "
                               f"{POLICY_FORMAT!r})")
-    if "weights_hash" in meta and state_dict_hash(state) != meta["weights_hash"]:  # files before 2026-11-25 have none
+    # files of earlier versions lack the header's digest (and the oldest the weights'); the zoo's
+    # are checked against its manifest as whole files
+    meta = unseal(meta, str(path), "copy it again, or evaluate the run's checkpoint", legacy=True)
+    if "weights_hash" in meta and state_dict_hash(state) != meta["weights_hash"]:
         raise CheckpointError(f"{path}: damaged (its weights no longer match the weights_hash written with them); "
                               "copy it again, or evaluate the run's checkpoint")
     return meta["method_toml"], json.loads(meta["settings"]), state

@@ -12,6 +12,10 @@
 ``tb/``                     TensorBoard scalars
 ==========================  =====================================================================
 
+``settings.json``, ``evals.jsonl`` (each line) and ``done.json`` carry the sha256 of their
+content (:func:`~uevavd.hashing.seal`), checked wherever they are read: an edited or damaged
+file is refused, naming it, instead of moving a result.
+
 Beside the directory, ``.NAME.lock`` is held while a process trains into it (:func:`run_lock`).
 """
 
@@ -25,9 +29,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..atomic import folder_lock
+from ..atomic import atomic_write, folder_lock, load_sealed_json, write_sealed_json
 from ..config import MethodSpec, load_method
 from ..env.config import LEGACY_ENV
+from ..hashing import DamagedFileError, seal, unseal
 from .config import LEGACY_TRAIN
 
 
@@ -111,19 +116,57 @@ def run_lock(run_dir: str | os.PathLike[str]) -> Iterator[Path]:
         yield lock
 
 
+#: What to do about a run file that is damaged or was edited since the run wrote it.
+RETRAIN = ("train the run again (remove its folder and rerun the `uevavd train` or `uevavd ablate` that made it), "
+           "or restore the folder from a copy")
+
+
 def read_settings(run_dir: str | Path) -> dict[str, Any]:
-    """A run's ``settings.json``; a missing, unreadable or damaged file is an error naming it."""
+    """A run's ``settings.json``, checked against the digest written with it; a missing,
+    unreadable, edited or damaged file is an error naming it."""
     path = RunDir(run_dir).settings
     if not path.is_file():
         raise FileNotFoundError(f"{run_dir} is not a training run: no settings.json (train one with `uevavd train`)")
-    try:
-        settings = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise RunDirError(f"{path}: unreadable ({exc}); the run directory is damaged: train it again "
-                          "into a new --out") from None
-    if not isinstance(settings, dict) or "env" not in settings:
+    settings = load_sealed_json(path, RETRAIN, legacy=True)
+    if "env" not in settings:
         raise RunDirError(f"{path}: not a uevavd run's settings (no env section); train it again into a new --out")
     return settings
+
+
+def write_settings(run_dir: str | Path, settings: dict[str, Any]) -> Path:
+    """Write a run's ``settings.json``, sealed."""
+    return write_sealed_json(RunDir(run_dir).settings, settings, sort_keys=True)
+
+
+def read_done(run_dir: str | Path) -> dict[str, Any]:
+    """A finished run's ``done.json`` (its counts, wall time and last evaluation), checked."""
+    return load_sealed_json(RunDir(run_dir).done, RETRAIN, legacy=True)
+
+
+def write_evals(run_dir: str | Path, rows: list[dict[str, Any]]) -> Path:
+    """A run's ``evals.jsonl``: one sealed JSON object per line."""
+    return atomic_write(RunDir(run_dir).evals, "".join(json.dumps(seal(r)) + "\n" for r in rows))
+
+
+def read_evals(run_dir: str | Path) -> list[dict[str, Any]]:
+    """A run's per-epoch evaluation rows (none before its first epoch), each checked against
+    the digest written with it; a damaged or edited line is an error naming the file and line."""
+    path = RunDir(run_dir).evals
+    if not path.is_file():
+        return []
+    rows = []
+    for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            obj = json.loads(line)
+        except ValueError as exc:
+            raise DamagedFileError(f"{path}, line {n}: damaged ({exc}); {RETRAIN}") from None
+        row = unseal(obj, f"{path}, line {n}", RETRAIN, legacy=True)
+        if not isinstance(row.get("episodes"), int) or not isinstance(row.get("split"), str):
+            raise DamagedFileError(f"{path}, line {n}: not an evaluation row (no episodes or split); {RETRAIN}")
+        rows.append(row)
+    return rows
 
 
 def run_spec(run_dir: str | Path) -> MethodSpec:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import atomic_write, atomic_write_json, remove_temporaries
+from ..atomic import remove_temporaries, write_sealed_json
 from ..config import ConfigError, MethodSpec, PerceptionSection
 from ..config_rules import dotted_get
 from ..data.grid import N_TYPES
@@ -48,7 +48,7 @@ from .contract import build_checked_network
 from .learner import FeatureDropout, FeatureLookup, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
-from .rundir import RUN_KEYS, RunDir, RunDirError, check_run_dir, read_settings, run_lock, run_spec
+from .rundir import RunDir, RunDirError, check_run_dir, run_lock, write_evals, write_settings
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
@@ -229,7 +229,7 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
         # the shareable policy (the network alone), then the mark that the run is finished
         save_policy_file(RunDir(run.out).policy, run.net.state_dict(),
                          RunDir(run.out).method.read_text(encoding="utf-8"), run.settings)
-        atomic_write_json(RunDir(run.out).done, {
+        write_sealed_json(RunDir(run.out).done, {
             "episodes": loop["episodes"], "env_steps": loop["env_steps"], "updates": run.learner.updates,
             "wall_s": loop["wall"], "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else []},
             sort_keys=True)
@@ -284,7 +284,7 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     out.mkdir(parents=True, exist_ok=True)
     # settings.json first: it is what makes the folder this run's, so a kill between the two
     # writes leaves a run that resumes (method.toml is rewritten on every call)
-    atomic_write_json(RunDir(out).settings, settings, sort_keys=True)
+    write_settings(out, settings)
     spec.save(RunDir(out).method)
     collector = EpisodeCollector(env, net, seed=seeds.acting, device=dev, contexts=level_replay(cfg, env))
     return _Run(out, spec, cfg, settings, net, learner, replay, collector, lookup, evaluator)
@@ -317,7 +317,7 @@ def _end_epoch(run: _Run, log: _Log, stop: bool) -> None:
             run.evals.append({"epoch": loop["epoch"], "episodes": loop["episodes"], "wall_s": loop["wall"],
                               "split": split, **row})
             log.evaluation(split, summary, loop["episodes"])
-        atomic_write(RunDir(run.out).evals, "".join(json.dumps(r, default=str) + "\n" for r in run.evals))
+        write_evals(run.out, run.evals)
     if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
         run.save()
     log.writer.flush()
@@ -394,4 +394,4 @@ def _log_settings(writer: Any, settings: dict[str, Any]) -> None:
         writer._get_file_writer().add_summary(summary)  # in this run's event file (add_hparams opens another)
 
 
-__all__ = ["train", "TrainConfig", "RunDirError", "PerceptionMismatch", "CheckpointError", "RUN_KEYS", "read_settings", "run_spec"]
+__all__ = ["train", "TrainConfig", "RunDirError", "PerceptionMismatch", "CheckpointError"]

@@ -1,0 +1,107 @@
+"""Every file of a run that a reported number depends on carries a digest written with it and
+checked where it is read: an edited value is refused in one line naming the file, never a
+silently different result."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from uevavd.cli import main
+from uevavd.config import load_method
+from uevavd.hashing import DamagedFileError
+from uevavd.policy.checkpoint import read_policy_file
+from uevavd.policy.rundir import read_done, read_evals, read_settings
+from uevavd.policy.trainer import train
+
+from .conftest import small
+from .test_cli import _one_line_error
+
+
+@pytest.fixture(scope="module")
+def run(table, tmp_path_factory):
+    root = tmp_path_factory.mktemp("digests")
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 200})
+    train(spec, table, out=root / "run", device="cpu", progress=False)
+    table.save(root / "table")
+    return root / "run"
+
+
+def _copy(run, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(run, out)
+    return out
+
+
+def test_an_edited_value_in_settings_json_is_refused_by_evaluate(run, tmp_path, capsys, monkeypatch):
+    """thre 0.2 -> 0.3 in settings.json moved every row of `uevavd evaluate RUN`, exit 0."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    copy = _copy(run, tmp_path)
+    text = (copy / "settings.json").read_text()
+    assert '"thre": 0.2' in text
+    (copy / "settings.json").write_text(text.replace('"thre": 0.2', '"thre": 0.3'))
+    assert main(["evaluate", str(copy), "--split", "hard", "--json", str(tmp_path / "e.json")]) == 2
+    _one_line_error(capsys, f"{copy / 'settings.json'}: edited or damaged since it was written")
+    assert not (tmp_path / "e.json").exists()
+    # and a resume of the run is refused the same way, not folded into another configuration
+    with pytest.raises(DamagedFileError, match="settings.json: edited or damaged"):
+        read_settings(copy)
+
+
+@pytest.mark.parametrize("name, old, new", [
+    ("evals.jsonl", '"epoch": 1', '"epoch": 7'),
+    ("done.json", '"episodes": ', '"episodes": 1'),
+])
+def test_an_edited_digit_in_evals_or_done_is_refused_naming_the_file(run, tmp_path, name, old, new):
+    copy = _copy(run, tmp_path)
+    path = copy / name
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    read = read_evals if name == "evals.jsonl" else read_done
+    with pytest.raises(DamagedFileError, match=rf"{name}(, line 1)?: edited or damaged"):
+        read(copy)
+    assert read(run)  # the intact run reads
+
+
+def test_rows_of_an_earlier_version_without_digests_still_read(run, tmp_path):
+    """Runs written before the files were sealed are read as they are."""
+    copy = _copy(run, tmp_path)
+    for name in ("settings.json", "done.json"):
+        obj = json.loads((copy / name).read_text())
+        obj.pop("sha256")
+        (copy / name).write_text(json.dumps(obj))
+    rows = [json.loads(line) for line in (copy / "evals.jsonl").read_text().splitlines()]
+    (copy / "evals.jsonl").write_text("".join(json.dumps({k: v for k, v in r.items() if k != "sha256"}) + "\n"
+                                              for r in rows))
+    assert read_settings(copy)["env"] == read_settings(run)["env"]
+    assert read_evals(copy) == read_evals(run) and read_done(copy) == read_done(run)
+
+
+@pytest.mark.parametrize("field, old, new", [
+    ("method_toml", "thre = 0.2", "thre = 0.3"),
+    ("settings", '"seed": 0', '"seed": 1'),
+])
+def test_an_edited_policy_file_header_is_refused(run, tmp_path, capsys, monkeypatch, field, old, new):
+    """The header's method TOML and settings sat outside the weights' digest: an edited thre
+    or kappa there changed the results of `uevavd evaluate FILE`."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    src = run / "policy.safetensors"
+    with safe_open(str(src), framework="pt") as fh:
+        meta = dict(fh.metadata())
+    if field == "method_toml" and old not in meta[field]:
+        meta[field] = meta[field].replace("[env]", "[env]\nthre = 0.2")
+    assert old in meta[field]
+    meta[field] = meta[field].replace(old, new, 1)
+    edited = tmp_path / "policy.safetensors"
+    save_file(load_file(str(src)), str(edited), metadata=meta)
+    with pytest.raises(DamagedFileError, match="policy.safetensors: edited or damaged"):
+        read_policy_file(edited)
+    assert main(["evaluate", str(edited), "--table", str(run.parent / "table"), "--split", "hard"]) == 2
+    _one_line_error(capsys, "policy.safetensors: edited or damaged")
+    read_policy_file(src)
