@@ -105,3 +105,17 @@ def test_an_edited_policy_file_header_is_refused(run, tmp_path, capsys, monkeypa
     assert main(["evaluate", str(edited), "--table", str(run.parent / "table"), "--split", "hard"]) == 2
     _one_line_error(capsys, "policy.safetensors: edited or damaged")
     read_policy_file(src)
+
+
+def test_an_edited_method_toml_of_a_run_is_refused(run, tmp_path, capsys, monkeypatch):
+    """The network a run's policy is rebuilt with comes from its method.toml: an edited head
+    or gate value there changed `uevavd evaluate RUN`; the spec hash in the sealed
+    settings.json vouches for it now."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    copy = _copy(run, tmp_path)
+    text = (copy / "method.toml").read_text()
+    assert "hidden = 16" in text
+    (copy / "method.toml").write_text(text.replace("hidden = 16", "hidden = 17"))
+    assert main(["evaluate", str(copy), "--table", str(run.parent / "table"), "--split", "hard",
+                 "--json", str(tmp_path / "e.json")]) == 2
+    _one_line_error(capsys, f"{copy / 'method.toml'}: edited since the run wrote it")

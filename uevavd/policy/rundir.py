@@ -170,11 +170,17 @@ def read_evals(run_dir: str | Path) -> list[dict[str, Any]]:
 
 
 def run_spec(run_dir: str | Path) -> MethodSpec:
-    """The method spec saved in a run directory."""
+    """The method spec saved in a run directory, checked against the spec hash its sealed
+    ``settings.json`` records (an edited ``method.toml`` is an error naming it)."""
     path = RunDir(run_dir).method
     if not path.is_file():
         raise RunDirError(f"{run_dir} is not a training run: no method.toml")
-    return load_method(path)
+    spec = load_method(path)
+    recorded = read_settings(run_dir).get("spec_hash") if RunDir(run_dir).settings.is_file() else None
+    if recorded is not None and spec.hash != recorded:
+        raise DamagedFileError(f"{path}: edited since the run wrote it (its spec hash is {spec.hash}, the run's "
+                               f"settings.json records {recorded}); {RETRAIN}")
+    return spec
 
 
 def with_legacy_settings(recorded: dict[str, Any]) -> dict[str, Any]:
