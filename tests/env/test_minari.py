@@ -212,13 +212,16 @@ def test_a_table_outside_the_cache_is_refused_before_collecting_and_nothing_is_l
     cached = table.save(tables_dir() / table.key)
 
     def broken(**kwargs):  # the folder made, then the write fails
-        (tmp_path / "datasets" / "uevavd" / "half-v0" / "data").mkdir(parents=True)
+        from minari.storage import get_dataset_path
+
+        (get_dataset_path(kwargs["dataset_id"]) / "data").mkdir(parents=True)
         raise OSError("disk full")
 
     monkeypatch.setattr(minari, "create_dataset_from_buffers", broken)
     with pytest.raises(OSError, match="disk full"):
         minari_export.export_minari(cached, "hard", "passive", "uevavd/half-v0", episodes=3, progress=False)
     assert not (tmp_path / "datasets" / "uevavd" / "half-v0").exists()
+    assert not [p for p in (tmp_path / "datasets" / "uevavd").iterdir() if p.name != ".half-v0.lock"]
     monkeypatch.undo()
     monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
     from uevavd.table import TableError, load_table
@@ -240,3 +243,60 @@ def test_a_dataset_id_that_is_not_one_is_refused_before_anything_is_written(tabl
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and f"--id {dataset_id!r}: expected a dataset id namespace/name-vN" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t"]  # no folder made, inside or outside
+
+
+KILLED_EXPORT = """
+import os, signal, sys
+import minari
+from uevavd.cli import main
+from uevavd.env import minari_export
+
+def die(*a, **k):
+    os.kill(os.getpid(), signal.SIGKILL)
+
+point = sys.argv[1]
+if point == "collecting":
+    minari_export.collect_episodes = die
+elif point == "writing":  # Minari has made the dataset's folder and half its files
+    def half(**kw):
+        from minari.storage import get_dataset_path
+        (get_dataset_path(kw["dataset_id"]) / "data").mkdir(parents=True)
+        (get_dataset_path(kw["dataset_id"]) / "data" / "metadata.json").write_text("{")
+        die()
+    minari.create_dataset_from_buffers = half
+else:  # written whole, killed before it is put in place
+    real = minari.create_dataset_from_buffers
+    def then_die(**kw):
+        out = real(**kw)
+        os.replace = die
+        return out
+    minari.create_dataset_from_buffers = then_die
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("point", ["collecting", "writing", "renaming"])
+def test_an_export_killed_at_any_point_leaves_no_dataset_and_the_rerun_writes_it(table, tmp_path, point):
+    """kill -9 while export-minari wrote left a dataset Minari loaded as 0 episodes without an
+    error, and the rerun was refused as "already exists"."""
+    import os
+    import subprocess
+    import sys
+
+    from uevavd.paths import tables_dir
+
+    env = {**os.environ, "UEVAVD_CACHE": str(tmp_path / "cache"), "MINARI_DATASETS_PATH": str(tmp_path / "ds")}
+    os.environ.update(UEVAVD_CACHE=env["UEVAVD_CACHE"])
+    try:
+        folder = table.save(tables_dir() / table.key)
+    finally:
+        del os.environ["UEVAVD_CACHE"]
+    args = ["export-minari", str(folder), "--policy", "passive", "--episodes", "3", "--id", "uevavd/kill-v0"]
+    p = subprocess.run([sys.executable, "-c", KILLED_EXPORT, point, *args], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == -9, p.stderr
+    assert not (tmp_path / "ds" / "uevavd" / "kill-v0").exists()
+    p = subprocess.run([sys.executable, "-m", "uevavd.cli", *args], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert p.returncode == 0 and "wrote uevavd/kill-v0: 3 episodes" in p.stdout, p.stderr
+    assert sorted(f.name for f in (tmp_path / "ds" / "uevavd").iterdir()) == [".kill-v0.lock", "kill-v0"]

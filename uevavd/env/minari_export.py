@@ -14,8 +14,10 @@ Portable: the dataset's environment spec names the table by its key, not its pat
 (``table="<key>"``, which :func:`~uevavd.table.load_table` finds under
 ``$UEVAVD_CACHE/tables``), so ``minari.load_dataset(id).recover_environment()`` gives a working
 env on any machine whose cache holds the table (``uevavd prepare`` builds the same key from the
-same data and method), and the dataset itself loads anywhere. Needs ``minari`` (``pip install
-"uevavd[clients]"``).
+same data and method), and the dataset itself loads anywhere. The dataset is written into a
+hidden temporary folder beside its own and renamed into place when whole: an export killed at
+any point leaves no dataset under its id, and its rerun writes it. Needs ``minari`` (``pip
+install "uevavd[clients]"``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import sys
+import tempfile
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -31,6 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..atomic import folder_lock, remove_temporaries
 from ..config_rules import check_count, parse_override
 from ..paths import tables_dir
 from ..policy.acting import load_policy
@@ -170,39 +175,57 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
         raise ValueError(f"table {table.key} is not in the table cache {tables_dir()}: a dataset names its table by "
                          "key, and recover_environment() loads it from there; copy the table's folder there (or "
                          "build it there with `uevavd prepare`) first")
-    buffers, env = collect_episodes(table, split, pol, episodes=episodes, seed=seed, config=config,
-                                    progress=progress)
-    spec = gym.spec(ENV_ID)
-    portable = gym.envs.registration.EnvSpec(
-        id=spec.id, entry_point=spec.entry_point, max_episode_steps=None,
-        kwargs={"table": table.key, "split": split, "config": config.to_dict()},
-    )
-    with _datasets_path(out), warnings.catch_warnings(), _removed_on_failure(dataset_id):
-        warnings.filterwarnings("ignore", message="`author_email` is set to None", category=UserWarning)
-        return minari.create_dataset_from_buffers(
-            dataset_id=dataset_id, buffer=buffers, env=portable, eval_env=portable, author="uevavd export-minari",
-            code_permalink=f"uevavd {__version__}",
-            algorithm_name=f"uevavd {policy if policy in BASELINES else 'trained run ' + Path(policy).name}",
-            observation_space=env.observation_space, action_space=env.action_space,
-            description=f"{episodes} episodes of {policy} on the {split} split of table {table.key} "
-                        f"(starts uniform over its contexts and views, seed {seed})",
+    with _dataset_folder(dataset_id, out) as (root, tmp):
+        buffers, env = collect_episodes(table, split, pol, episodes=episodes, seed=seed, config=config,
+                                        progress=progress)
+        spec = gym.spec(ENV_ID)
+        portable = gym.envs.registration.EnvSpec(
+            id=spec.id, entry_point=spec.entry_point, max_episode_steps=None,
+            kwargs={"table": table.key, "split": split, "config": config.to_dict()},
         )
+        with _datasets_path(tmp), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="`author_email` is set to None", category=UserWarning)
+            minari.create_dataset_from_buffers(
+                dataset_id=dataset_id, buffer=buffers, env=portable, eval_env=portable,
+                author="uevavd export-minari", code_permalink=f"uevavd {__version__}",
+                algorithm_name=f"uevavd {policy if policy in BASELINES else 'trained run ' + Path(policy).name}",
+                observation_space=env.observation_space, action_space=env.action_space,
+                description=f"{episodes} episodes of {policy} on the {split} split of table {table.key} "
+                            f"(starts uniform over its contexts and views, seed {seed})",
+            )
+    with _datasets_path(root):
+        return minari.load_dataset(dataset_id)
 
 
 @contextmanager
-def _removed_on_failure(dataset_id: str):
-    """The dataset's folder removed when its writing fails or is interrupted, where this call
-    made it: a half-written dataset loads as empty, and its folder blocks a rerun."""
+def _dataset_folder(dataset_id: str, out: str | os.PathLike[str] | None):
+    """Yield ``(datasets folder, temporary datasets folder)`` for one export of ``dataset_id``:
+    Minari writes the dataset into the temporary folder (a hidden sibling of the dataset's
+    own), which is renamed into place when the block ends without an error. A killed or failed
+    export leaves no dataset under the id (one half written loaded as 0 episodes, and blocked
+    the rerun); what a killed one left is removed by the next export of the id, which holds the
+    id's lock. A dataset already there is refused before any episode is collected."""
     from minari.storage import get_dataset_path
 
-    folder = get_dataset_path(dataset_id)
-    existed = folder.exists()
-    try:
-        yield
-    except BaseException:
-        if not existed and folder.exists():
-            shutil.rmtree(folder, ignore_errors=True)
-        raise
+    with _datasets_path(out):
+        root = get_dataset_path().resolve()
+    final = root / dataset_id
+
+    def busy(lock_file: str) -> ValueError:
+        return ValueError(f"--id {dataset_id}: another export-minari is writing it (it holds {lock_file}); wait "
+                          "for it, or choose another id")
+
+    with folder_lock(final, busy):
+        remove_temporaries(final.parent, final.name)
+        if final.exists():
+            raise ValueError(f"--id {dataset_id}: {final} already exists; choose another id (or version), or "
+                             "remove that folder")
+        tmp = Path(tempfile.mkdtemp(dir=final.parent, prefix=f".{final.name}.", suffix=".tmp"))
+        try:
+            yield root, tmp
+            os.replace(tmp / dataset_id, final)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def add_export_minari(p: Any):
@@ -232,8 +255,13 @@ def add_export_minari(p: Any):
                 raise ValueError(f"--set {text}: export-minari takes env settings only (env.thre=0.4, env.C=0, ...)")
             env[key[len("env."):]] = value
         config = policy_env_config(args.policy, env)
-        ds = export_minari(args.table, args.split, args.policy, args.dataset_id, episodes=args.episodes,
-                           seed=args.seed, out=args.out, config=config)
+        try:
+            ds = export_minari(args.table, args.split, args.policy, args.dataset_id, episodes=args.episodes,
+                               seed=args.seed, out=args.out, config=config)
+        except KeyboardInterrupt:  # the dataset is put in place whole or not at all
+            print("interrupted; no dataset was written under that id: a rerun starts the export over",
+                  file=sys.stderr)
+            return 130
         print(f"wrote {ds.spec.dataset_id}: {ds.total_episodes} episodes, {ds.total_steps} steps")
         return 0
 
