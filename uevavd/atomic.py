@@ -105,6 +105,13 @@ def remove_temporaries(folder: str | os.PathLike[str], name: str | None = None) 
     return gone
 
 
+def is_temporary(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is what a killed writer of this module leaves (``.NAME.*.tmp*``,
+    ``.NAME.old-PID``): a folder holding only such files (and its own) holds nothing yet."""
+    name = Path(path).name
+    return name.startswith(".") and (".tmp" in name or ".old-" in name)
+
+
 @contextmanager
 def folder_lock(folder: str | os.PathLike[str], busy: Callable[[str], Exception], *,
                 wait: Callable[[str], None] | None = None) -> Iterator[Path]:

@@ -311,6 +311,44 @@ def test_non_empty_foreign_directory_is_refused(tiny, tmp_path):
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.parametrize("damage", ["truncated", "list", "edited"])
+def test_a_damaged_ablation_json_is_one_line_naming_it_for_ablate_and_report(ablation, tiny, tmp_path, capsys,
+                                                                             monkeypatch, damage):
+    """A truncated ablation.json was a JSON error naming no file; a list-valued one an
+    AttributeError traceback, in ablate's rerun and in report."""
+    import shutil
+
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    out = tmp_path / "abl"
+    shutil.copytree(ablation["plan"].out, out, ignore=shutil.ignore_patterns("runs"))
+    meta = out / "ablation.json"
+    text = meta.read_text()
+    meta.write_text({"truncated": text[: len(text) // 2], "list": "[1, 2]",
+                     "edited": text.replace('"seeds": 1', '"seeds": 2')}[damage])
+    for argv in (["ablate", "--preset", str(tiny["preset"]), "--data", str(tiny["world"]), "--out", str(out)],
+                 ["report", str(out)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert f"{meta}: " in err and "Traceback" not in err, err
+
+
+def test_an_ablation_killed_in_its_first_write_reruns(tiny, tmp_path):
+    """Killed while writing ablation.json for the first time, an ablation left only its temporary
+    file, and the rerun called the folder someone else's."""
+    out = tmp_path / "abl"
+    out.mkdir()
+    (out / ".ablation.json.k1ll3d.tmp").write_text('{"perception": ')
+    plan = make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"])
+    from uevavd.experiments.runner import check_out_dir
+
+    check_out_dir(plan)  # not refused
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(AblationError, match="holds no ablation.json"):
+        check_out_dir(plan)
+
+
 def test_ray_backend_gives_the_local_results(ablation, tiny):
     """Same jobs as Ray tasks on a local 2-CPU instance: identical evaluations."""
     ray = pytest.importorskip("ray")

@@ -310,10 +310,15 @@ def test_the_two_replay_samplings_train_different_weights(table, tmp_path):
     assert any(not (a[k] == b[k]).all() for k in a)
 
 
-@pytest.mark.parametrize("left", ["method.toml", "settings.json"])
-def test_a_run_killed_between_its_first_two_writes_resumes(table, tmp_path, left):
+@pytest.mark.parametrize("left", [
+    ("method.toml",), ("settings.json",),
+    (".settings.json.k1ll3d.tmp",),  # killed while writing its first file
+    ("settings.json", "method.toml", "evals.jsonl", ".checkpoint.pt.k1ll3d.tmp"),  # inside its first checkpoint
+])
+def test_a_run_killed_before_its_first_checkpoint_resumes(table, tmp_path, left):
     """A kill after method.toml (the order of earlier versions) or after settings.json (now
-    written first), before the other: the rerun trains the run instead of calling the folder
+    written first), before the other, or while either was written (a temporary file), or in
+    the first checkpoint's save: the rerun trains the run instead of calling the folder
     someone else's; it ends with the weights of an uninterrupted run."""
     from safetensors.torch import load_file
 
@@ -321,10 +326,14 @@ def test_a_run_killed_between_its_first_two_writes_resumes(table, tmp_path, left
     whole = train(spec, table, out=tmp_path / "whole", device="cpu", progress=False)
     killed = tmp_path / "killed"
     killed.mkdir()
-    (killed / left).write_bytes((whole / left).read_bytes())
+    for name in left:
+        own = name.split(".")[1] + "." + name.split(".")[2] if name.startswith(".") else name
+        data = (whole / own).read_bytes()
+        (killed / name).write_bytes(data[: len(data) // 2] if name.startswith(".") else data)
     train(spec, table, out=killed, device="cpu", progress=False)
     a, b = load_file(whole / "policy.safetensors"), load_file(killed / "policy.safetensors")
     assert all((a[k] == b[k]).all() for k in a)
+    assert not [p for p in killed.iterdir() if p.name.startswith(".")]
 
 
 def test_a_run_evaluates_its_held_out_training_contexts_as_the_validation_split(table, tmp_path):

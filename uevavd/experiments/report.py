@@ -28,6 +28,7 @@ from ..atomic import atomic_write
 from .audit import audit_markdown
 from .claims import Claim, check_claims, diagnose
 from .figures import plot_curves, plot_strips
+from .io import ABLATION_FILE, read_ablation_meta
 from .report_contexts import contexts_section
 from .report_data import (
     DEFAULT_C,
@@ -358,7 +359,8 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
                                 "holding results.csv")
     results = load_results(ablation_dir / "results.csv")
     notes: list[str] = []
-    meta = _read_json(ablation_dir / "ablation.json", notes)
+    meta_path = ablation_dir / ABLATION_FILE
+    meta = read_ablation_meta(meta_path) if meta_path.is_file() else _read_json(meta_path, notes)
     with recorded_roles(meta):
         return _write_report(ablation_dir, results, meta, notes, window)
 

@@ -10,11 +10,11 @@ rebuilt from the run directories at the end, plus ``DIR/report/``.
 import json
 from pathlib import Path
 
-from ..atomic import atomic_write_json
+from ..atomic import atomic_write_json, is_temporary, write_sealed_json
 from ..config import ConfigError
 from .audit import audit_table, classifier_summary
 from .backends import run_jobs
-from .io import write_csv
+from .io import ABLATION_FILE, read_ablation_meta, write_csv
 from .jobs import Job, plan_jobs, run_job
 from .plan import (
     AblationError,
@@ -41,14 +41,15 @@ from .trajectories import trajectory_rows
 
 def check_out_dir(plan: Plan) -> None:
     """Refuse a results directory written by another configuration."""
-    meta = plan.out / "ablation.json"
+    meta = plan.out / ABLATION_FILE
     if not meta.is_file():
-        if plan.out.exists() and any(plan.out.iterdir()):
+        # a temporary file is what an ablation killed in its first write leaves: rerun, it resumes
+        if plan.out.exists() and any(not is_temporary(p) for p in plan.out.iterdir()):
             raise AblationError(
                 f"--out {plan.out} exists, is not empty and holds no ablation.json: choose a new directory"
             )
         return
-    old = json.loads(meta.read_text()).get("fingerprint")
+    old = read_ablation_meta(meta).get("fingerprint")
     new = json.loads(json.dumps(plan.fingerprint(), default=str))
     if old != new:
         diff = sorted(k for k in set(old or {}) | set(new) if (old or {}).get(k) != new.get(k))
@@ -90,7 +91,7 @@ def write_meta(plan: Plan, data: Path | None, status: str) -> None:
         # plugins installed when it runs
         "roles": roles_now(),
     }
-    atomic_write_json(plan.out / "ablation.json", meta, fsync=True)
+    write_sealed_json(plan.out / ABLATION_FILE, meta, fsync=True)
 
 
 def _with_swept_columns(plan: Plan, rows: list[dict]) -> tuple[list[dict], list[str]]:

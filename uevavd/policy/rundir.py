@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..atomic import atomic_write, folder_lock, load_sealed_json, write_sealed_json
+from ..atomic import atomic_write, folder_lock, is_temporary, load_sealed_json, write_sealed_json
 from ..config import MethodSpec, load_method
 from ..env.config import LEGACY_ENV
 from ..hashing import DamagedFileError, seal, unseal
@@ -203,9 +203,10 @@ def check_run_dir(out: Path, settings: dict[str, Any]) -> None:
                           "to resume it)")
     if not path.is_file():
         # a run killed before its settings.json leaves at most its method.toml (written first by
-        # earlier versions) and tb/: that folder is an unstarted run, not someone else's
+        # earlier versions), tb/ and the temporary file of a write it was killed in: that folder is
+        # an unstarted run, not someone else's (the trainer removes the temporary)
         unstarted = {RunDir(out).tensorboard, RunDir(out).method}
-        if out.exists() and any(p not in unstarted for p in out.iterdir()):
+        if out.exists() and any(p not in unstarted and not is_temporary(p) for p in out.iterdir()):
             raise RunDirError(f"{out} exists and is not a training run (no settings.json); choose an empty --out")
         return
     old = with_legacy_settings(read_settings(out))  # a damaged file is named, as evaluate names it
