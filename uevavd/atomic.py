@@ -46,7 +46,7 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         os.fchmod(fd, FILE_MODE)
-        with os.fdopen(fd, "wb") as fh:
+        with short_writes_named(path.parent), os.fdopen(fd, "wb") as fh:
             if callable(data):
                 data(fh)
             else:
@@ -55,12 +55,6 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
                 fh.flush()
                 os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except OSError as exc:
-        full = _short_write_on_full_disk(exc, path.parent)
-        Path(tmp).unlink(missing_ok=True)
-        if full is not None:
-            raise full from None
-        raise
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -71,19 +65,47 @@ def atomic_write(path: str | os.PathLike[str], data: bytes | str | Callable[[IO[
 FULL_DISK_BYTES = 16 << 20
 
 
-def _short_write_on_full_disk(exc: OSError, folder: Path) -> OSError | None:
-    """numpy's writers report a full disk as a short write without an errno ("N requested and
-    M written"), which read as a traceback; with the folder's disk (nearly) full, the fault
-    it is: ``ENOSPC`` naming the folder, which every command reports in one line."""
+@contextmanager
+def short_writes_named(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """numpy's writers report a failed write as a short one without an errno ("N requested and
+    M written"), which read as a traceback. Inside this block such a failure in ``folder`` is
+    the fault it is, which every command reports in one line: ``ENOSPC`` naming the folder
+    where its disk is (nearly) full, ``EFBIG`` where the process has a file-size limit
+    (``ulimit -f``); such an error with an errno but no file name gets the folder's. Any
+    other error passes unchanged."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno in _WRITE_FAULTS and exc.filename is None:  # Python's own write names no file
+            raise OSError(exc.errno, exc.strerror, str(folder)) from None
+        cause = _short_write_cause(exc, Path(folder))
+        if cause is None:
+            raise
+        raise cause from None
+
+
+#: The errors of a write that the disk or the process's limits refused.
+_WRITE_FAULTS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def _short_write_cause(exc: OSError, folder: Path) -> OSError | None:
     if exc.errno is not None:
         return None
     try:
         free = shutil.disk_usage(folder).free
     except OSError:
+        free = FULL_DISK_BYTES
+    if free < FULL_DISK_BYTES:
+        return OSError(errno.ENOSPC, f"{folder}: the write stopped short ({exc}): no space left on the device")
+    try:
+        import resource
+    except ImportError:  # not on Windows
         return None
-    if free >= FULL_DISK_BYTES:
-        return None
-    return OSError(errno.ENOSPC, f"{folder}: the write stopped short ({exc}): no space left on the device")
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY:
+        return OSError(errno.EFBIG, f"{folder}: the write stopped short ({exc}): a file would pass the process's "
+                                    f"file-size limit of {limit:,} bytes")
+    return None
 
 
 def remove_temporaries(folder: str | os.PathLike[str], name: str | None = None) -> list[Path]:

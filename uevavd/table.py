@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import atomic_dir
+from .atomic import atomic_dir, short_writes_named
 from .data.grid import N_VIEWS
 from .data.splits import SPLITS, TARGETS, VALIDATION, block_of, first_per_block, resolve_split
 from .hashing import arrays_sha256, file_sha256, json_digest
@@ -310,7 +310,7 @@ class ObservationTable:
         """Write to folder ``path`` atomically (temp folder + rename). Returns the path."""
         path = Path(path)
         self.check(where=str(path))  # the one full pass over the values; load trusts the record
-        with atomic_dir(path) as tmp:
+        with atomic_dir(path) as tmp, short_writes_named(path.parent):
             files = {}
             for name in ARRAYS:
                 f = tmp / f"{name}.npy"

@@ -89,3 +89,50 @@ def test_prepare_refuses_a_count_below_one_in_one_line(tiny_world, method_toml, 
     err = capsys.readouterr().err.strip()
     assert rc == 2 and err.count("\n") == 0 and f"{option} {value}: expected at least 1" in err, err
     assert not (tmp_path / "tables").exists()
+
+
+def test_a_file_size_limit_during_prepare_is_one_line(tiny_world, tiny_classifier, method_toml, tmp_path):
+    """`ulimit -f` below a cache's or the table's size: numpy's short write ("N requested and M
+    written", no errno) was a traceback."""
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    method = tmp_path / "m.toml"
+    method.write_text(method_toml.format(decompose="false"))
+    out = tmp_path / "tables"
+    p = subprocess.run(
+        [sys.executable, "-m", "uevavd.cli", "prepare", str(tiny_world), "--method", str(method), "--classifier",
+         str(tiny_classifier), "--out", str(out), "--workers", "1"],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "UEVAVD_DEBUG": ""},
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000)))
+    err = [line for line in p.stderr.splitlines() if "uevavd prepare: error" in line]
+    assert p.returncode == 2 and "Traceback" not in p.stderr and len(err) == 1, p.stderr
+    assert "File too large" in err[0] or "file-size limit of 200,000 bytes" in err[0], err
+    assert str(out) in err[0] and "raise it, or write elsewhere" in err[0], err
+    assert not [f for f in out.rglob("*") if f.name.startswith(".") and ".tmp" in f.name]
+
+
+def test_a_full_disk_in_the_tables_final_save_is_enospc(tmp_path, monkeypatch):
+    import errno
+    import shutil
+    from collections import namedtuple
+
+    from uevavd.testing.policy import toy_table
+
+    table = toy_table(n_train=2, n_hard=1, feature_dim=8)
+    real = np.save
+
+    def short(fh, arr, *a, **k):
+        if arr.ndim == 3:  # the features
+            raise OSError("1048576 requested and 4096 written")
+        return real(fh, arr, *a, **k)
+
+    monkeypatch.setattr(np, "save", short)
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 4096, 4096))
+    with pytest.raises(OSError) as err:
+        table.save(tmp_path / "t")
+    assert err.value.errno == errno.ENOSPC and str(tmp_path) in str(err.value)
+    assert list(tmp_path.iterdir()) == []  # neither the table nor its temporary folder
