@@ -96,6 +96,23 @@ def test_a_table_of_another_perception_config_is_refused(table, tmp_path):
     train(same, path, out=tmp_path / "ok", device="cpu", progress=False)  # the matching method trains
 
 
+def test_recognizer_in_state_set_false_trains_on_the_plain_table_prepare_gives(table, tmp_path):
+    """`--set perception.recognizer_in_state=false` on ibe_map_reco was a dead end: train refused
+    the plain table (which records the key only when true), and prepare handed back that table."""
+    from uevavd.table import ObservationTable
+
+    plain = load_method("ibe_map").perception.as_dict()
+    t = ObservationTable.from_arrays(table.features, table.probs, table.boxes, scenes=table.scenes,
+                                     targets=table.targets, splits=table.splits, contexts=table.contexts,
+                                     config={"perception": plain})
+    off = load_method("ibe_map_reco", overrides={**small("ibe_map"), "train.episodes": 100,
+                                                 "perception.recognizer_in_state": False})
+    train(off, t, out=tmp_path / "off", device="cpu", progress=False)
+    on = load_method("ibe_map_reco", overrides={**small("ibe_map"), "train.episodes": 100})
+    with pytest.raises(RunDirError, match=r"perception.recognizer_in_state: table False, method True"):
+        train(on, t, out=tmp_path / "on", device="cpu", progress=False)
+
+
 def test_a_checkpoint_of_another_seed_is_refused(table, tmp_path):
     """A seed-1 checkpoint copied into an unfinished seed-0 run of the same method: refused
     (it used to resume as seed 0)."""
