@@ -1,6 +1,7 @@
 """A tour of user mistakes and damaged files through the CLI (docs/faults.md): prints, for
-each fault, the exit status and the line the user reads (issue 14's cases, then issue 42's:
-flipped bits in a checkpoint and a policy file, an edited table, values out of range).
+each fault, the exit status and the line the user reads: edited run files and policy headers,
+a run killed in its first write, flipped bits in a checkpoint and a policy file, an edited
+table, values out of range, bad arguments of every command.
 
     python examples/fault_tour.py
 """
@@ -64,7 +65,7 @@ toy = toy_table(n_train=2, n_hard=1, feature_dim=8)  # the same table, recorded 
 quick = load_method("map", preset_overrides(load_preset("quick"))).perception.as_dict()
 quick_table = ObservationTable.from_arrays(toy.features, toy.probs, toy.boxes, scenes=toy.scenes, targets=toy.targets,
                                            splits=toy.splits, config={"perception": quick}).save(W / "quick_table")
-# issue 42's damaged artefacts, each copied from the finished run and the table above
+# damaged artefacts, each copied from the finished run and the table above
 def flip(path: Path, at: float) -> None:
     data = bytearray(path.read_bytes())
     data[int(len(data) * at)] ^= 0x10
@@ -86,10 +87,30 @@ __import__("numpy").save(edited / "visible.npy", visible)
 run5 = W / "run5"
 shutil.copytree(W / "run", run5)
 (run5 / "settings.json").write_text("[1, 2]")
+# edited run files: each carries a digest written with it
+run6 = W / "run6"
+shutil.copytree(W / "run", run6)
+(run6 / "settings.json").write_text((run6 / "settings.json").read_text().replace('"thre": 0.2', '"thre": 0.3'))
+run7 = W / "run7"
+shutil.copytree(W / "run", run7)
+(run7 / "method.toml").write_text((run7 / "method.toml").read_text().replace("hidden = 16", "hidden = 17"))
+header_policy = W / "header.safetensors"
+_st = __import__("safetensors.torch", fromlist=["load_file"])
+with __import__("safetensors").safe_open(str(W / "run" / "policy.safetensors"), framework="pt") as fh:
+    _meta = dict(fh.metadata())
+_meta["settings"] = _meta["settings"].replace('"seed": 0', '"seed": 1')
+_st.save_file(_st.load_file(str(W / "run" / "policy.safetensors")), str(header_policy), metadata=_meta)
+killed_first = W / "killed_first"  # a train killed while writing its first file
+killed_first.mkdir()
+(killed_first / ".settings.json.k1ll3d.tmp").write_text('{"env": ')
 (W / "loops").mkdir()
 os.symlink(".", W / "loops" / "a")
 os.symlink("a", W / "loops" / "027")
 cases = [
+ ("evaluate a run whose settings.json was edited (thre 0.2 -> 0.3)", ["evaluate", run6, "--table", table, "--split", "hard"]),
+ ("evaluate a run whose method.toml was edited", ["evaluate", run7, "--table", table, "--split", "hard"]),
+ ("evaluate a policy file whose header was edited", ["evaluate", header_policy, "--table", table, "--split", "hard"]),
+ ("train into a run killed while writing its first file", ["train", "--method", "map", "--table", table, "--out", killed_first, "--episodes", 100, "--no-progress", "--device", "cpu", *SMALL]),
  ("resuming from a checkpoint with one flipped bit", ["train", "--method", "map", "--table", table, "--out", run4, "--episodes", 100, "--no-progress", "--device", "cpu", *SMALL]),
  ("evaluate a policy file with one flipped bit", ["evaluate", flipped_policy, "--table", table, "--split", "hard"]),
  ("evaluate on a table whose visible.npy was edited", ["evaluate", W / "run", "--table", edited, "--split", "hard"]),
