@@ -77,14 +77,10 @@ def check_table_perception(perception: PerceptionSection, table: Any, method: st
     recorded = (table.meta.get("config") or {}).get("perception")
     if not isinstance(recorded, dict):
         return
-    want = perception.as_dict()
-
-    def value(section: Any, key: str) -> Any:  # a table records recognizer_in_state only when true
-        v = dotted_get(section, key)
-        return bool(v) if key == "recognizer_in_state" else v
-
-    diffs = [f"perception.{k}: table {value(recorded, k)!r}, method {value(want, k)!r}"
-             for k in TABLE_PERCEPTION_KEYS if value(recorded, k) != value(want, k)]
+    absent = {"recognizer_in_state": False}  # a table records it only when true
+    recorded, want = {**absent, **recorded}, {**absent, **perception.as_dict()}
+    diffs = [f"perception.{k}: table {dotted_get(recorded, k)!r}, method {dotted_get(want, k)!r}"
+             for k in TABLE_PERCEPTION_KEYS if dotted_get(recorded, k) != dotted_get(want, k)]
     if diffs:
         raise PerceptionMismatch(f"table {table.path or table.key} was built for another perception config than "
                                  f"method {method!r} ({'; '.join(diffs)}): build its table with `uevavd prepare DATA "
