@@ -349,3 +349,24 @@ def _two_block_table() -> ObservationTable:
         np.zeros((7, N_VIEWS, 4)), np.full((7, N_VIEWS, 5), 0.2), np.zeros((7, N_VIEWS, 4)),
         scenes=[f"{c:03d}" for c in contexts], contexts=contexts, targets=[0, 0, 0, 1, 1, 0, 1],
         splits=["train"] * 5 + ["hard"] * 2)
+
+
+def test_a_table_folder_of_the_cache_is_recorded_by_key_in_the_env_spec(table, tmp_path, monkeypatch):
+    """gym.make with a table's path stored that absolute path in the env spec, and a Minari
+    dataset recorded from the env kept it without a word."""
+    import warnings
+
+    import gymnasium as gym
+
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    from uevavd.paths import tables_dir
+
+    inside = table.save(tables_dir() / table.key)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        env = gym.make("uevavd/AOD-v0", table=str(inside), split="train")
+    assert env.spec.kwargs["table"] == table.key and gym.make(env.spec).unwrapped.table.key == table.key
+    outside = table.save(tmp_path / "elsewhere")
+    with pytest.warns(UserWarning, match="by its path, which exists on this machine only"):
+        env = gym.make("uevavd/AOD-v0", table=outside, split="train")
+    assert env.spec.kwargs["table"] == outside

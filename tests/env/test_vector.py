@@ -11,6 +11,13 @@ from uevavd.env import ENV_ID, AODEnv, BatchedAODEnv, DiscreteActions, EnvConfig
 from uevavd.env.vector import AODVectorEnv
 
 
+def _torchrl():
+    """TorchRL, where it runs: it refuses gymnasium 1.0 (the d3rlpy extra's pin) at import."""
+    if not hasattr(gym.vector, "AutoresetMode"):
+        pytest.skip("TorchRL refuses gymnasium 1.0 (installed here for d3rlpy)")
+    pytest.importorskip("torchrl")
+
+
 def _vec(table, n=6, **kw):
     return gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", table=table, **kw)
 
@@ -145,7 +152,7 @@ def test_maskable_ppo_runs_on_both_forms(table):
 def test_torchrl_wraps_the_env_and_its_spec_check_passes(table):
     """TorchRL's GymWrapper turns MultiDiscrete([7, A]) into one categorical of 7 * A and steps
     with the flat index, which AODEnv accepts."""
-    pytest.importorskip("torchrl")
+    _torchrl()
     from torchrl.envs import GymWrapper
     from torchrl.envs.utils import check_env_specs
 
@@ -159,7 +166,7 @@ def test_torchrl_wraps_the_env_and_its_spec_check_passes(table):
 def test_torchrl_gymenv_makes_the_env_by_its_id(table):
     """``torchrl.envs.GymEnv("uevavd/AOD-v0", table=...)`` passes ``frameskip=`` and drops it
     on the standard TypeError, which AODEnv raises for an unexpected keyword."""
-    pytest.importorskip("torchrl")
+    _torchrl()
     from torchrl.envs import GymEnv
     from torchrl.envs.utils import check_env_specs
 
@@ -172,7 +179,8 @@ def test_the_vector_env_states_its_autoreset_mode_and_refuses_use_after_close(ta
     """Gymnasium 1.x conventions: ``autoreset_mode`` as an attribute (TorchRL reads it there)
     beside the metadata key; ``close()`` sets ``closed`` and a later step or reset is an error."""
     env = AODVectorEnv(table, "train", num_envs=4)
-    assert env.autoreset_mode == gym.vector.AutoresetMode.SAME_STEP == env.metadata["autoreset_mode"]
+    if hasattr(gym.vector, "AutoresetMode"):  # Gymnasium 1.1 on
+        assert env.autoreset_mode == gym.vector.AutoresetMode.SAME_STEP == env.metadata["autoreset_mode"]
     env.reset(seed=0)
     env.close()
     assert env.closed
@@ -248,14 +256,15 @@ def test_torchrl_and_gymnasiums_vector_wrappers_take_the_vector_env(table):
     for _ in range(8):
         _, _, term, _, infos = stats.step(stats.action_space.sample())
     assert "episode" in infos or len(stats.return_queue) > 0
-    with pytest.raises(ValueError, match="NEXT_STEP"):
-        gym.wrappers.vector.FlattenObservation(_vec(table, n=2, split="train"))
+    if hasattr(gym.vector, "AutoresetMode"):  # Gymnasium 1.1 on checks the mode; 1.0's wrappers assume next-step
+        with pytest.raises(ValueError, match="NEXT_STEP"):
+            gym.wrappers.vector.FlattenObservation(_vec(table, n=2, split="train"))
     flat = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode="sync", wrappers=[gym.wrappers.FlattenObservation],
                         table=table, split="train")
     obs, _ = flat.reset(seed=0)
     assert obs.ndim == 2 and obs.shape[0] == 2
     flat.step(flat.action_space.sample())
-    pytest.importorskip("torchrl")
+    _torchrl()
     from torchrl.envs import GymWrapper
     from torchrl.envs.utils import check_env_specs
 
@@ -274,7 +283,7 @@ def _torchrl_env(path):
 def test_torchrl_parallel_env_runs_the_env_in_worker_processes(table, tmp_path):
     """TorchRL's ParallelEnv over GymEnv("uevavd/AOD-v0", table=FOLDER): each worker process
     loads the table from its folder; the spec check passes and episodes end."""
-    pytest.importorskip("torchrl")
+    _torchrl()
     import functools
 
     from torchrl.envs import ParallelEnv
@@ -287,3 +296,67 @@ def test_torchrl_parallel_env_runs_the_env_in_worker_processes(table, tmp_path):
         assert env.rollout(12)["next", "done"].any()
     finally:
         env.close()
+
+
+def test_next_step_autoreset_returns_the_last_observation_then_resets_ignoring_the_action(table):
+    """autoreset_mode="next_step", Gymnasium's own vector envs' convention: the ending step
+    returns the episode's last observation (the same-step env's final_obs), and the env's next
+    step starts the next episode (the same-step env's first observation, reward 0, not
+    terminated), whatever action it is given."""
+    cfg = EnvConfig(t_max=3)
+    same = _vec(table, n=1, split="train", config=cfg)
+    nxt = _vec(table, n=1, split="train", config=cfg, autoreset_mode="next_step")
+    if hasattr(gym.vector, "AutoresetMode"):
+        assert nxt.autoreset_mode == gym.vector.AutoresetMode.NEXT_STEP == nxt.metadata["autoreset_mode"]
+    o1, _ = same.reset(seed=3)
+    o2, _ = nxt.reset(seed=3)
+    rng = np.random.default_rng(0)
+    ended = 0
+    while ended < 2:  # through the first two episodes (the extra reset step draws a start of its own)
+        a = np.stack([rng.integers(0, 7, 1), rng.integers(0, 4, 1)], 1)
+        o1, r1, t1, _, i1 = same.step(a)
+        o2, r2, t2, _, i2 = nxt.step(a)
+        assert r1[0] == r2[0] and t1[0] == t2[0] and "final_obs" not in i2
+        if t1[0]:
+            ended += 1
+            for k in o2:
+                np.testing.assert_array_equal(o2[k][0], i1["final_obs"][0][k])
+            assert i2["return"][0] == i2["final_return"][0] == i1["final_return"][0]
+            if ended == 2:  # the next start: drawn a step later here, so from another draw
+                break
+            o2, r2, t2, _, i2 = nxt.step(np.array([[6, 0]]))  # the reset step: its action is ignored
+            assert r2[0] == 0.0 and not t2[0] and not i2.get("_return", [False])[0]
+        for k in o1:
+            np.testing.assert_array_equal(o1[k], o2[k])
+
+
+def test_gymnasiums_vector_wrappers_run_over_next_step_autoreset(table):
+    """FlattenObservation refused the vector env (same-step only); over next-step it runs, and
+    RecordEpisodeStatistics counts each episode's return as the env reports it."""
+    venv = _vec(table, n=3, split="train", config=EnvConfig(t_max=4), autoreset_mode="next_step")
+    flat = gym.wrappers.vector.FlattenObservation(venv)
+    stats = gym.wrappers.vector.RecordEpisodeStatistics(flat)
+    obs, _ = stats.reset(seed=0)
+    assert obs.shape == (3, gym.spaces.flatdim(venv.single_observation_space))
+    summed, recorded = [], []
+    running, resetting = np.zeros(3), np.zeros(3, bool)
+    for _ in range(40):
+        obs, reward, term, _, infos = stats.step(stats.action_space.sample())
+        assert obs.shape[0] == 3 and not reward[resetting].any()
+        running = np.where(resetting, 0.0, running + reward)
+        summed += [(i, running[i]) for i in np.flatnonzero(term)]
+        if "episode" in infos:
+            recorded += [(i, float(infos["episode"]["r"][i])) for i in np.flatnonzero(infos["_episode"])]
+        resetting = term
+    assert len(summed) > 10 and len(recorded) == len(summed)
+    assert np.allclose(np.array(sorted(recorded)), np.array(sorted(summed)), atol=1e-5)
+
+
+def test_sb3_vec_env_refuses_next_step_autoreset(table):
+    pytest.importorskip("stable_baselines3")
+    from uevavd.env.sb3 import SB3VecEnv
+
+    with pytest.raises(ValueError, match="same-step autoreset"):
+        SB3VecEnv(_vec(table, n=2, split="train", autoreset_mode="next_step"))
+    with pytest.raises(ValueError, match="autoreset_mode='every_step'"):
+        _vec(table, n=2, split="train", autoreset_mode="every_step")

@@ -39,6 +39,9 @@ _LAZY = {
     "RandomPolicy": "baselines",
     "PassivePolicy": "baselines",
     "OraclePolicy": "oracle",
+    "flat_dataset": "offline",
+    "flat_observation": "offline",
+    "FlatPolicy": "offline",
     "oracle_values": "oracle",
 }
 

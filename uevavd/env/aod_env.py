@@ -31,12 +31,15 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import os
+import warnings
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 from ..data.grid import N_TYPES, N_VIEWS, STOP, transitions, unflat_action, view_coords
+from ..paths import tables_dir
 from ..table import ObservationTable, load_table
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
@@ -83,6 +86,31 @@ class AODEnv(gym.Env):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
+    _spec: gym.envs.registration.EnvSpec | None = None
+
+    @property
+    def spec(self) -> gym.envs.registration.EnvSpec | None:
+        return self._spec
+
+    @spec.setter
+    def spec(self, value: gym.envs.registration.EnvSpec | None) -> None:
+        """``gym.make`` records its arguments here, and Minari's DataCollector stores them with
+        a dataset: a table given as a folder of the table cache is recorded by its key, which
+        every machine whose cache holds the table resolves; another folder stays (a warning
+        says the spec then works on this machine only)."""
+        given = (value.kwargs or {}).get("table") if value is not None else None
+        if isinstance(given, ObservationTable):
+            given = given.path
+        if isinstance(given, str | os.PathLike) and os.fspath(given) != self.table.key:  # a folder
+            key, folder = self.table.key, self.table.path
+            if key and folder is not None and Path(folder).resolve() == (tables_dir() / key).resolve():
+                value = dataclasses.replace(value, kwargs={**value.kwargs, "table": key})
+            else:
+                warnings.warn(f"{ENV_ID}'s spec names table {os.fspath(given)} by its path, which exists on this "
+                              "machine only (a dataset recorded from this env keeps it): put the table in the table "
+                              f"cache ({tables_dir()}) and pass table={key or '<its key>'!r} for a portable spec",
+                              stacklevel=2)
+        self._spec = value
 
     def __init__(
         self,

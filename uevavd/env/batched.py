@@ -265,6 +265,19 @@ class BatchedAODEnv:
         self._return = torch.where(done, 0.0, self._return)
         return self._obs(), reward, done, info
 
+    def episodes(self) -> tuple[torch.Tensor, ...]:
+        """The running episodes (scene, view, decisions, steps walked, return so far), cloned:
+        what :meth:`hold` puts back."""
+        return tuple(x.clone() for x in (self._scene, self._view, self._t, self._steps, self._return))
+
+    def hold(self, where: torch.Tensor, episodes: tuple[torch.Tensor, ...]) -> None:
+        """Put back ``episodes`` (from :meth:`episodes`) in the envs ``where`` is true: a step
+        they took does not count (the vector env's next-step autoreset, whose reset step
+        ignores the action)."""
+        now = (self._scene, self._view, self._t, self._steps, self._return)
+        self._scene, self._view, self._t, self._steps, self._return = (
+            torch.where(where.to(self.device), then, cur) for then, cur in zip(episodes, now, strict=True))
+
     # -- resume -----------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         """RNG state and running episodes (CPU tensors) for exact resumption."""

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from gymnasium.vector.utils import batch_space
 
-from ..data.grid import N_TYPES
+from ..data.grid import N_TYPES, STOP
 from .aod_env import integral_actions
 from .batched import BatchedAODEnv
 from .config import EnvConfig, make_config
@@ -36,6 +36,11 @@ from .render import render_frame
 from .spaces import action_masks, action_space, observation_space
 
 ACTION_FORMS = ("multi", "flat")
+#: ``same_step`` (the default): where an episode ends, the step returns the next episode's first
+#: observation and the last one in ``infos["final_obs"]``; ``next_step``: it returns the last one,
+#: and the env's next step starts the next episode (reward 0, its action ignored), as Gymnasium's
+#: own vector envs and its vector wrappers expect.
+AUTORESET_MODES = ("same_step", "next_step")
 #: The single env's per-step info keys the vector env reports at every step (``info[key]`` of
 #: the envs going on, ``info["final_info"][key]`` of those whose episode ended), and the
 #: BatchedAODEnv field each is read from.
@@ -61,16 +66,30 @@ def _one_seed(seed: Any, n: int) -> int | None:
     return int(seed)
 
 
+def _autoreset_mode(mode: Any) -> str:
+    """``"same_step"`` or ``"next_step"`` from either name or Gymnasium's ``AutoresetMode``."""
+    name = {"SameStep": "same_step", "NextStep": "next_step"}.get(getattr(mode, "value", None), mode)
+    if name not in AUTORESET_MODES:
+        raise ValueError(f"autoreset_mode={mode!r}: expected one of {AUTORESET_MODES} (or gymnasium.vector."
+                         "AutoresetMode.SAME_STEP / NEXT_STEP)")
+    return name
+
+
 class AODVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` AOD episodes in lockstep (see the module doc)."""
 
-    metadata = {"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
+    metadata = {"render_modes": ["rgb_array"]}
 
     def __init__(self, table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
                  num_envs: int = 1, actions: str = "multi", device: str | torch.device = "cpu",
-                 contexts: Any = None, render_mode: str | None = None, **overrides: Any) -> None:
+                 contexts: Any = None, render_mode: str | None = None, autoreset_mode: Any = "same_step",
+                 **overrides: Any) -> None:
         if actions not in ACTION_FORMS:
             raise ValueError(f"actions={actions!r}: expected one of {ACTION_FORMS}")
+        self._next_step = _autoreset_mode(autoreset_mode) == "next_step"
+        modes = getattr(gym.vector, "AutoresetMode", None)  # Gymnasium 1.1 on; 1.0's wrappers assume next-step
+        self.metadata = {**type(self).metadata, **({"autoreset_mode": modes.NEXT_STEP if self._next_step else
+                                                    modes.SAME_STEP} if modes else {})}
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode={render_mode!r}: expected None or one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
@@ -87,6 +106,7 @@ class AODVectorEnv(gym.vector.VectorEnv):
         self.table = self._batched.table
         self._obs: dict[str, torch.Tensor] | None = None
         self._seeded = False
+        self._held = np.zeros(num_envs, bool)  # next-step: the envs whose next step is their reset
 
     # -- gymnasium API ------------------------------------------------------------------------
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
@@ -109,32 +129,52 @@ class AODVectorEnv(gym.vector.VectorEnv):
         if unknown:
             raise ValueError(f"reset options {unknown}: accepted are 'scenes' and 'views'")
         self._obs = self._batched.reset(**options)
+        self._held[:] = False
         return self._numpy(self._obs), {}
 
     def step(self, actions: Any):
         self._check_open("step")
         a_type, a_range = self._split_actions(actions)
+        held = self._held.copy()
+        if held.any():  # next-step autoreset: these envs start their next episode, their action ignored
+            h = torch.as_tensor(held)
+            a_type, a_range = torch.where(h, STOP, a_type), torch.where(h, 0, a_range)
+            started = self._batched.episodes()
         obs, _, done, info = self._batched.step(a_type, a_range)
+        if held.any():
+            self._batched.hold(h, started)
+            obs = self._batched.observe()
         self._obs = obs
         reward = info.pop("reward64").cpu().numpy()  # float64, as Gymnasium's sync mode gives it
-        terminated = done.cpu().numpy()
-        going = ~terminated
-        # the single env's per-step info, for the envs whose episode goes on (where one ended,
-        # the observation is the next episode's first: its step info is in final_info)
+        reward[held] = 0.0
+        terminated = done.cpu().numpy() & ~held
+        # the single env's per-step info, for the envs whose step counts: in same-step mode those
+        # whose episode goes on (where one ended, the observation is the next episode's first:
+        # its step info is in final_info); in next-step mode every env but those resetting
         step_info = {key: info[field].cpu().numpy() for key, field in STEP_INFO.items()}
+        shown = ~held if self._next_step else ~terminated
         infos: dict[str, Any] = {}
-        if going.any():
+        if shown.any():
             for key, value in step_info.items():
-                infos[key], infos["_" + key] = value, going
+                infos[key], infos["_" + key] = value, shown
+        numpy_obs = self._numpy(obs)
         if terminated.any():
             for key, value in info.items():  # the final_* fields, as before
                 infos[key] = value.cpu().numpy()
                 infos["_" + key] = terminated
-            infos["final_obs"] = self._final_obs(info, terminated)
-            infos["_final_obs"] = terminated
-            infos["final_info"] = {**step_info, **{"_" + k: terminated for k in step_info}}
-            infos["_final_info"] = terminated
-        return (self._numpy(obs), reward, terminated, np.zeros_like(terminated), infos)
+            last = self._last_obs(info)
+            if self._next_step:  # the episode's last observation, in place; its reset comes next step
+                for key, value in numpy_obs.items():
+                    value[terminated] = last[key][terminated]
+                self._held = terminated.copy()  # not the array returned
+            else:
+                infos["final_obs"] = self._final_obs(last, terminated)
+                infos["_final_obs"] = terminated
+                infos["final_info"] = {**step_info, **{"_" + k: terminated for k in step_info}}
+                infos["_final_info"] = terminated
+        else:
+            self._held[:] = False
+        return (numpy_obs, reward, terminated, np.zeros_like(terminated), infos)
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         """With ``render_mode="rgb_array"``: one frame per env (:func:`~uevavd.env.render.render_frame`
@@ -159,10 +199,10 @@ class AODVectorEnv(gym.vector.VectorEnv):
         return action_masks(self._obs["mask"].cpu().numpy(), self.actions)
 
     @property
-    def autoreset_mode(self) -> gym.vector.AutoresetMode:
-        """Same-step autoreset (``metadata["autoreset_mode"]``), as an attribute too: TorchRL's
-        GymWrapper reads it there."""
-        return self.metadata["autoreset_mode"]
+    def autoreset_mode(self) -> Any:
+        """The autoreset mode (``metadata["autoreset_mode"]``, Gymnasium's ``AutoresetMode``), as
+        an attribute too: TorchRL's GymWrapper reads it there."""
+        return self.metadata.get("autoreset_mode", "next_step" if self._next_step else "same_step")
 
     def close(self, **kwargs: Any) -> None:
         """Release the episode state; ``closed`` is True after it and a later ``step`` or
@@ -197,10 +237,13 @@ class AODVectorEnv(gym.vector.VectorEnv):
         return {"features": obs["features"].cpu().numpy(), "box": obs["box"].cpu().numpy(),
                 "action_mask": mask, "t": obs["t"].cpu().numpy()}
 
-    def _final_obs(self, info: dict[str, torch.Tensor], done: np.ndarray) -> np.ndarray:
+    def _last_obs(self, info: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+        """Every env's observation at the end of its step (before any autoreset)."""
         tb = self._batched.tensors
         scene = tb.local.index_select(0, info["final_scene"])
-        last = self._numpy(tb.observe(scene, info["final_view"], info["final_decisions"]))
+        return self._numpy(tb.observe(scene, info["final_view"], info["final_decisions"]))
+
+    def _final_obs(self, last: dict[str, np.ndarray], done: np.ndarray) -> np.ndarray:
         out = np.empty(self.num_envs, dtype=object)
         for i in np.flatnonzero(done):
             out[i] = {k: v[i] for k, v in last.items()}
@@ -209,6 +252,7 @@ class AODVectorEnv(gym.vector.VectorEnv):
 
 def make_vector_env(table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
                     num_envs: int = 64, actions: str = "multi", device: str | torch.device = "cpu",
-                    **overrides: Any) -> AODVectorEnv:
+                    autoreset_mode: Any = "same_step", **overrides: Any) -> AODVectorEnv:
     """The vector entry point of ``uevavd/AOD-v0`` (``gymnasium.make_vec``)."""
-    return AODVectorEnv(table, split, config, num_envs=num_envs, actions=actions, device=device, **overrides)
+    return AODVectorEnv(table, split, config, num_envs=num_envs, actions=actions, device=device,
+                        autoreset_mode=autoreset_mode, **overrides)

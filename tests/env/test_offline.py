@@ -1,0 +1,93 @@
+"""The flat view for offline-RL libraries: an exported dataset as Box observations, Discrete
+actions and masks, and a flat policy scored by the evaluation. d3rlpy's DiscreteBC trains on
+it where d3rlpy is installed (its own extra: it pins gymnasium 1.0)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+minari = pytest.importorskip("minari", reason="the clients extra: pip install -e '.[clients]'")
+
+
+@pytest.fixture
+def oracle_dataset(table, tmp_path, monkeypatch):
+    from uevavd.env.minari_export import export_minari
+
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    from uevavd.paths import tables_dir
+
+    folder = table.save(tables_dir() / table.key)
+    return export_minari(folder, "train", "oracle", "uevavd/flat-oracle-v0", episodes=200, progress=False)
+
+
+def test_the_flat_view_holds_every_decision_its_action_and_mask(table, oracle_dataset):
+    from uevavd.env.offline import flat_dataset
+
+    flat = flat_dataset(oracle_dataset)
+    episodes = list(oracle_dataset.iterate_episodes())
+    n = sum(len(e.rewards) for e in episodes)
+    a = table.feature_dim + 4 + 1
+    assert flat.observations.shape == (n, a + flat.n_actions) and flat.observations.dtype == np.float32
+    assert flat.actions.shape == (n,) and flat.max_range == 4 and flat.n_actions == 28
+    first = episodes[0]
+    np.testing.assert_array_equal(flat.observations[0, :table.feature_dim], first.observations["features"][0])
+    assert flat.observations[0, table.feature_dim + 4] == first.observations["t"][0]
+    assert flat.actions[0] == first.actions[0][0] * 4 + first.actions[0][1]
+    np.testing.assert_array_equal(flat.masks[0], first.observations["action_mask"][0].reshape(-1) > 0)
+    assert flat.terminals.sum() == len(episodes) and not flat.timeouts.any()
+    assert np.isclose(flat.rewards.sum(), sum(e.rewards.sum() for e in episodes))
+
+
+def test_a_flat_policy_is_scored_by_the_evaluation_as_its_actions_say(table, oracle_dataset):
+    """A flat policy that always stops is the passive baseline, number for number; one fitted
+    on the oracle's decisions (a linear classifier in torch) is scored like any policy."""
+    from uevavd.env import EnvConfig, PassivePolicy, evaluate_policy
+    from uevavd.env.offline import FlatPolicy, flat_dataset
+
+    stop = FlatPolicy(lambda x: np.full(len(x), 6 * 4), max_range=4)
+    assert evaluate_policy(table, "hard", stop, EnvConfig()).summary() == \
+        evaluate_policy(table, "hard", PassivePolicy(), EnvConfig()).summary()
+    flat = flat_dataset(oracle_dataset)
+    x, y = torch.as_tensor(flat.observations), torch.as_tensor(flat.actions)
+    torch.manual_seed(0)
+    clf = torch.nn.Linear(x.shape[1], flat.n_actions)
+    opt = torch.optim.Adam(clf.parameters(), 1e-2)
+    for _ in range(300):
+        loss = torch.nn.functional.cross_entropy(clf(x), y)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    agree = float((clf(x).argmax(1) == y).float().mean())
+    assert agree > 0.6
+    policy = FlatPolicy(lambda obs: clf(torch.as_tensor(obs)).argmax(1).numpy(), max_range=flat.max_range)
+    summary = evaluate_policy(table, "hard", policy, EnvConfig()).summary()
+    assert summary["episodes"] == 2 * 605 and np.isfinite(summary["mean_return"])
+    with pytest.raises(ValueError, match=r"expected \(\d+,\) indices of Discrete\(28\)"):
+        evaluate_policy(table, "hard", FlatPolicy(lambda x: np.full(len(x), 99), max_range=4), EnvConfig())
+
+
+def test_d3rlpy_discrete_bc_trains_on_the_flat_view_and_is_evaluated(table, oracle_dataset):
+    """d3rlpy's DiscreteBC on the flat view, then scored by uevavd's evaluation beside the
+    oracle it cloned and the random policy."""
+    d3rlpy = pytest.importorskip("d3rlpy", reason="the d3rlpy extra: pip install -e '.[d3rlpy]' (it pins gymnasium "
+                                                  "1.0, which TorchRL refuses, so the test extra leaves it out)")
+    from uevavd.env import EnvConfig, OraclePolicy, RandomPolicy, evaluate_policy
+    from uevavd.env.offline import FlatPolicy, flat_dataset
+
+    flat = flat_dataset(oracle_dataset)
+    data = d3rlpy.dataset.MDPDataset(flat.observations, flat.actions[:, None], flat.rewards, flat.terminals,
+                                     timeouts=flat.timeouts, action_space=d3rlpy.constants.ActionSpace.DISCRETE,
+                                     action_size=flat.n_actions)
+    d3rlpy.seed(0)
+    bc = d3rlpy.algos.DiscreteBCConfig(batch_size=64, learning_rate=3e-3).create(device="cpu:0")
+    bc.fit(data, n_steps=1500, n_steps_per_epoch=1500, show_progress=False, save_interval=10**9)
+    agree = float((bc.predict(flat.observations) == flat.actions).mean())
+    assert agree > 0.6, agree
+    cfg = EnvConfig()
+    cloned = evaluate_policy(table, "train", FlatPolicy(bc.predict, max_range=flat.max_range), cfg).summary()
+    random = evaluate_policy(table, "train", RandomPolicy(0), cfg).summary()
+    oracle = evaluate_policy(table, "train", OraclePolicy(table, cfg), cfg).summary()
+    assert random["mean_return"] < cloned["mean_return"] <= oracle["mean_return"] + 1e-9, (cloned, random, oracle)

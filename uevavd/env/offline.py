@@ -1,0 +1,119 @@
+"""The flat view of the env's data for offline-RL libraries (d3rlpy, CORL-style scripts).
+
+Offline-RL libraries take a ``Box`` observation and a ``Discrete`` action; the env's
+observation is a ``Dict`` and its action ``MultiDiscrete([7, A])``. One call turns an
+exported dataset (:mod:`uevavd.env.minari_export`) into flat arrays, and one class turns a
+flat policy back into one the evaluation runs::
+
+    flat = flat_dataset(minari.load_dataset("uevavd/quick-hard-oracle-v0"))
+    data = d3rlpy.dataset.MDPDataset(flat.observations, flat.actions, flat.rewards,
+                                     flat.terminals, timeouts=flat.timeouts)
+    bc = d3rlpy.algos.DiscreteBCConfig().create()
+    bc.fit(data, n_steps=2000)
+    evaluate_policy(table, "hard", FlatPolicy(bc.predict, max_range=flat.max_range))
+
+The flat observation is ``[features (D), box (4), t (1), action_mask (7 * A)]`` as float32
+(:func:`flat_observation`): the mask rides in the observation, so a learner sees which moves
+would be clamped, and :attr:`FlatTransitions.masks` holds it apart (bool) for a learner that
+masks its own outputs. The flat action is ``type * A + range``, as the env's ``actions="flat"``
+form and :class:`~uevavd.env.wrappers.DiscreteActions`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..data.grid import N_TYPES
+
+#: The parts of the flat observation, in order.
+FLAT_PARTS = ("features", "box", "t", "action_mask")
+
+
+def flat_observation(obs: dict[str, Any]) -> np.ndarray:
+    """The flat observation of one observation or a batch of them (the env's keys, or the
+    batched interface's, whose mask is ``mask``; numpy or torch): ``[features, box, t,
+    action_mask]`` as float32, one row each."""
+    parts = []
+    for key in FLAT_PARTS:
+        value = obs[key] if key in obs or key != "action_mask" else obs["mask"]
+        value = value.cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
+        if key == "t":
+            value = value[..., None]
+        elif key == "action_mask":
+            value = value.reshape(*value.shape[:-2], -1) if value.ndim >= 2 and value.shape[-2] == N_TYPES else value
+        parts.append(value.astype(np.float32))
+    return np.concatenate(parts, axis=-1)
+
+
+@dataclass(frozen=True)
+class FlatTransitions:
+    """A dataset's steps as flat arrays, one row per decision: ``observations`` (N, D + 5 + 7A)
+    float32, ``actions`` (N,) int64 flat indices, ``rewards`` (N,) float32, ``terminals`` and
+    ``timeouts`` (N,) bool (the env's episodes end by termination, never truncation), ``masks``
+    (N, 7A) bool (the allowed moves; stop is always allowed)."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    terminals: np.ndarray
+    timeouts: np.ndarray
+    masks: np.ndarray
+    max_range: int
+
+    @property
+    def n_actions(self) -> int:
+        return N_TYPES * self.max_range
+
+
+def flat_dataset(episodes: Iterable[Any]) -> FlatTransitions:
+    """Flatten a Minari dataset (or any iterable of its ``EpisodeData``) written by
+    ``uevavd export-minari``: each episode's decisions, the observation each was taken on
+    (not the last one, which no action follows)."""
+    episodes = getattr(episodes, "iterate_episodes", lambda: episodes)()
+    obs, actions, rewards, terminals, timeouts = [], [], [], [], []
+    max_range = None
+    for ep in episodes:
+        n = len(ep.rewards)
+        o = {k: np.asarray(v)[:n] for k, v in ep.observations.items()}
+        a = np.asarray(ep.actions).reshape(n, 2)
+        max_range = o["action_mask"].shape[-1] if max_range is None else max_range
+        obs.append(flat_observation(o))
+        actions.append(a[:, 0].astype(np.int64) * max_range + a[:, 1].astype(np.int64))
+        rewards.append(np.asarray(ep.rewards, np.float32))
+        terminals.append(np.asarray(ep.terminations, bool))
+        timeouts.append(np.asarray(ep.truncations, bool))
+    if max_range is None:
+        raise ValueError("the dataset holds no episodes")
+    observations = np.concatenate(obs)
+    masks = observations[:, -N_TYPES * max_range:] > 0
+    return FlatTransitions(observations, np.concatenate(actions), np.concatenate(rewards), np.concatenate(terminals),
+                           np.concatenate(timeouts), masks, int(max_range))
+
+
+class FlatPolicy:
+    """A policy over flat observations (``act(flat_obs (n, F)) -> flat actions (n,)``, e.g. a
+    d3rlpy algorithm's ``predict``) as a policy the evaluation and the exporter run
+    (:func:`~uevavd.env.evaluate.evaluate_policy`)."""
+
+    needs_features = True
+
+    def __init__(self, act: Callable[[np.ndarray], Any], *, max_range: int) -> None:
+        self._act = act
+        self.max_range = int(max_range)
+
+    def reset(self, n: int) -> None:
+        pass
+
+    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        flat = np.asarray(self._act(flat_observation(obs))).astype(np.int64).reshape(-1)
+        if flat.shape != (len(obs["t"]),) or bool(((flat < 0) | (flat >= N_TYPES * self.max_range)).any()):
+            raise ValueError(f"the flat policy returned {flat[:8].tolist()} (shape {flat.shape}): expected "
+                             f"({len(obs['t'])},) indices of Discrete({N_TYPES * self.max_range})")
+        a_type, a_range = np.divmod(flat, self.max_range)
+        device = obs["t"].device
+        return torch.as_tensor(a_type, device=device), torch.as_tensor(a_range, device=device)
