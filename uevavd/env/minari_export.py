@@ -191,10 +191,23 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
                 algorithm_name=f"uevavd {policy if policy in BASELINES else 'trained run ' + Path(policy).name}",
                 observation_space=env.observation_space, action_space=env.action_space,
                 description=f"{episodes} episodes of {policy} on the {split} split of table {table.key} "
-                            f"(starts uniform over its contexts and views, seed {seed})",
+                            f"(starts uniform over its contexts and views, seed {seed}). {_rebuild(table)}",
             )
     with _datasets_path(root):
         return minari.load_dataset(dataset_id)
+
+
+def _rebuild(table: Any) -> str:
+    """How to get the dataset's table where it is not in the cache, from what the table records."""
+    import json
+
+    config = table.meta.get("config") or {}
+    method, data = config.get("method"), config.get("data_root")
+    if not method:
+        return (f"recover_environment() loads table {table.key} from $UEVAVD_CACHE/tables: copy its folder there.")
+    return (f"recover_environment() loads table {table.key} from $UEVAVD_CACHE/tables; to rebuild it: `uevavd prepare "
+            f"{data or 'DATA'} --method {method}` with the preset or --set giving its perception "
+            f"{json.dumps(config.get('perception'), sort_keys=True)}.")
 
 
 @contextmanager
