@@ -29,7 +29,7 @@ def test_oracle_datasets_are_portable_and_reload_on_another_path(table, tmp_path
     ds = minari.load_dataset("uevavd/test-oracle-v0")
     assert ds.total_episodes == 12
     assert str(tmp_path) not in str(ds.spec.env_spec.kwargs)  # names the table by key: portable
-    assert f"recover_environment() loads table {table.key}" in ds.spec.description  # and says how to get it
+    assert f"recover_environment() loads table {table.key}" in ds.storage.metadata["description"]  # and how to get it
     env = AODEnv(table, "train")
     for ep in ds.iterate_episodes():
         n = len(ep.rewards)
