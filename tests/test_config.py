@@ -168,3 +168,14 @@ def test_a_setting_the_pipeline_passes_itself_is_refused():
 
     with pytest.raises(ConfigError, match="state.feature_dim = 64 is not a setting: it comes from the table's"):
         load_method("map", overrides={"state.feature_dim": 64})
+
+
+def test_a_config_error_with_many_overrides_is_a_short_line_naming_the_key():
+    """Each config error line started with the whole overrides dict (about 1,500 characters
+    under the toy-training overrides)."""
+    from uevavd.testing.policy import small_run
+
+    with pytest.raises(ConfigError) as err:
+        load_method("memo_map", overrides={**small_run("memo_map"), "state.hiden": 3})
+    text = str(err.value)
+    assert "memo_map.toml with 15 overrides: unknown key state.'hiden'" in text and len(text) < 400, text

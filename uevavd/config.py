@@ -203,7 +203,7 @@ class MethodSpec:
         if not overrides:
             return self
         data = apply_overrides(self.to_dict(), overrides)
-        validate(data, f"{self.source} with overrides {dict(overrides)}")
+        validate(data, _with_overrides(self.source, overrides))
         return MethodSpec(name=data["name"], data=freeze(data), source=self.source)
 
     def get(self, dotted: str, default: Any = None) -> Any:
@@ -289,9 +289,15 @@ def load_method(
     path = _method_path(name_or_path)
     data = _resolve_file(path)
     apply_overrides(data, overrides)
-    source = str(path) + (f" with overrides {dict(overrides)}" if overrides else "")
+    source = _with_overrides(path, overrides) if overrides else str(path)
     validate(data, source)
     return MethodSpec(name=data["name"], data=freeze(data), source=str(path))
+
+
+def _with_overrides(source: Any, overrides: Mapping[str, Any]) -> str:
+    """Where a config error's value comes from: the method file and how many overrides (the key at
+    fault is named by the error itself; the whole dict made the line ~1,500 characters long)."""
+    return f"{source} with {len(overrides)} override{'s' if len(overrides) != 1 else ''}"
 
 
 def as_method(spec_or_method: MethodSpec | str | os.PathLike[str],

@@ -181,3 +181,30 @@ def test_the_command_line_check(tmp_path, capsys, monkeypatch):
     assert main(["plugins", "--check", "broken_hooks_mod"]) == 1
     err = capsys.readouterr().err
     assert "1 problem(s)" in err and "not causal" in err and "Traceback" not in err
+
+
+def test_plugins_check_takes_the_pip_name_and_names_the_entry_point_of_a_package(tmp_path, monkeypatch, capsys):
+    """`uevavd plugins --check PKG` on a package whose hooks live in PKG.plugin said "registered
+    nothing"; the distribution's pip name was "no module named ..."."""
+    from uevavd.cli import main
+
+    site = tmp_path / "site"
+    (site / "pkg_with_hooks").mkdir(parents=True)
+    (site / "pkg_with_hooks" / "__init__.py").write_text("")
+    (site / "pkg_with_hooks" / "plugin.py").write_text(
+        "from uevavd.plugins import hookimpl\n"
+        "from uevavd.env.baselines import PassivePolicy\n\n"
+        "def build(*, table, config, seed=0):\n    return PassivePolicy()\n\n"
+        "@hookimpl\ndef register_baselines(registry):\n"
+        "    registry.add('still', 'pkg_with_hooks.plugin:build', summary='never moves')\n")
+    info = site / "hooks_dist-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: hooks-dist\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[uevavd]\nstill = pkg_with_hooks.plugin\n")
+    monkeypatch.syspath_prepend(str(site))
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    assert main(["plugins", "--check", "pkg_with_hooks"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "run `uevavd plugins --check pkg_with_hooks.plugin`" in err, err
+    assert main(["plugins", "--check", "hooks-dist"]) == 0  # the pip name
+    assert "baseline still: evaluated" in capsys.readouterr().out

@@ -73,8 +73,12 @@ def _check(module: str) -> int:
 
     from .manager import manager
 
-    # an installed plugin's name (`uevavd plugins` lists it) stands for the module its entry point names
-    source = next((p.source for p in manager.plugins if p.name == module and not p.builtin), module)
+    # an installed plugin's name (`uevavd plugins` lists it), or its distribution's (the pip name),
+    # stands for the module its entry point names
+    source = next((p.source for p in manager.plugins if p.name == module and not p.builtin), None)
+    if source is None:
+        points = _entry_points(module, distribution=True)
+        source = points[0] if len(points) == 1 else module
     try:
         found = importlib.util.find_spec(source.partition(":")[0]) is not None
     except ImportError:
@@ -98,7 +102,35 @@ def _check(module: str) -> int:
     try:
         report = check_plugin(target)
     except AssertionError as exc:
+        inside = _entry_points(source.partition(":")[0], distribution=False)
+        if "registered nothing" in str(exc) and inside:  # a package whose hooks live in a module of it
+            print(f"uevavd plugins --check: {module!r} holds no uevavd hooks itself; its package's uevavd entry "
+                  f"point{'s name' if len(inside) > 1 else ' names'} {', '.join(map(repr, inside))}: run `uevavd "
+                  f"plugins --check {inside[0]}`", file=sys.stderr)
+            return 2
         print(exc, file=sys.stderr)
         return 1
     print(report)
     return 0
+
+
+def _entry_points(name: str, *, distribution: bool) -> list[str]:
+    """The values of the installed ``uevavd`` entry points that ``name`` stands for: those of the
+    distribution named so (``distribution``; its pip name, any spelling of - _ .), or those
+    naming a module inside package ``name``."""
+    import re
+    from importlib import metadata
+
+    from . import ENTRY_POINT_GROUP
+
+    def norm(text: str) -> str:
+        return re.sub(r"[-_.]+", "-", text).lower()
+
+    out = []
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        dist = getattr(ep, "dist", None)
+        if distribution and dist is not None and norm(dist.name) == norm(name):
+            out.append(ep.value)
+        elif not distribution and ep.value.partition(":")[0].startswith(name + "."):
+            out.append(ep.value)
+    return sorted(set(out))

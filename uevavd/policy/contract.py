@@ -105,8 +105,8 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
         _rule(torch.allclose(s[:, :-1], s2[:, :-1], atol=1e-5), what,
               "not causal: s_t changed when a later observation changed (position t may read positions <= t only; "
               "replayed episodes are padded after their end)")
-        with _calling(what, f"initial_hidden({batch})"):
-            h = est.initial_hidden(batch)
+        with _calling(what, f"initial_hidden({batch}, device)"):  # as the trainer and the evaluation call it
+            h = est.initial_hidden(batch, torch.device("cpu"))
         _rule(isinstance(h, torch.Tensor) and h.dim() == 2 and h.shape[0] == batch and h.dtype == torch.float32,
               what, f"initial_hidden({batch}) returned "
               f"{tuple(h.shape) if isinstance(h, torch.Tensor) else type(h).__name__}; expected one float32 "
@@ -115,6 +115,7 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
               "initial_hidden() is not zeros: training and evaluation start every episode from a zero memory "
               "(hidden * (t != 0)), so a learned initial memory would act differently than it was trained; "
               "learn it inside forward/step from a zero memory instead")
+        h0 = h
         for t in range(steps):
             with _calling(what, f"step(features ({batch}, {d}), boxes ({batch}, 4), hidden {tuple(h.shape)})"):
                 out = est.step(f[:, t], b[:, t], h)
@@ -127,6 +128,8 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
                   f"step() at t={t} from initial_hidden() disagrees with forward() (acting and learning would "
                   "see different states)")
             h = h2
+        if hasattr(est, "step_encoded"):
+            _check_fast_path(est, f, b, h0, what)
         if est.recurrent:
             f3 = f.clone()
             f3[:, 0] += 5.0
@@ -134,6 +137,29 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
                 s3 = est(f3, b)
             _rule(not torch.allclose(s3[:, -1], s[:, -1]), what,
                   "recurrent = True but s_T ignores o_0; set recurrent = False for a single-view estimator")
+
+
+def _check_fast_path(est: Any, f: torch.Tensor, b: torch.Tensor, h: torch.Tensor, what: str) -> None:
+    """The optional ``step_encoded`` path the evaluation takes when an estimator offers it: each
+    view projected once by ``encoder.project``, then ``encoder.combine`` with the box, then
+    ``step_encoded``; it must give what ``step`` gives (a wrong one trained through ``step`` and
+    was scored through itself)."""
+    enc = getattr(est, "encoder", None)
+    for attr in ("image_dim", "project", "combine"):
+        _rule(hasattr(enc, attr), what, f"offers step_encoded but its encoder has no {attr!r}: the evaluation's fast "
+              "path reads encoder.image_dim, encoder.project(features) and encoder.combine(image, boxes); give the "
+              "encoder those (uevavd.state.base.ObservationEncoder has them) or drop step_encoded")
+    for t in range(f.shape[1]):
+        call = f"step_encoded(encoder.combine(encoder.project(features), boxes), hidden) at t={t}"
+        with _calling(what, call):
+            image = enc.project(f[:, t])
+            _rule(tuple(image.shape) == (f.shape[0], int(enc.image_dim)), what,
+                  f"encoder.project gave shape {tuple(image.shape)}; expected (N, encoder.image_dim = {enc.image_dim})")
+            fast, h_fast = est.step_encoded(enc.combine(image, b[:, t]), h)
+        plain, h = est.step(f[:, t], b[:, t], h)
+        _rule(torch.allclose(fast, plain, atol=1e-5) and torch.allclose(h_fast, h, atol=1e-5), what,
+              f"{call} disagrees with step() (the evaluation takes the fast path, training the plain one: a policy "
+              "would be scored on other states than it learned); make step_encoded step() from an encoded g_t")
 
 
 def check_head_rules(head: Any, *, state_dim: int, n_types: int = N_TYPES, n_ranges: int = DEFAULT_MAX_RANGE,
