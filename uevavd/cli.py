@@ -104,9 +104,9 @@ def main(argv: list[str] | None = None) -> int:
         name = argv[0]
         module, func = COMMANDS[name][0].split(":")
         sub = argparse.ArgumentParser(prog=f"uevavd {name}", description=COMMANDS[name][1])
-        handler = getattr(importlib.import_module(module), func)(sub)
-        args = sub.parse_args(argv[1:])
-        try:
+        try:  # building the parser may load plugins (a command's choices): a strict failure is one line too
+            handler = getattr(importlib.import_module(module), func)(sub)
+            args = sub.parse_args(argv[1:])
             return int(handler(args) or 0)
         except KeyboardInterrupt:
             print("interrupted; finished work is kept and a rerun resumes", file=sys.stderr)

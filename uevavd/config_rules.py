@@ -11,7 +11,7 @@ import inspect
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from .plugins.manager import manager
@@ -152,15 +152,16 @@ def check_type(value: Any, tp: Any) -> bool:
     return True
 
 
-def _suggest(key: str, accepted: list[str]) -> str:
-    near = difflib.get_close_matches(key, accepted, n=1)
+def did_you_mean(key: str, accepted: Sequence[str]) -> str:
+    """``"; did you mean 'x'?"`` naming the accepted word nearest ``key``, or "" when none is near."""
+    near = difflib.get_close_matches(key, list(accepted), n=1)
     return f"; did you mean {near[0]!r}?" if near else ""
 
 
 def _unknown(where: str, key: str, accepted: list[str], source: str) -> ConfigError:
     return ConfigError(
         f"{source}: unknown key {where + '.' if where else ''}{key!r}; accepted keys are "
-        f"{sorted(accepted)}{_suggest(key, accepted)}"
+        f"{sorted(accepted)}{did_you_mean(key, accepted)}"
     )
 
 

@@ -162,10 +162,27 @@ def test_a_strict_failure_is_one_line_from_the_command_line(site, monkeypatch, c
     make_dist(site, "fake-broken", "0.9", "fakeplug_broken", BROKEN_IMPORT)
     monkeypatch.setenv("UEVAVD_STRICT_PLUGINS", "1")
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
-    assert main(["plugins"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "fake-broken" in err and "boom at import" in err, err
-    assert "UEVAVD_STRICT_PLUGINS is set" in err
+    for argv in (["plugins"], ["train", "--help"], ["train", "--method", "map", "--table", "t", "--out", "o"]):
+        manager.reset()  # each command loads the plugins afresh, as a new process does
+        assert main(argv) == 2, argv  # train's parser loads them to list the methods: it was a traceback, exit 1
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "fake-broken" in err and "boom at import" in err, err
+        assert "UEVAVD_STRICT_PLUGINS is set" in err
+
+
+def test_a_skipped_plugin_is_named_where_its_component_is_asked_for(site):
+    """The warning pointed at a line of uevavd's plugin manager, and asking for a component of
+    the plugin that failed said only "did you mean ..."."""
+    import warnings
+
+    make_dist(site, "fake-broken", "0.9", "fakeplug_broken", BROKEN_IMPORT)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        manager.ensure_loaded()
+    warning = next(w for w in rec if issubclass(w.category, PluginWarning))
+    assert warning.filename == "<uevavd plugin fake-broken>"
+    with pytest.raises(UnknownComponentError, match="plugin 'fake-broken' failed to load and registered nothing"):
+        manager.registry.get("encoder", "broken_enc")
 
 
 def test_manager_recovers_after_a_strict_failure(site, monkeypatch):

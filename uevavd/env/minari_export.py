@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from ..atomic import folder_lock, remove_temporaries
-from ..config_rules import check_count, parse_override
+from ..config_rules import check_count, did_you_mean, parse_override
 from ..paths import tables_dir
 from ..policy.acting import load_policy
 from ..policy.rundir import read_settings
@@ -265,7 +265,8 @@ def add_export_minari(p: Any):
         for text in args.set:
             key, value = parse_override(text)
             if not key.startswith("env."):
-                raise ValueError(f"--set {text}: export-minari takes env settings only (env.thre=0.4, env.C=0, ...)")
+                raise ValueError(f"--set {text}: export-minari takes env settings only (env.thre=0.4, env.C=0, ...)"
+                                 + did_you_mean(key.split(".", 1)[0], ["env"]))
             env[key[len("env."):]] = value
         config = policy_env_config(args.policy, env)
         try:

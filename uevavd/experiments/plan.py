@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import MethodSpec, known_methods, load_method, parse_override
-from ..config_rules import check_count
+from ..config_rules import check_count, did_you_mean
 from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
 from ..perception.nets import resolve_device
@@ -25,6 +25,8 @@ DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
 #: The paper's two sweeps, by their short names; any other dotted key of a method (env.*,
 #: train.*, state.*, head.*; not perception.*, which would need other tables) sweeps too.
 SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
+#: The method sections whose dotted keys an ablation sweeps (perception keys would need other tables).
+SWEEP_SECTIONS = ("env", "train", "state", "head")
 #: The number of training contexts (per target block): swept for every method, on one world
 #: that holds the most training contexts asked and every test context (see :func:`make_plan`).
 CONTEXTS_KEY = "env.train_per_block"
@@ -225,9 +227,11 @@ def make_plan(
                 except ValueError as exc:
                     raise AblationError(f"--sweep {key}={v!r}: {exc}") from None
             continue
-        if key.split(".", 1)[0] not in ("env", "train", "state", "head") or "." not in key:
+        section = key.split(".", 1)[0]
+        if section not in SWEEP_SECTIONS or "." not in key:
+            hint = did_you_mean(section, SWEEP_SECTIONS) if "." in key else did_you_mean(key, list(SWEEPABLE))
             raise AblationError(f"sweep over {key!r}: expected thre, C or a dotted key of a method's env, train, state "
-                                "or head section (perception keys would need other tables: run another ablation)")
+                                f"or head section (perception keys would need other tables: run another ablation){hint}")
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
         sweep_methods = [m for m in abl.get("sweep_methods", [methods[-1]]) if m in methods]
     sweep_methods = list(sweep_methods)

@@ -219,13 +219,14 @@ class PluginManager:
                 raise PluginError(message.replace(" and was skipped", ""))
             hint = " (UEVAVD_STRICT_PLUGINS is set; unset it to skip broken plugins)" if source != "code" else ""
             raise StrictPluginError(message.replace(" and was skipped", "") + hint)
-        warnings.warn(
+        # said as coming from the plugin (its entry point), not from a line of this manager
+        warnings.warn_explicit(
             message + ". Block it with UEVAVD_DISABLED_PLUGINS or make this fatal with UEVAVD_STRICT_PLUGINS=1",
-            PluginWarning,
-            stacklevel=3,
+            PluginWarning, filename=f"<uevavd plugin {name}>", lineno=0, module="uevavd.plugins.manager",
         )
         info = PluginInfo(name, version, builtin, "failed", error, source)
         self._plugins.append(info)
+        self._registry.failed.append(name)
         return info
 
 

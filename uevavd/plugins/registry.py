@@ -101,6 +101,8 @@ class Registry:
     """All registered components, by kind. Use :data:`uevavd.registry` (lazy, loaded once)."""
 
     entries: dict[str, dict[str, Entry]] = field(default_factory=lambda: {k: {} for k in KINDS})
+    #: third-party plugins that failed to load (skipped): a missing component may be theirs
+    failed: list[str] = field(default_factory=list)
 
     def add_entry(self, entry: Entry) -> None:
         if entry.kind not in KINDS:
@@ -138,6 +140,9 @@ class Registry:
             known = sorted(self.entries[kind])
             near = difflib.get_close_matches(str(name), known, n=1)
             hint = f"; did you mean {near[0]!r}?" if near else ""
+            if self.failed:
+                hint += (f"; plugin{'s' if len(self.failed) > 1 else ''} {', '.join(map(repr, self.failed))} failed to "
+                         f"load and registered nothing (`uevavd plugins --all` shows why): {name!r} may be theirs")
             raise UnknownComponentError(
                 f"unknown {kind} {name!r}: registered {kind}s are {known}{hint} "
                 "(see `uevavd plugins`)"
