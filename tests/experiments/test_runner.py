@@ -839,3 +839,78 @@ def test_the_baselines_env_of_a_setting_that_sweeps_another_methods_head(tmp_pat
     settings = dict(plan.all_settings())
     assert env_config(plan, settings["head.kappa=0"]) == env_config(plan, settings["default"])
     assert env_config(plan, settings["env.xi2=0.2"]).xi2 == 0.2
+
+
+class _FloatActions:
+    """A broken baseline: its actions are not integers."""
+
+    needs_features = False
+
+    def reset(self, n):
+        pass
+
+    def act(self, obs):
+        n = len(obs["t"])
+        return torch.full((n,), 0.5), torch.zeros(n)
+
+
+def build_float_actions(*, table, config, seed=0):
+    return _FloatActions()
+
+
+def build_no_feature_dim(*, input_dim=8, state_dim=8):
+    return torch.nn.Linear(input_dim, state_dim)
+
+
+@pytest.mark.parametrize("broken", ["baseline", "state"])
+def test_a_broken_plugin_component_is_refused_before_ablate_or_evaluate_write_anything(
+        broken, ablation, tiny, tmp_path, capsys, monkeypatch):
+    """A broken plugin baseline failed every evaluate, and ablate only after training every run,
+    naming neither the baseline nor the plugin; ablate checked a method's components only after
+    its world, recognizer and table stages and after writing ablation.json, specs/ and runs/."""
+    import types
+
+    from uevavd.cli import main
+    from uevavd.env import baselines
+    from uevavd.plugins import hookimpl
+    from uevavd.plugins.manager import manager
+
+    @hookimpl
+    def register_baselines(registry):
+        registry.add("floaty", f"{__name__}:build_float_actions", summary="float actions")
+
+    @hookimpl
+    def register_state_estimators(registry):
+        registry.add("no_feature_dim", f"{__name__}:build_no_feature_dim", summary="takes no feature_dim")
+
+    method = tmp_path / "broken_state.toml"
+    method.write_text('_base_ = "map"\nname = "broken_state"\n[state]\nname = "no_feature_dim"\n')
+
+    @hookimpl
+    def register_methods(registry):
+        registry.add("broken_state", str(method), summary="MAP over the broken state")
+
+    hooks = {"baseline": {"register_baselines": register_baselines},
+             "state": {"register_state_estimators": register_state_estimators,
+                       "register_methods": register_methods}}[broken]
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    monkeypatch.setattr(baselines, "_CHECKED", set())
+    manager.register_plugin(types.SimpleNamespace(**hooks), name="broken-test")
+    try:
+        out = tmp_path / "abl"
+        argv = ["ablate", "--preset", str(tiny["preset"]), "--data", str(tiny["world"]), "--out", str(out),
+                "--workers", "1"]
+        if broken == "state":
+            argv += ["--methods", "broken_state"]
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert ("'floaty'" if broken == "baseline" else "'no_feature_dim'") in err and "broken-test" in err, err
+        assert not out.exists()
+        if broken == "baseline":
+            run = ablation["plan"].out / "runs" / "map" / "default" / "rec0" / "seed0"
+            assert main(["evaluate", str(run), "--split", "hard", "--json", str(tmp_path / "e.json")]) == 2
+            err = capsys.readouterr().err.strip().splitlines()[-1]
+            assert "baseline 'floaty'" in err and "plugin 'broken-test'" in err and "Traceback" not in err, err
+            assert not (tmp_path / "e.json").exists()
+    finally:
+        manager.unregister_plugin("broken-test")

@@ -152,6 +152,41 @@ def baseline_entries() -> list:
     return manager.registry.in_order("baseline")
 
 
+class BaselineError(ValueError):
+    """A plugin's baseline fails before any evaluation uses it (one line: which, where, why)."""
+
+
+_CHECKED: set[str] = set()
+
+
+def check_baselines() -> None:
+    """Every baseline a third-party plugin registers, built (seed 0) and evaluated on a toy
+    table's hard split, once per process: a broken one is a :class:`BaselineError` naming the
+    baseline and its plugin before ``evaluate`` or ``ablate`` writes anything (it failed every
+    evaluation, in ``ablate`` after training every run, naming neither). The built-in ones are
+    the suite's to check."""
+    from ..toy import toy_table
+
+    table = config = None
+    for entry in baseline_entries():
+        key = f"{entry.name}|{entry.target}"
+        if entry.plugin.startswith("uevavd.") or key in _CHECKED:
+            continue
+        if table is None:
+            table, config = toy_table(n_train=1, n_hard=1, feature_dim=8), make_config(None)
+        try:
+            policy = entry.load()(table=table, config=config, seed=0)
+            if policy is not None:
+                ret = evaluate_policy(table, "hard", policy, config).ret
+                if not bool(torch.isfinite(torch.as_tensor(ret)).all()):
+                    raise ValueError("non-finite returns")
+        except Exception as exc:  # noqa: BLE001 - whatever the plugin's code raises, in one line
+            raise BaselineError(f"baseline {entry.name!r} ({entry.target}, plugin {entry.plugin!r}) fails on a toy "
+                                f"table: {type(exc).__name__}: {' '.join(str(exc).split())}; fix the plugin, or block "
+                                f"it with UEVAVD_DISABLED_PLUGINS={entry.plugin}") from None
+        _CHECKED.add(key)
+
+
 def baseline_names() -> tuple[str, ...]:
     """Names of the registered baselines: the policies the report and the claims never
     count as learned."""
@@ -176,6 +211,8 @@ def evaluate_with_baselines(table, split: str, policy, name: str, config, *, dev
     evaluated exhaustively on ``split`` (optionally only ``contexts``) under ``config`` and
     again behind the stop gate (:func:`~uevavd.env.evaluate.evaluate_gated`), then each of
     :func:`reference_policies` when ``baselines`` (not gated: they are the references)."""
+    if baselines:
+        check_baselines()
     out = {name: evaluate_gated(table, split, policy, config, device=device, contexts=contexts)}
     for n, p in (reference_policies(table, config) if baselines else {}).items():
         out[n] = (evaluate_policy(table, split, p, config, device=device, contexts=contexts), None)

@@ -110,8 +110,27 @@ def _with_swept_columns(plan: Plan, rows: list[dict]) -> tuple[list[dict], list[
     return rows, [*RESULT_COLUMNS[:at], *extra, *RESULT_COLUMNS[at:]]
 
 
+def check_components(plan: Plan) -> None:
+    """Each method's state estimator and head through their rules (at a toy feature size; each
+    run checks them again at its table's) and every plugin's baseline on a toy table, before
+    anything is written: a broken one ended the ablation after its world, recognizers and
+    tables were made and ``ablation.json``, ``specs/`` and ``runs/`` written (a baseline, after
+    every run trained). One line naming the component and its plugin."""
+    import torch
+
+    from ..env.baselines import check_baselines
+    from ..policy.contract import build_checked_network
+
+    with torch.random.fork_rng(devices=[]):  # the checks draw nothing a run's numbers depend on
+        for method in plan.methods:
+            spec = plan.spec(method)
+            build_checked_network(spec.state, spec.head, 16, n_ranges=spec.env.max_range)
+    check_baselines()
+
+
 def run_ablation(plan: Plan, *, log=print) -> Path:
     """Run (or resume) the whole ablation; returns the results file."""
+    check_components(plan)
     check_out_dir(plan)
     plan.out.mkdir(parents=True, exist_ok=True)
     write_meta(plan, None, "running")
