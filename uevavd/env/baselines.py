@@ -13,6 +13,7 @@ import torch
 from ..data.grid import STOP
 from ..plugins.manager import manager
 from ..table import TableError
+from ..toy import toy_table
 from .config import make_config
 from .evaluate import evaluate_gated, evaluate_policy, stopping_summary
 from .gate import box_visible
@@ -165,8 +166,6 @@ def check_baselines() -> None:
     baseline and its plugin before ``evaluate`` or ``ablate`` writes anything (it failed every
     evaluation, in ``ablate`` after training every run, naming neither). The built-in ones are
     the suite's to check."""
-    from ..toy import toy_table
-
     table = config = None
     for entry in baseline_entries():
         key = f"{entry.name}|{entry.target}"

@@ -12,6 +12,8 @@ from pathlib import Path
 
 from ..atomic import atomic_write_json, is_temporary, write_sealed_json
 from ..config import ConfigError
+from ..env.baselines import check_baselines
+from ..policy.contract import build_checked_network
 from .audit import audit_table, classifier_summary
 from .backends import run_jobs
 from .io import ABLATION_FILE, read_ablation_meta, write_csv
@@ -117,9 +119,6 @@ def check_components(plan: Plan) -> None:
     tables were made and ``ablation.json``, ``specs/`` and ``runs/`` written (a baseline, after
     every run trained). One line naming the component and its plugin."""
     import torch
-
-    from ..env.baselines import check_baselines
-    from ..policy.contract import build_checked_network
 
     with torch.random.fork_rng(devices=[]):  # the checks draw nothing a run's numbers depend on
         for method in plan.methods:
