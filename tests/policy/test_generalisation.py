@@ -90,8 +90,8 @@ def test_feature_dropout_augments_the_updates_only_and_resumes_bit_for_bit(tmp_p
                                                  "train.feature_dropout": 0.3})
     plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
     a, b, c = _runs(spec, table, tmp_path, 4, plain=plain)
-    assert _same_net(a, b) and "augment" in a
-    assert not _same_net(a, c) and "augment" not in c
+    assert _same_net(a, b) and "feature_dropout" in a
+    assert not _same_net(a, c) and "feature_dropout" not in c
 
 
 def test_the_recognition_probe_trains_with_the_state_and_resumes_bit_for_bit(tmp_path):
@@ -105,7 +105,7 @@ def test_the_recognition_probe_trains_with_the_state_and_resumes_bit_for_bit(tmp
     plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
     a, b, c = _runs(spec, table, tmp_path, 5, plain=plain)
     assert _same_net(a, b)
-    assert torch.equal(a["aux"]["linear.weight"], b["aux"]["linear.weight"]) and "aux" not in c
+    assert torch.equal(a["aux_recognition"]["linear.weight"], b["aux_recognition"]["linear.weight"]) and "aux_recognition" not in c
     assert not _same_net(a, c)
     assert set(load_file(str(tmp_path / "whole" / "policy.safetensors"))) == set(a["net"])
     with pytest.raises(ConfigError, match="train.aux_recognition"):

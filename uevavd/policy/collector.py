@@ -26,11 +26,11 @@ class RunSeeds:
     replay: int  #: the replay buffer's sampling
     env: int  #: the env's start contexts and views
     acting: int  #: epsilon-greedy exploration
-    augment: int  #: the features' augmentation (train.feature_dropout)
+    feature_dropout: int  #: the features' augmentation (train.feature_dropout)
 
     @classmethod
     def of(cls, seed: int) -> RunSeeds:
-        return cls(network=seed, replay=seed + 1, env=seed + 2, acting=seed + 3, augment=seed + 4)
+        return cls(network=seed, replay=seed + 1, env=seed + 2, acting=seed + 3, feature_dropout=seed + 4)
 
 
 @dataclasses.dataclass

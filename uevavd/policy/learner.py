@@ -53,20 +53,20 @@ class FeatureLookup:
 
 
 class FeatureDropout:
-    """Augmentation of the table's features in the updates (issue 38; ``train.feature_dropout``):
-    each feature of each gathered row zeroed with probability ``p`` and the rest scaled by
-    ``1 / (1 - p)``, from its own generator (saved with the run, so a resumed run draws the
+    """Augmentation of the table's features in the updates (``train.feature_dropout``): each
+    feature of each gathered row zeroed with probability ``feature_dropout`` and the rest scaled
+    by ``1 / (1 - feature_dropout)``, from its own generator (saved with the run, so a resumed run draws the
     same masks). The online and the target network read the same augmented rows; acting reads
     the features as they are."""
 
-    def __init__(self, p: float, *, seed: int, device: torch.device | str) -> None:
-        self.p = float(p)
+    def __init__(self, feature_dropout: float, *, seed: int, device: torch.device | str) -> None:
+        self.feature_dropout = float(feature_dropout)
         self.generator = torch.Generator(device=device)
         self.generator.manual_seed(seed)
 
     def __call__(self, feats: torch.Tensor) -> torch.Tensor:
-        keep = torch.rand(feats.shape, generator=self.generator, device=feats.device) >= self.p
-        return feats * keep / (1.0 - self.p)
+        keep = torch.rand(feats.shape, generator=self.generator, device=feats.device) >= self.feature_dropout
+        return feats * keep / (1.0 - self.feature_dropout)
 
     def state_dict(self) -> dict[str, Any]:
         return {"rng": self.generator.get_state()}
@@ -76,10 +76,10 @@ class FeatureDropout:
 
 
 class RecognitionProbe(torch.nn.Module):
-    """An auxiliary objective (issue 38; ``train.aux_recognition``): a linear probe on the state
-    s_t predicts whether the recognizer recognises the current view (the reward's recognition
+    """An auxiliary objective (``train.aux_recognition``): a linear probe on the state s_t
+    predicts whether the recognizer recognises the current view (the reward's recognition
     term, ``EnvConfig.recognized``), by binary cross-entropy added to the TD loss with weight
-    ``weight``. It shapes the state only: acting never reads it, and it is not part of the
+    ``weight`` (the option's value). It shapes the state only: acting never reads it, and it is not part of the
     policy's network (its weights stay in the run's checkpoint)."""
 
     def __init__(self, state_dim: int, weight: float) -> None:
@@ -120,15 +120,16 @@ class Learner:
     """Online and target networks, Adam, and the double-DQN update over episode batches."""
 
     def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber",
-                 augment: FeatureDropout | None = None, aux: RecognitionProbe | None = None) -> None:
+                 feature_dropout: FeatureDropout | None = None, aux_recognition: RecognitionProbe | None = None) -> None:
         self.net = net
-        self.augment, self.aux = augment, aux
+        self.feature_dropout, self.aux_recognition = feature_dropout, aux_recognition
         self.stop_probe = StopProbeLearner(net, lr=lr) if net.stop_probe is not None else None
         self.target = copy.deepcopy(net).requires_grad_(False)
         for m in self.target.modules():  # a deep copy leaves cuDNN's RNN weights in pieces, which
             if isinstance(m, torch.nn.RNNBase):  # it would then compact on every call (no-op on CPU)
                 m.flatten_parameters()
-        params = self._params = net.q_parameters() + (list(aux.parameters()) if aux is not None else [])
+        params = self._params = net.q_parameters() + (
+            list(aux_recognition.parameters()) if aux_recognition is not None else [])
         # fused Adam: one kernel over all parameters, ~3x faster than the per-tensor loop on
         # CPU (16 -> 5 ms per step for the paper-sized GRU agent), same update rule
         fused = all(p.is_floating_point() and p.device.type in ("cpu", "cuda") for p in params)
@@ -142,8 +143,8 @@ class Learner:
 
     def parts(self) -> dict[str, Any]:
         """The optional parts a checkpoint holds besides the networks and the optimizer."""
-        return {k: v for k, v in (("augment", self.augment), ("aux", self.aux), ("stop_probe", self.stop_probe))
-                if v is not None}
+        return {k: v for k, v in (("feature_dropout", self.feature_dropout), ("aux_recognition", self.aux_recognition),
+                                  ("stop_probe", self.stop_probe)) if v is not None}
 
     def update(self, batch: EpisodeBatch, lookup: FeatureLookup) -> tuple[float, torch.Tensor]:
         """One gradient step. Returns (loss, per-episode mean |TD error| (B,))."""
@@ -156,8 +157,8 @@ class Learner:
         # the target net evaluates the same observations.
         seen = needed_observations(batch)  # (B, T+1)
         feats, boxes, mask = lookup.gather_rows(batch.scene, batch.views, seen)
-        if self.augment is not None:
-            feats = self.augment(feats)
+        if self.feature_dropout is not None:
+            feats = self.feature_dropout(feats)
         q_all, s = episode_q(self.net, feats, boxes, seen, with_state=True)
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
@@ -175,13 +176,23 @@ class Learner:
         else:
             per = 0.5 * (q_taken - y) ** 2
         loss = (per * w * batch.weight[:, None, None]).sum() / w.sum().clamp_min(1.0)
-        if self.aux is not None or self.stop_probe is not None:
+        if self.aux_recognition is not None or self.stop_probe is not None:
             # s holds the seen rows in seen.nonzero() order, as the lookup's rows
             recognized = lookup.recognized_rows(batch.scene, batch.views, seen)
-            if self.aux is not None:
-                loss = loss + self.aux.weight * self.aux.loss(s, recognized)
+            if self.aux_recognition is not None:
+                loss = loss + self.aux_recognition.weight * self.aux_recognition.loss(s, recognized)
             if self.stop_probe is not None:
                 self.stop_probe.update(s, recognized)
+        norm = self.step(loss)
+        self.updates += 1
+        td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
+        self._last = (td, q_taken.detach(), w, norm)
+        return float(loss.detach()), td
+
+    def step(self, loss: torch.Tensor) -> torch.Tensor | None:
+        """One optimizer step on ``loss``: ``zero_grad``, ``backward``, ``clip_grad_norm_`` to
+        ``grad_clip``, ``step``, with the same arithmetic and less overhead. Returns the
+        gradients' norm before clipping (None without clipping)."""
         params = self._params
         for p in params:  # Adam.zero_grad(set_to_none=True) without its profiler hooks: 0.1 ms
             p.grad = None
@@ -199,10 +210,7 @@ class Learner:
             if norm.device.type != "cpu" or (float(norm) + 1e-6) * 1.001 > self.grad_clip:
                 torch.nn.utils.clip_grads_with_norm_(params, self.grad_clip, norm, foreach=True)
         self.optimizer.step()
-        self.updates += 1
-        td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
-        self._last = (td, q_taken.detach(), w, norm)
-        return float(loss.detach()), td
+        return norm
 
     @property
     def stats(self) -> dict[str, float]:

@@ -17,7 +17,6 @@ import dataclasses
 import json
 import platform
 import time
-from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +48,7 @@ from .learner import FeatureDropout, FeatureLookup, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
 from .rundir import RunDir, RunDirError, check_run_dir, run_lock, write_evals, write_settings
+from .trainlog import Loop, TrainLog
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
 TB_EVERY_UPDATES = 100
@@ -142,6 +142,10 @@ def train(
                       overrides=overrides, max_epochs=max_epochs, caller_state=caller_state)
 
 
+#: Checkpoint keys of earlier versions of the learner's optional parts.
+LEGACY_PARTS = {"feature_dropout": "augment", "aux_recognition": "aux"}
+
+
 @dataclasses.dataclass
 class _Run:
     """One training run's parts, built (and every input checked) before anything is written."""
@@ -156,10 +160,7 @@ class _Run:
     collector: EpisodeCollector
     lookup: FeatureLookup
     evaluator: _Evaluator
-    #: the loop's counters (a checkpoint holds them): episodes, env steps, epochs, the updates'
-    #: credit, training wall time
-    loop: dict[str, Any] = dataclasses.field(default_factory=lambda: {
-        "episodes": 0, "env_steps": 0, "epoch": 0, "credit": 0.0, "wall": 0.0})
+    loop: Loop = dataclasses.field(default_factory=Loop)
     evals: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
     def parts(self) -> dict[str, Any]:
@@ -170,7 +171,7 @@ class _Run:
     def save(self) -> None:
         save_checkpoint(RunDir(self.out).checkpoint, {
             "meta": checkpoint_meta(self.settings), **{k: v.state_dict() for k, v in self.parts().items()},
-            "updates": self.learner.updates, **self.collector.state_dict(), "loop": dict(self.loop),
+            "updates": self.learner.updates, **self.collector.state_dict(), "loop": dataclasses.asdict(self.loop),
             "evals": json.dumps(self.evals)})
 
     def resume(self) -> bool:
@@ -180,10 +181,11 @@ class _Run:
             return False
         ck = load_checkpoint(path, expect=self.settings)
         for key, part in self.parts().items():
-            part.load_state_dict(ck[key])
+            part.load_state_dict(ck[key] if key in ck else ck[LEGACY_PARTS[key]])
         self.learner.updates = int(ck["updates"])
         self.collector.load_state_dict(ck)
-        self.loop.update(ck["loop"])
+        for key, value in ck["loop"].items():  # in place: the loop reads this object
+            setattr(self.loop, key, value)
         self.evals = json.loads(ck["evals"])
         return True
 
@@ -197,42 +199,42 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
     cfg, loop = run.cfg, run.loop
     if not run.resume():
         run.collector.reset()
-    log = _Log(run, progress)
+    log = TrainLog(run, progress)
     epochs_this_call = 0
     try:  # the writer's thread and the bar end with the loop, also when a checkpoint fails
-        while loop["episodes"] < cfg.episodes:
+        while loop.episodes < cfg.episodes:
             # act: epsilon-greedy over allowed actions; store finished episodes whole
-            log.eps = cfg.epsilon(loop["episodes"])
+            log.eps = cfg.epsilon(loop.episodes)
             finished = run.collector.step(log.eps)
-            loop["env_steps"] += cfg.n_envs
+            loop.env_steps += cfg.n_envs
             if finished is not None:
                 run.replay.add(finished.scene, finished.views, finished.types, finished.ranges, finished.rewards,
                                finished.lengths)
-                loop["episodes"] += int(finished.lengths.numel())
+                loop.episodes += int(finished.lengths.numel())
                 log.episodes_done(finished.returns.tolist())
             # learn: updates_per_step gradient updates per batched step, on average
             if len(run.replay) >= cfg.learning_starts:
-                loop["credit"] += cfg.updates_per_step
-                while loop["credit"] >= 1.0:
-                    loop["credit"] -= 1.0
+                loop.credit += cfg.updates_per_step
+                while loop.credit >= 1.0:
+                    loop.credit -= 1.0
                     _update(run, log)
             # epoch end: evaluate, log, checkpoint
-            if loop["episodes"] >= (loop["epoch"] + 1) * cfg.epoch_episodes or loop["episodes"] >= cfg.episodes:
+            if loop.episodes >= (loop.epoch + 1) * cfg.epoch_episodes or loop.episodes >= cfg.episodes:
                 epochs_this_call += 1
                 # stopping this call (max_epochs) always checkpoints, whatever checkpoint_every says
-                stop = max_epochs is not None and epochs_this_call >= max_epochs and loop["episodes"] < cfg.episodes
+                stop = max_epochs is not None and epochs_this_call >= max_epochs and loop.episodes < cfg.episodes
                 _end_epoch(run, log, stop)
                 if stop:
                     break
     finally:
         log.close()
-    if loop["episodes"] >= cfg.episodes:
+    if loop.episodes >= cfg.episodes:
         # the shareable policy (the network alone), then the mark that the run is finished
         save_policy_file(RunDir(run.out).policy, run.net.state_dict(),
                          RunDir(run.out).method.read_text(encoding="utf-8"), run.settings)
         write_sealed_json(RunDir(run.out).done, {
-            "episodes": loop["episodes"], "env_steps": loop["env_steps"], "updates": run.learner.updates,
-            "wall_s": loop["wall"], "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else []},
+            "episodes": loop.episodes, "env_steps": loop.env_steps, "updates": run.learner.updates,
+            "wall_s": loop.wall, "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else []},
             sort_keys=True)
     return run.out
 
@@ -274,9 +276,12 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     # anything of the run is written; a table without the train or an eval split is refused here too
     net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range)
     net = net.set_stop_gate(cfg.stop_gate, cfg.stop_threshold).to(dev)
-    augment = FeatureDropout(cfg.feature_dropout, seed=seeds.augment, device=dev) if cfg.feature_dropout else None
-    aux = RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev) if cfg.aux_recognition else None
-    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss, augment=augment, aux=aux)
+    feature_dropout = (FeatureDropout(cfg.feature_dropout, seed=seeds.feature_dropout, device=dev)
+                       if cfg.feature_dropout else None)
+    aux_recognition = (RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev)
+                       if cfg.aux_recognition else None)
+    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
+                      feature_dropout=feature_dropout, aux_recognition=aux_recognition)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=seeds.replay, sampling=cfg.replay_sampling, device=dev)
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=seeds.env, features_dtype=torch.float16)
@@ -291,108 +296,39 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     return _Run(out, spec, cfg, settings, net, learner, replay, collector, lookup, evaluator)
 
 
-def _update(run: _Run, log: _Log) -> None:
+def _update(run: _Run, log: TrainLog) -> None:
     """One gradient update on a prioritised batch of replayed episodes."""
     cfg = run.cfg
-    batch = run.replay.sample(cfg.batch_size, cfg.beta(run.loop["episodes"]))
+    batch = run.replay.sample(cfg.batch_size, cfg.beta(run.loop.episodes))
     log.loss, td = run.learner.update(batch, run.lookup)
     run.replay.update_priorities(batch.index, td)
     run.collector.score(batch.scene, td)  # the context sampler's scores (train.context_sampling)
     if run.learner.updates % cfg.target_update == 0:
         run.learner.sync_target()
     if run.learner.updates % TB_EVERY_UPDATES == 0:
-        log.update(cfg.epsilon(run.loop["episodes"]))
+        log.update(cfg.epsilon(run.loop.episodes))
 
 
-def _end_epoch(run: _Run, log: _Log, stop: bool) -> None:
+def _end_epoch(run: _Run, log: TrainLog, stop: bool) -> None:
     """Evaluate on each split, log, and checkpoint (every ``checkpoint_every`` epochs, at the
     end, and when this call stops); none of it counts as training time."""
     cfg, loop = run.cfg, run.loop
-    loop["epoch"] += 1
-    loop["wall"] = time.perf_counter() - log.t0
+    loop.epoch += 1
+    loop.wall = time.perf_counter() - log.t0
     paused = time.perf_counter()
     ret = log.epoch(loop)
     if cfg.eval_splits:
         for split, summary in run.evaluator(run.net).items():
             row = {("eval_episodes" if k == "episodes" else k): v for k, v in summary.items()}
-            run.evals.append({"epoch": loop["epoch"], "episodes": loop["episodes"], "wall_s": loop["wall"],
+            run.evals.append({"epoch": loop.epoch, "episodes": loop.episodes, "wall_s": loop.wall,
                               "split": split, **row})
-            log.evaluation(split, summary, loop["episodes"])
+            log.evaluation(split, summary, loop.episodes)
         write_evals(run.out, run.evals)
-    if loop["epoch"] % cfg.checkpoint_every == 0 or loop["episodes"] >= cfg.episodes or stop:
+    if loop.epoch % cfg.checkpoint_every == 0 or loop.episodes >= cfg.episodes or stop:
         run.save()
     log.writer.flush()
     log.bar.set_postfix(ret=f"{ret:.3f}", eps=f"{log.eps:.2f}", loss=f"{log.loss:.4f}")
     log.t0 += time.perf_counter() - paused
-
-
-class _Log:
-    """The run's TensorBoard scalars and progress bar; ``t0`` is where training time counts from."""
-
-    def __init__(self, run: _Run, progress: bool) -> None:
-        from torch.utils.tensorboard import SummaryWriter
-        from tqdm.auto import tqdm
-
-        self.run, self.progress = run, progress
-        self.writer = SummaryWriter(str(RunDir(run.out).tensorboard))
-        if not run.loop["episodes"]:  # the run's settings, once, as TensorBoard's text and hparams
-            _log_settings(self.writer, run.settings)
-        self.bar = tqdm(total=run.cfg.episodes, initial=min(run.loop["episodes"], run.cfg.episodes), unit="ep",
-                        desc=f"train {run.spec.name}", disable=not progress, dynamic_ncols=True)
-        self.recent: deque[float] = deque(maxlen=1000)
-        self.t0 = time.perf_counter() - run.loop["wall"]
-        self.loss = float("nan")
-        self.eps = float("nan")
-
-    def episodes_done(self, returns: list[float]) -> None:
-        loop = self.run.loop
-        self.recent.extend(returns)
-        self.bar.update(len(returns))
-        if self.progress and (loop["env_steps"] // self.run.cfg.n_envs) % 50 == 0:
-            self.bar.set_postfix(ret=f"{np.mean(self.recent):.3f}", eps=f"{self.run.cfg.epsilon(loop['episodes']):.2f}",
-                                 loss=f"{self.loss:.4f}", refresh=False)
-
-    def update(self, eps: float) -> None:
-        _log_update(self.writer, self.run.learner, self.loss, eps,
-                    self.run.loop["episodes"] / max(time.perf_counter() - self.t0, 1e-9))
-
-    def epoch(self, loop: dict[str, Any]) -> float:
-        ret = float(np.mean(self.recent)) if self.recent else float("nan")
-        for key, value in (("recent_return", ret), ("epsilon", self.eps), ("loss", self.loss),
-                           ("episodes_per_s", loop["episodes"] / max(loop["wall"], 1e-9))):
-            self.writer.add_scalar(f"train/{key}", value, loop["episodes"])
-        return ret
-
-    def evaluation(self, split: str, summary: dict[str, Any], episodes: int) -> None:
-        for key, value in summary.items():
-            if isinstance(value, int | float):
-                self.writer.add_scalar(f"eval_{split}/{key}", value, episodes)
-
-    def close(self) -> None:
-        self.bar.close()
-        self.writer.close()
-
-
-def _log_update(writer: Any, learner: Learner, loss: float, eps: float, episodes_per_s: float) -> None:
-    """The update's diagnostics at step = gradient updates (every TB_EVERY_UPDATES)."""
-    step = learner.updates
-    writer.add_scalar("update/loss", loss, step)
-    for key, value in learner.stats.items():
-        writer.add_scalar(f"update/{key}", value, step)
-    writer.add_scalar("update/epsilon", eps, step)
-    writer.add_scalar("update/episodes_per_s", episodes_per_s, step)
-
-
-def _log_settings(writer: Any, settings: dict[str, Any]) -> None:
-    flat = {f"train.{k}": v for k, v in settings["train"].items()}
-    flat.update({f"env.{k}": v for k, v in settings["env"].items()})
-    flat.update({k: settings[k] for k in ("method", "seed", "state", "head", "table_key", "threads")})
-    hparams = {k: v if isinstance(v, int | float | str | bool) else str(v) for k, v in flat.items()}
-    writer.add_text("settings", "```\n" + json.dumps(settings, indent=1, default=str) + "\n```", 0)
-    from torch.utils.tensorboard.summary import hparams as hparams_summaries
-
-    for summary in hparams_summaries(hparams, {"eval_train/mean_return": float("nan")}):
-        writer._get_file_writer().add_summary(summary)  # in this run's event file (add_hparams opens another)
 
 
 __all__ = ["train", "TrainConfig", "RunDirError", "PerceptionMismatch", "CheckpointError"]
