@@ -45,9 +45,8 @@ def main() -> int:
     from uevavd.experiments.backends import run_jobs
     from uevavd.experiments.jobs import Job, save_spec
     from uevavd.experiments.results import is_done
-    from uevavd.perception.nets import resolve_device
     from uevavd.presets import load_preset, preset_overrides
-    from uevavd.runtime import tune_malloc
+    from uevavd.runtime import resolve_device, tune_malloc
     from uevavd.table import ObservationTable
 
     try:  # before any work: a CUDA device that is not there would otherwise fail in every worker

@@ -162,3 +162,81 @@ def test_the_whole_import_graph_has_no_cycle_beside_the_written_lazy_edges():
                        if t != name and (rel, node.module) not in MUTUAL}
     cycles = _cycles(graph)
     assert not cycles, f"import cycles outside the written lazy edges: {cycles}"
+
+
+#: The layers, bottom first (docs/architecture.md draws the same order): a module may import its
+#: own layer and those below it. Each package's ``cli.py`` and the entry modules form the top
+#: layer, the commands: they load the layers lazily. A name is a module or a package (all its
+#: modules); the longest match decides.
+LAYERS = (
+    ("foundation", ("uevavd.version", "uevavd.paths", "uevavd.atomic", "uevavd.hashing", "uevavd.runtime")),
+    ("plugins", ("uevavd.plugins",)),
+    ("config", ("uevavd.config_rules", "uevavd.config")),
+    ("data", ("uevavd.data",)),
+    ("presets", ("uevavd.presets",)),
+    ("table", ("uevavd.table", "uevavd.toy")),
+    ("perception", ("uevavd.perception",)),
+    ("zoo", ("uevavd.zoo",)),
+    ("env", ("uevavd.env",)),
+    ("state", ("uevavd.state",)),
+    ("policy", ("uevavd.policy",)),
+    ("pretrained", ("uevavd.pretrained",)),
+    ("experiments", ("uevavd.experiments",)),
+    ("testing", ("uevavd.testing",)),
+    ("commands", ("uevavd", "uevavd.cli", "uevavd.api", "uevavd.info")),
+)
+#: Imports allowed to go up, each with its reason (none today).
+UPWARD_ALLOWED: dict[tuple[str, str], str] = {}
+#: Import cycles (every import counted: module level, inside functions, under TYPE_CHECKING) are
+#: allowed inside one layer only, and at most this many.
+MAX_CYCLES = 3
+
+
+def _layer(module: str) -> int:
+    if module == "uevavd.cli" or module.endswith(".cli"):
+        return len(LAYERS) - 1
+    best = max(((len(name), i) for i, (_, names) in enumerate(LAYERS) for name in names
+                if module == name or module.startswith(name + ".")), default=None)
+    assert best is not None, f"{module} is in no layer of tests/test_architecture.py's LAYERS"
+    return best[1]
+
+
+def _all_edges(root: Path = ROOT) -> dict[str, set[str]]:
+    """module -> the package's modules it imports, every import statement counted."""
+    mods = _modules(root)
+    return {name: {t for node in ast.walk(tree) if _own_import(node) for t in _target(mods, name, path, node)
+                   if t != name} for name, (path, tree) in mods.items()}
+
+
+def upward_imports(root: Path = ROOT) -> list[str]:
+    """Each import of a module of a higher layer, as ``importer -> imported (layer -> layer)``."""
+    out = []
+    for name, deps in _all_edges(root).items():
+        for dep in sorted(deps):
+            if _layer(dep) > _layer(name) and (name, dep) not in UPWARD_ALLOWED:
+                out.append(f"{name} -> {dep} ({LAYERS[_layer(name)][0]} -> {LAYERS[_layer(dep)][0]})")
+    return out
+
+
+def test_every_import_goes_down_the_layers():
+    up = upward_imports()
+    assert not up, f"imports going up the layers (docs/architecture.md): {up}"
+
+
+def test_import_cycles_stay_inside_one_layer_and_are_few():
+    cycles = _cycles(_all_edges())
+    across = [c for c in cycles if len({LAYERS[_layer(m)][0] for m in c}) > 1]
+    assert not across, f"import cycles between layers: {across}"
+    assert len(cycles) <= MAX_CYCLES, f"{len(cycles)} import cycles, at most {MAX_CYCLES}: {cycles}"
+
+
+def test_the_layer_check_fails_on_an_import_going_up(tmp_path):
+    """The check itself: a copy of the package with one upward import added is refused."""
+    import shutil
+
+    copy = tmp_path / "uevavd"
+    shutil.copytree(ROOT, copy, ignore=shutil.ignore_patterns("__pycache__", "model_zoo"))
+    env = copy / "env" / "config.py"
+    env.write_text(env.read_text(encoding="utf-8") + "\nfrom ..experiments import runner  # noqa\n", encoding="utf-8")
+    assert upward_imports(copy) == ["uevavd.env.config -> uevavd.experiments.runner (env -> experiments)"]
+    assert not upward_imports(ROOT)

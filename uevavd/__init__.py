@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from .version import __version__
 
 #: The researcher's API (:mod:`uevavd.api`), importable from the top level.
 API = ("train_classifier", "build_table", "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained",

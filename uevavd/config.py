@@ -34,7 +34,7 @@ import os
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .atomic import atomic_write
 from .config_rules import (
@@ -59,10 +59,6 @@ from .hashing import json_digest
 # plugins only when first asked (importing it is light)
 from .plugins.manager import manager
 from .plugins.registry import UnknownComponentError, import_target, resolve_method_target
-
-if TYPE_CHECKING:  # the typed sections' classes live in the layers that consume them
-    from .env.config import EnvConfig
-    from .policy.config import TrainConfig
 
 
 # -- locating method files ------------------------------------------------------------------
@@ -218,11 +214,11 @@ class MethodSpec:
 
     # -- typed sections: what the consumers read (one decoding of the dict, here) -------------
     @property
-    def env(self) -> EnvConfig:
+    def env(self) -> Any:  # EnvConfig, from the env layer above: named by string, never imported
         """``[env]`` as an :class:`~uevavd.env.config.EnvConfig` (the paper's values where unset)."""
         return _section_class("env")().replace(**thaw(self.data.get("env", {})))
 
-    def train_config(self, **runtime: Any) -> TrainConfig:
+    def train_config(self, **runtime: Any) -> Any:  # TrainConfig, from the policy layer above
         """``[train]`` as a :class:`~uevavd.policy.config.TrainConfig`, with the ``runtime``
         values a run adds (``seed``, ``episodes``) over the file's."""
         return _section_class("train").from_dict({**thaw(self.data.get("train", {})), **runtime})

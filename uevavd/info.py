@@ -17,11 +17,11 @@ def add_info(parser: argparse.ArgumentParser):
 
 
 def info_dict() -> dict[str, Any]:
-    from . import __version__
     from .paths import cache_dir, tables_dir, torch_hub_dir
     from .plugins.manager import manager
     from .plugins.registry import KINDS
     from .presets import known_presets, preset_dir
+    from .version import __version__
 
     out: dict[str, Any] = {
         "uevavd": __version__,

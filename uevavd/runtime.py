@@ -76,6 +76,22 @@ def single_threaded_worker() -> None:
     threadpool_limits(1)
 
 
+def resolve_device(device: str) -> Any:
+    """``"auto"`` -> cuda when available else cpu; anything else as torch reads it, refused in
+    one line where it is not a device or not there (before any work is done)."""
+    import torch
+
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise ValueError(f"device {device!r}: expected 'auto', 'cpu', 'cuda' or 'cuda:N'") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} requested but no CUDA device is available; use device='auto'")
+    return dev
+
+
 @contextlib.contextmanager
 def torch_threads(n: int | None):
     """torch's CPU thread count set to ``n`` for the block and restored after it (``None``:

@@ -41,6 +41,7 @@ from .data.grid import N_VIEWS
 from .data.splits import SPLITS, TARGETS, VALIDATION, block_of, first_per_block, resolve_split
 from .hashing import arrays_sha256, file_sha256, json_digest
 from .paths import tables_dir
+from .version import __version__
 
 SCHEMA_VERSION = 1
 ARRAYS = ("features", "probs", "boxes", "visible")
@@ -458,8 +459,6 @@ def select_scenes(table: ObservationTable, split: str, contexts: Any = None, *, 
 
 
 def _versions() -> dict[str, str]:
-    from . import __version__
-
     out = {"uevavd": __version__, "numpy": np.__version__}
     try:  # torch is optional for tables built from arrays
         import torch

@@ -64,7 +64,7 @@ def test_export_minari_refuses_an_unknown_policy_in_one_line(table, tmp_path, mo
 def test_a_trained_run_exports_like_a_baseline(table, tmp_path, monkeypatch):
     """`--policy RUN_FOLDER`: a trained run's greedy policy, recorded step by step."""
     from uevavd.config import load_method
-    from uevavd.env.minari_export import export_minari
+    from uevavd.policy.minari_export import export_minari
     from uevavd.policy.trainer import train
 
     monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
@@ -175,7 +175,7 @@ def test_the_random_policys_stream_runs_on_across_exported_episodes(table):
     2,000 episodes held a few dozen distinct action sequences and stopped far less often than the
     same policy does in an evaluation."""
     from uevavd.env import EnvConfig, RandomPolicy, evaluate_policy
-    from uevavd.env.minari_export import collect_episodes
+    from uevavd.policy.minari_export import collect_episodes
 
     buffers, _ = collect_episodes(table, "train", RandomPolicy(seed=0), episodes=300, progress=False)
     sequences = {tuple(map(tuple, b.actions.tolist())) for b in buffers}
@@ -193,8 +193,8 @@ def test_a_table_outside_the_cache_is_refused_before_collecting_and_nothing_is_l
     leaving a dataset folder that blocked a rerun with the same id; a write that fails midway
     leaves nothing either, and recover_environment's missing table says how to get it back."""
     from uevavd.cli import main
-    from uevavd.env import minari_export
     from uevavd.paths import tables_dir
+    from uevavd.policy import minari_export
 
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
@@ -250,7 +250,7 @@ KILLED_EXPORT = """
 import os, signal, sys
 import minari
 from uevavd.cli import main
-from uevavd.env import minari_export
+from uevavd.policy import minari_export
 
 def die(*a, **k):
     os.kill(os.getpid(), signal.SIGKILL)

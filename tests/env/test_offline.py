@@ -13,7 +13,7 @@ minari = pytest.importorskip("minari", reason="the clients extra: pip install -e
 
 @pytest.fixture
 def oracle_dataset(table, tmp_path, monkeypatch):
-    from uevavd.env.minari_export import export_minari
+    from uevavd.policy.minari_export import export_minari
 
     monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))

@@ -2,7 +2,7 @@
 
 Offline-RL libraries take a ``Box`` observation and a ``Discrete`` action; the env's
 observation is a ``Dict`` and its action ``MultiDiscrete([7, A])``. One call turns an
-exported dataset (:mod:`uevavd.env.minari_export`) into flat arrays, and one class turns a
+exported dataset (:mod:`uevavd.policy.minari_export`) into flat arrays, and one class turns a
 flat policy back into one the evaluation runs::
 
     flat = flat_dataset(minari.load_dataset("uevavd/quick-hard-oracle-v0"))

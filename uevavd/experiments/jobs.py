@@ -3,34 +3,13 @@ function a worker process or Ray task runs for it."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import MethodSpec, load_method
 from ..policy.trainer import train
 from ..runtime import tune_malloc
-from .plan import Plan
+from .plan import Job, Plan
 from .results import final_eval
-
-
-@dataclass(frozen=True)
-class Job:
-    """One training run: a method at one setting and seed, on one recognizer's table."""
-
-    method: str
-    setting: str
-    seed: int
-    spec_path: str  #: resolved method spec (TOML), written by the driver
-    table: str  #: observation table folder
-    out: str  #: run directory
-    threads: int = 1  #: torch threads for a method that sets train.threads = 0 (cores // workers)
-    device: str = "cpu"
-    recognizer: int = 0  #: which recognizer (its training seed) the table's probabilities come from
-    episodes: int = 0  #: the episodes the run trains (its spec's train.episodes), for the progress bar
-
-    @property
-    def key(self) -> str:
-        return f"{self.method}/{self.setting}/rec{self.recognizer}/seed{self.seed}"
 
 
 def save_spec(spec: MethodSpec, path: Path) -> Path:

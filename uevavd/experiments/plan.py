@@ -16,9 +16,9 @@ from ..config import MethodSpec, known_methods, load_method, parse_override
 from ..config_rules import check_count, did_you_mean
 from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
-from ..perception.nets import resolve_device
 from ..perception.training.classifier import ClassifierRecipe
 from ..presets import load_preset, preset_overrides
+from ..runtime import resolve_device
 
 #: The paper's default reward settings; sweeps vary one of them.
 DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
@@ -348,3 +348,23 @@ def env_config(plan: Plan, setting: dict[str, float]):
     exist in the first method, and does not change the env."""
     env_only = {k: v for k, v in setting.items() if SWEEPABLE.get(k, k).startswith("env.")}
     return plan.spec(plan.methods[0], env_only).env
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training run: a method at one setting and seed, on one recognizer's table."""
+
+    method: str
+    setting: str
+    seed: int
+    spec_path: str  #: resolved method spec (TOML), written by the driver
+    table: str  #: observation table folder
+    out: str  #: run directory
+    threads: int = 1  #: torch threads for a method that sets train.threads = 0 (cores // workers)
+    device: str = "cpu"
+    recognizer: int = 0  #: which recognizer (its training seed) the table's probabilities come from
+    episodes: int = 0  #: the episodes the run trains (its spec's train.episodes), for the progress bar
+
+    @property
+    def key(self) -> str:
+        return f"{self.method}/{self.setting}/rec{self.recognizer}/seed{self.seed}"

@@ -7,7 +7,7 @@ import json
 import logging
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -19,13 +19,10 @@ from ..env.evaluate import evaluate_gated, evaluate_policy, stopping_summary
 from ..policy.acting import load_policy
 from ..policy.rundir import RunDir, read_done, read_evals, read_settings
 from ..table import ObservationTable
-from .plan import SWEEPABLE, AblationError, Plan, env_config
+from .plan import SWEEPABLE, AblationError, Job, Plan, env_config
 from .report_data import STOPPING
 
 log = logging.getLogger(__name__)
-
-if TYPE_CHECKING:  # pragma: no cover
-    from .jobs import Job
 
 RESULT_COLUMNS = [
     "method", "recognizer", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return",

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 
 from ..atomic import atomic_write_json, is_temporary, write_sealed_json
-from ..config import ConfigError
+from ..config_rules import ConfigError
 from ..env.baselines import check_baselines
 from ..policy.contract import build_checked_network
 from .audit import audit_table, classifier_summary

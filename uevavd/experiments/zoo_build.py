@@ -9,7 +9,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
 from ..atomic import atomic_write, atomic_write_json
 from ..data.reader import read_dataset
 from ..hashing import file_sha256
@@ -20,6 +19,7 @@ from ..policy.checkpoint import read_policy_file
 from ..policy.rundir import RunDir
 from ..presets import world_contexts, world_root
 from ..pretrained import evaluate_pretrained
+from ..version import __version__
 from ..zoo import (
     FORMAT,
     MANIFEST,

@@ -53,7 +53,7 @@ def add_train_classifier(p: argparse.ArgumentParser):
 
     def run(args) -> int:
         from ..presets import load_preset
-        from .nets import resolve_device
+        from ..runtime import resolve_device
         from .training.classifier import ClassifierRecipe, train_classifier
 
         given = {k: getattr(args, k) for k in RECIPE_OPTIONS if getattr(args, k) is not None}

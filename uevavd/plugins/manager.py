@@ -20,6 +20,7 @@ from typing import Any
 
 import pluggy
 
+from ..version import __version__
 from . import ENTRY_POINT_GROUP, PROJECT, hookspecs
 from .registry import KINDS, Entry, KindRegistry, PluginError, Registry, StrictPluginError
 
@@ -138,8 +139,6 @@ class PluginManager:
 
     # -- loading ------------------------------------------------------------------------
     def _load_all(self) -> None:
-        from .. import __version__
-
         pm = pluggy.PluginManager(PROJECT)
         pm.add_hookspecs(hookspecs)
         self._pm = pm

@@ -96,7 +96,8 @@ def add_train(p: argparse.ArgumentParser):
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     def run(args: argparse.Namespace) -> int:
-        from ..config import ConfigError, load_method
+        from ..config import load_method
+        from ..config_rules import ConfigError
         from .rundir import RunDirError
         from .trainer import train
 

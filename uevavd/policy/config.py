@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from ..config import ConfigError
+from ..config_rules import ConfigError
 from .network import STOP_GATES
 from .replay import SAMPLINGS
 

@@ -24,15 +24,15 @@ import numpy as np
 import torch
 
 from ..atomic import remove_temporaries, write_sealed_json
-from ..config import ConfigError, MethodSpec, PerceptionSection
-from ..config_rules import dotted_get
+from ..config import MethodSpec, PerceptionSection
+from ..config_rules import ConfigError, dotted_get
 from ..data.grid import N_TYPES
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
-from ..perception.nets import resolve_device
-from ..runtime import torch_threads
+from ..runtime import resolve_device, torch_threads
 from ..table import load_table
+from ..version import __version__
 from .acting import GreedyPolicy
 from .checkpoint import (
     CheckpointError,
@@ -55,8 +55,6 @@ TB_EVERY_UPDATES = 100
 
 
 def _versions() -> dict[str, str]:
-    from .. import __version__
-
     return {"uevavd": __version__, "torch": torch.__version__, "numpy": np.__version__, "python": platform.python_version()}
 
 

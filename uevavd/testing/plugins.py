@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import ConfigError, load_method
+from ..config import load_method
+from ..config_rules import ConfigError
 from ..env.baselines import evaluate_beside_baselines
 from ..env.config import make_config
 from ..env.evaluate import evaluate_policy

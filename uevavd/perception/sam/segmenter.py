@@ -16,8 +16,8 @@ import torch
 import torch.nn.functional as F
 from segment_anything import SamPredictor
 
+from ...runtime import resolve_device
 from ..base import Segmentation
-from ..nets import resolve_device
 from .model import LoadedSam
 from .prompts import box_mask, centre_box, clip_box, make_disjoint, merge_duplicates, ring_points
 

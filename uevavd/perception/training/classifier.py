@@ -28,11 +28,11 @@ import torch.nn.functional as F
 from ...atomic import check_writable
 from ...data.reader import read_dataset
 from ...data.splits import TARGETS
-from ...runtime import torch_threads
+from ...runtime import resolve_device, torch_threads
 from ..classifier import classifier_cache_path, data_hash, train_records, write_classifier_file
 from ..efficientnet import LITE0_FILE, LITE_MEAN, LITE_STD, check_size, imagenet_backbone, make_lite0
 from ..images import Decoder
-from ..nets import IMAGENET_MEAN, IMAGENET_STD, resolve_device
+from ..nets import IMAGENET_MEAN, IMAGENET_STD
 from ..weights import (
     WeightsError,
     imagenet_path,

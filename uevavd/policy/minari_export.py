@@ -37,15 +37,17 @@ import torch
 
 from ..atomic import folder_lock, remove_temporaries
 from ..config_rules import check_count, did_you_mean, parse_override
+from ..env import ENV_ID
+from ..env.aod_env import AODEnv
+from ..env.baselines import PassivePolicy, RandomPolicy
+from ..env.config import EnvConfig, make_config
+from ..env.oracle import OraclePolicy
+from ..env.visibility_oracle import VisibilityOraclePolicy
 from ..paths import tables_dir
-from ..policy.acting import load_policy
-from ..policy.rundir import read_settings
 from ..table import load_table
-from .aod_env import AODEnv
-from .baselines import PassivePolicy, RandomPolicy
-from .config import EnvConfig, make_config
-from .oracle import OraclePolicy
-from .visibility_oracle import VisibilityOraclePolicy
+from ..version import __version__
+from .acting import load_policy
+from .rundir import read_settings
 
 BASELINES = ("oracle", "visibility_oracle", "passive", "random")
 #: A Minari dataset id as export-minari writes it: ``[namespace/...]name-vN``, each part letters,
@@ -160,9 +162,6 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
     or ``~/.minari/datasets``)."""
     import gymnasium as gym
     import minari
-
-    from .. import __version__
-    from . import ENV_ID
 
     check_dataset_id(dataset_id)
     table = load_table(table)
