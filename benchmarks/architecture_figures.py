@@ -1,4 +1,4 @@
-"""The package's structure in figures (issue 40), for this checkout and a baseline commit
+"""The package's structure in figures, for this checkout and a baseline commit
 read in the same run: the import-graph walk of tests/test_architecture.py applied to both.
 
 Prints, per checkout: modules and those over 400 lines; imports of the package's own
@@ -9,7 +9,7 @@ and mutual pairs (``MUTUAL``) are left out; private names imported from another 
 a method spec). Nothing is imported from either checkout: both are read as syntax trees.
 
 Run: ``python benchmarks/architecture_figures.py [--baseline 7865887]`` (7865887: the commit
-before issue 40's first change).
+before the structure's review).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """What augmenting the crops before encoding (DrQ / RAD) would cost, against the augmentation of
-the table's features that the library ships (``train.feature_dropout``, issue 38).
+the table's features that the library ships (``train.feature_dropout``).
 
     python benchmarks/bench_crop_augmentation.py [--device cpu] [--threads 2] [--repeats 5] [--run RUN_DIR]
 

@@ -1,4 +1,4 @@
-"""What the integrity checks cost (issue 42): each artefact the library reads back, read with
+"""What the integrity checks cost: each artefact the library reads back, read with
 its digest check and without it, in one process, beside the work that reads it.
 
 On a stand-in table (`uevavd.testing.policy.toy_table`) of the quick preset's size (20 train,

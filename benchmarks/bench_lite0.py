@@ -1,5 +1,5 @@
 """EfficientNet-Lite0 inference as ``prepare`` runs it, against the same model without the
-padding fold, in one process (issue 17: the demo's table stage).
+padding fold, in one process (the demo's table stage).
 
 ``fold_lite0`` folds the batch norms into the convolutions and, for every convolution whose
 TF-"same" padding is symmetric, pads inside ``conv2d`` instead of through a ``ZeroPad2d``

@@ -1,4 +1,4 @@
-"""Rendering speed of the synthetic world, one process (issue 3, part 7).
+"""Rendering speed of the synthetic world, one process.
 
 Prints views per second at 128 and 256 px on a training (urban) and a hard-test (woodland)
 context, over a spread of viewpoints, with wall-clock and CPU time (the machine is shared:

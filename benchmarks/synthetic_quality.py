@@ -1,4 +1,4 @@
-"""Quality of the synthetic world (issue 3, part 6): visible-fraction statistics per split,
+"""Quality of the synthetic world: visible-fraction statistics per split,
 from a written world or rendered in memory, and the contact sheets of
 ``docs/synthetic_world.md``.
 

@@ -11,7 +11,7 @@ import uevavd
 ROOT = Path(uevavd.__file__).resolve().parent
 MAX_LINES = 400
 #: modules that may run longer because one job needs them whole, with their own limit; their
-#: functions stay short instead (issue 40: a split made only for length leaks private names)
+#: functions stay short instead (a split made only for length leaks private names)
 ONE_JOB = {"table.py": 480}  # the observation table: build, check, select, save and load one contract
 ONE_JOB_FUNCTION_LINES = 50
 #: where an import of the package's own modules may sit inside a function, and why
@@ -125,7 +125,7 @@ def test_function_level_own_imports_only_where_the_map_allows():
 
 def test_no_private_name_is_imported_across_modules():
     """A name that starts with ``_`` is its module's own: another module that needs it gets
-    it public (issue 40 found 26 such names in 10 imports, left by 400-line splits)."""
+    it public (a review found 26 such names in 10 imports, left by 400-line splits)."""
     leaks = []
     for _name, (path, tree) in _modules().items():
         for node in ast.walk(tree):

@@ -27,7 +27,7 @@ def table():
     return toy_table(n_train=3, n_hard=2, feature_dim=8)
 
 
-# issue 38's training options too: the ensemble head, level replay's sampler, the features'
+# the generalisation training options too: the ensemble head, level replay's sampler, the features'
 # dropout stream and the recognition probe keep their state on the run's device
 @pytest.mark.parametrize("method", ["map", "memo_map", "ibe_map_ens", "ibe_map_plr", "ibe_map_aug", "ibe_map_aux"])
 # cuDNN warns when a GRU's weights are not one flat buffer (then it compacts them every call);

@@ -165,7 +165,7 @@ class PerceptionSection:
     @property
     def recognizer_in_state(self) -> bool:
         """The table's features end with the recognizer's class probabilities on the raw view
-        (issue 38; the paper's state has the image features and the box only)."""
+        (the paper's state has the image features and the box only)."""
         return bool(self.raw.get("recognizer_in_state", False))
 
     def as_dict(self) -> dict[str, Any]:

@@ -227,7 +227,7 @@ def test_train_per_block_keeps_the_first_training_contexts_of_each_block():
     t = _two_block_table()
     two = EnvConfig(train_per_block=2)
     assert sorted(t.contexts[AODEnv(t, "train", two).scenes]) == [1, 2, 31, 32]
-    # the rule is the table's own (issue 40): the env, the trainer and the evaluation ask it
+    # the rule is the table's own: the env, the trainer and the evaluation ask it
     assert sorted(t.contexts[t.select("train", train_per_block=2)]) == [1, 2, 31, 32]
     assert sorted(t.contexts[t.select("validation", train_per_block=2)]) == [3]
     assert t.select("train", [31, 2], train_per_block=2).tolist() == [3, 1]

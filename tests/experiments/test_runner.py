@@ -293,7 +293,7 @@ def test_bad_presets_and_sweeps_are_refused(tmp_path):
     for kw, message in (({"episodes": 0}, r"with --episodes 0 for method 'map': .*train.episodes = 0"),
                         ({"sweeps": {"train.lr": [float("inf")]}, "sweep_methods": ["map"]},
                          r"--sweep train.lr=inf for method 'map'")):
-        with pytest.raises(AblationError, match=message):  # ranges, before anything is written (issue 42)
+        with pytest.raises(AblationError, match=message):  # ranges, before anything is written
             make_plan(preset="quick", out=tmp_path / "e", methods=["map"], **kw)
     assert not (tmp_path / "e").exists()
     bad = tmp_path / "bad.toml"
@@ -801,7 +801,7 @@ def test_result_rows_state_the_reward_constants_the_run_recorded(ablation):
 def test_a_plan_resolves_each_method_spec_once(tiny, monkeypatch, tmp_path):
     """make_plan resolves (and so checks) each (method, setting) it runs once; the stages,
     the runs' spec files and the progress bar read those specs; a worker resolves its run's
-    spec once more, from the file (issue 40: 4 resolutions of one spec before)."""
+    spec once more, from the file (4 resolutions of one spec before)."""
     import uevavd.experiments.jobs as jobs_module
     import uevavd.experiments.plan as plan_module
 

@@ -646,7 +646,7 @@ def test_a_read_only_cache_serves_a_table_it_holds(built, tiny_world, tiny_class
 
 
 def test_a_table_with_the_recognizer_in_the_state(built, tiny_world, tiny_classifier, tmp_path):
-    """perception.recognizer_in_state (issue 38): the features end with the recognizer's class
+    """perception.recognizer_in_state: the features end with the recognizer's class
     probabilities of the raw view; another key, so a policy of one never reads the other's; the
     encoder's cached features are shared; the keys of tables without it do not move."""
     method, path = built

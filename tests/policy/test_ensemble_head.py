@@ -1,4 +1,4 @@
-"""The ensemble head (issue 38): the head protocol, its acting rule, its per-member targets,
+"""The ensemble head: the head protocol, its acting rule, its per-member targets,
 and a method that uses it trained and resumed like any other."""
 
 from __future__ import annotations

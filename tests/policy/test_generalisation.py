@@ -1,4 +1,4 @@
-"""Issue 38's training options: level replay over the training contexts (the sampler's weights,
+"""The generalisation training options: level replay over the training contexts (the sampler's weights,
 the env drawing from them, a run that uses it trained and resumed like any other), the
 features' dropout in the updates and the recognition probe."""
 
@@ -75,7 +75,7 @@ def test_a_level_replay_run_skews_its_contexts_and_resumes_bit_for_bit(tmp_path)
 
 
 def test_feature_dropout_augments_the_updates_only_and_resumes_bit_for_bit(tmp_path):
-    """train.feature_dropout (issue 38): the updates read masked, rescaled features from the
+    """train.feature_dropout: the updates read masked, rescaled features from the
     run's own stream, saved with the run; 0 leaves the run as it was (no stream drawn)."""
     from uevavd.policy.learner import FeatureDropout
 
@@ -95,7 +95,7 @@ def test_feature_dropout_augments_the_updates_only_and_resumes_bit_for_bit(tmp_p
 
 
 def test_the_recognition_probe_trains_with_the_state_and_resumes_bit_for_bit(tmp_path):
-    """train.aux_recognition (issue 38): a probe on s_t learns the view's recognition beside the
+    """train.aux_recognition: a probe on s_t learns the view's recognition beside the
     TD loss; it shapes the network (other weights than without it), its weights and their Adam
     state are saved with the run, and the policy file holds the network alone."""
     from safetensors.torch import load_file

@@ -94,7 +94,7 @@ class JointDuelingHead(nn.Module):
 
 
 class EnsembleBranchingHead(nn.Module):
-    """``members`` two-channel dueling heads on one state (issue 38: an ensemble for acting).
+    """``members`` two-channel dueling heads on one state (an ensemble for acting).
 
     Each member learns its own double-DQN target (its own greedy next action, valued by its own
     target copy), so the members differ only by their initial weights and agree where the data

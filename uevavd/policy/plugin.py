@@ -12,4 +12,4 @@ def register_heads(registry):
     registry.add("dueling_joint", "uevavd.policy.heads:build_joint_dueling",
                  summary="Joint 28-way dueling head over (type, range)")
     registry.add("ensemble_branch", "uevavd.policy.heads:build_ensemble_branching",
-                 summary="Ensemble of two-channel dueling heads acting on mean - kappa * std (issue 38)")
+                 summary="Ensemble of two-channel dueling heads acting on mean - kappa * std")
