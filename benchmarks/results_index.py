@@ -133,6 +133,34 @@ def table(folder: str) -> list[str]:
     return out
 
 
+def measurements() -> list[str]:
+    """The index of the speed and cost measurements: each page's closing "Measurements" section
+    (and its subsections), with the commands that measure them."""
+    out = ["## Measurements", "",
+           "Speed and cost, each on its topic page's last section under the command that measures it",
+           "(a script in `benchmarks/` printing figures and ratios against a baseline measured in the same",
+           "run), with its machine and date there:", "", "| page | section | measured by |", "|---|---|---|"]
+    for page in sorted(DOCS.glob("*.md")):
+        if page.name == "results.md":
+            continue
+        lines = page.read_text(encoding="utf-8").splitlines()
+        start = next((i for i, line in enumerate(lines) if re.match(r"## Measurements", line)), None)
+        if start is None:
+            continue
+        heads = [(i, line.lstrip("# ").strip()) for i, line in enumerate(lines) if i >= start and line.startswith("#")]
+        for k, (i, head) in enumerate(heads):
+            end = heads[k + 1][0] if k + 1 < len(heads) else len(lines)
+            cmds = sorted({("python " if m.group(1).startswith("benchmarks") else "") + m.group(1)
+                           for line in lines[i + 1:end]
+                           for m in re.finditer(r"(benchmarks/\w+\.py|(?<=`)uevavd [a-z][\w-]*|(?<=^    )uevavd [a-z][\w-]*)",
+                                                line)})
+            if not cmds and k + 1 < len(heads) and heads[k + 1][0] - i < 6:
+                continue  # a heading over its subsections
+            out.append(f"| [{page.name}]({page.name}#{anchor(head)}) | {head} | "
+                       f"{', '.join(f'`{c}`' for c in cmds[:3]) or 'see the section'} |")
+    return out + [""]
+
+
 def render() -> str:
     lines = [
         "# Results",
@@ -155,6 +183,7 @@ def render() -> str:
             lines += table(folder)
             lines += ["", f"Files: [results/{folder}/](results/{folder}/report.md) · discussed in "
                           f"[{page}, \"{section}\"]({page}#{anchor(section)})", ""]
+    lines += measurements()
     listed = {f for _, fs in GROUPS for f in fs}
     missing = sorted(p.name for p in RESULTS.iterdir() if p.is_dir() and p.name not in listed)
     if missing:
