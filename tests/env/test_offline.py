@@ -69,7 +69,7 @@ def test_a_flat_policy_is_scored_by_the_evaluation_as_its_actions_say(table, ora
         evaluate_policy(table, "hard", FlatPolicy(lambda x: np.full(len(x), 99), max_range=4), EnvConfig())
 
 
-def test_d3rlpy_discrete_bc_trains_on_the_flat_view_and_is_evaluated(table, oracle_dataset):
+def test_d3rlpy_discrete_bc_trains_on_the_flat_view_and_is_evaluated(table, oracle_dataset, tmp_path, monkeypatch):
     """d3rlpy's DiscreteBC on the flat view, then scored by uevavd's evaluation beside the
     oracle it cloned and the random policy."""
     d3rlpy = pytest.importorskip("d3rlpy", reason="the d3rlpy extra: pip install -e '.[d3rlpy]' (it pins gymnasium "
@@ -83,7 +83,9 @@ def test_d3rlpy_discrete_bc_trains_on_the_flat_view_and_is_evaluated(table, orac
                                      action_size=flat.n_actions)
     d3rlpy.seed(0)
     bc = d3rlpy.algos.DiscreteBCConfig(batch_size=64, learning_rate=3e-3).create(device="cpu:0")
-    bc.fit(data, n_steps=1500, n_steps_per_epoch=1500, show_progress=False, save_interval=10**9)
+    monkeypatch.chdir(tmp_path)  # d3rlpy writes its logs under the working folder
+    bc.fit(data, n_steps=1500, n_steps_per_epoch=1500, show_progress=False, save_interval=10**9,
+           logger_adapter=d3rlpy.logging.NoopAdapterFactory())
     agree = float((bc.predict(flat.observations) == flat.actions).mean())
     assert agree > 0.6, agree
     cfg = EnvConfig()
