@@ -366,7 +366,7 @@ def prepare_table(
                 shards[scene] = done
         bar = tqdm(total=len(scenes) * N_VIEWS, initial=len(shards) * N_VIEWS, desc=f"prepare {key[:8]}",
                    unit="view", disable=not progress)
-        with Decoder(workers) as dec:
+        with Decoder(workers) as dec, bar:  # the bar ends its line also when a scene fails
             nxt = dec.submit(_load_scene, dec, manifest, *todo[0], segmenter, gray_seed) if todo else None
             for i, (scene, recs) in enumerate(todo):
                 loaded = nxt.result()
@@ -378,7 +378,6 @@ def prepare_table(
                 write_shard(partial / f"{scene}.npz", arrays)
                 shards[scene] = arrays
                 bar.update(N_VIEWS)
-        bar.close()
         if not assemble:
             return partial
         names = [s for s, _ in scenes]
