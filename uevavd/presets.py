@@ -4,13 +4,12 @@ scale at 64 px, about an hour on 2 cores; ``paper`` is the paper's full protocol
 
 from __future__ import annotations
 
-import difflib
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from .config_rules import parse_override
+from .config_rules import did_you_mean, parse_override
 from .data.splits import resolve_split, split_of, subset
 from .hashing import json_digest
 from .paths import cache_dir
@@ -35,9 +34,8 @@ def load_preset(name_or_path: str | Path) -> dict[str, Any]:
     if p.suffix != ".toml":
         p = preset_dir() / f"{name_or_path}.toml"
         if not p.is_file():
-            near = difflib.get_close_matches(str(name_or_path), known_presets(), n=1)
-            hint = f"; did you mean {near[0]!r}?" if near else ""
-            raise ValueError(f"unknown preset {name_or_path!r}: known presets are {known_presets()}{hint}")
+            raise ValueError(f"unknown preset {name_or_path!r}: known presets are {known_presets()}"
+                             f"{did_you_mean(str(name_or_path), known_presets())}")
     elif not p.is_file():
         raise FileNotFoundError(f"preset file {p} does not exist")
     with p.open("rb") as f:

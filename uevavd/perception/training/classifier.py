@@ -12,7 +12,6 @@ installed package), or random.
 
 from __future__ import annotations
 
-import difflib
 import logging
 import math
 import time
@@ -26,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from ...atomic import check_writable
+from ...config_rules import did_you_mean
 from ...data.reader import read_dataset
 from ...data.splits import TARGETS
 from ...runtime import resolve_device, torch_threads
@@ -83,9 +83,7 @@ class ClassifierRecipe:
         known = sorted(cls.__dataclass_fields__)
         unknown = sorted(set(values) - set(known))
         if unknown:
-            near = difflib.get_close_matches(unknown[0], known, n=1)
-            hint = f"; did you mean {near[0]!r}?" if near else ""
-            raise ValueError(f"{where}: no key {unknown[0]!r}{hint} (accepted keys: {known})")
+            raise ValueError(f"{where}: no key {unknown[0]!r}{did_you_mean(unknown[0], known)} (accepted keys: {known})")
         recipe = cls(**values)
         try:
             recipe.check()
