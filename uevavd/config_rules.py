@@ -66,6 +66,14 @@ def check_widths(section: str, **widths: Any) -> None:
             raise ConfigError(f"{section}.{key} = {v!r}: expected a layer width, an integer in 1..{MAX_WIDTH}")
 
 
+def check_flag(section: str, key: str, value: Any) -> bool:
+    """Refuse a switch of a component section that is not a TOML boolean, naming the key (a
+    string "false" would switch it on)."""
+    if not isinstance(value, bool):
+        raise ConfigError(f"{section}.{key} = {value!r}: expected true or false")
+    return value
+
+
 # -- overrides ------------------------------------------------------------------------------
 def parse_override(text: str) -> tuple[str, Any]:
     """``"head.hidden=256"`` -> ``("head.hidden", 256)``; values are TOML, else strings."""
@@ -244,6 +252,10 @@ def validate(data: Mapping[str, Any], source: str = "<method>") -> None:
         section = data.get(where)
         if section:
             _check_fields(where, section, _dataclass_fields(target), source)
+    if dotted_get(data, "state.pose") is True and dotted_get(data, "env.pose") is not True:
+        # the state reads the observation's pose entry, which only env.pose puts there
+        raise ConfigError(f"{source}: state.pose = true reads the observation's pose, which env.pose = true adds: "
+                          "set env.pose = true too")
 
 
 def dotted_get(data: Mapping[str, Any], dotted: str) -> Any:

@@ -17,6 +17,8 @@ Observation (``Dict``):
 * ``"action_mask"`` (7, A) int8: 1 where the action is allowed without clamping
   (stop always 1); use it or ignore it - clamped moves are legal
 * ``"t"`` Discrete(T_max + 1): decisions taken so far
+* ``"pose"`` (3,) float32, only with ``pose=True`` (:attr:`EnvConfig.pose`): the viewpoint's
+  (x, y, z) in metres relative to the target (target at the origin, z the height above it)
 
 ``info``, the same keys and types at every step: ``view`` (index), ``xyz`` (metres),
 ``probs`` (K,) float32, ``visible`` (fraction; -1.0 where the table does not know it: a NaN
@@ -153,12 +155,15 @@ class AODEnv(gym.Env):
     # -- helpers ----------------------------------------------------------------------------
     def _obs(self) -> dict[str, Any]:
         s, v = self._scene, self._view
-        return {
+        obs = {
             "features": np.array(self.table.features[s, v], dtype=np.float32),
             "box": np.array(self.table.boxes[s, v], dtype=np.float32),
             "action_mask": self._mask_i8[v].copy(),
             "t": np.int64(self._t),  # as Discrete(t_max + 1).sample() gives it
         }
+        if self.config.pose:
+            obs["pose"] = self._coords[v].astype(np.float32)
+        return obs
 
     def _info(self, stopped: bool = False) -> dict[str, Any]:
         """The same keys with the same types at every step (Minari's ``record_infos`` and

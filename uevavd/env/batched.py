@@ -11,7 +11,8 @@ Python loop over environments. API (stable; the DQN trainer builds on it)::
 ``obs``: ``"features"`` (N, D) float32, ``"box"`` (N, 4) float32 XYXY in [0, 1],
 ``"mask"`` (N, 7, A) bool (True = allowed without clamping; stop always True), ``"t"``
 (N,) int64 decisions taken in the current episode, ``"scene"`` (N,) int64 *table* scene
-index, ``"view"`` (N,) int64. ``reward`` (N,) float32, ``done`` (N,) bool (stop or T_max;
+index, ``"view"`` (N,) int64; with ``EnvConfig.pose``, ``"pose"`` (N, 3) float32, the
+viewpoint's (x, y, z) in metres relative to the target. ``reward`` (N,) float32, ``done`` (N,) bool (stop or T_max;
 always a termination, never a truncation: do not bootstrap past it).
 
 For done envs ``obs`` already shows the first view of the next episode; ``info`` holds
@@ -29,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..data.grid import N_TYPES, N_VIEWS, STEP_M, STOP, transitions
+from ..data.grid import N_TYPES, N_VIEWS, STEP_M, STOP, transitions, view_coords
 from ..table import ObservationTable, load_table
 from .config import EnvConfig, make_config
 
@@ -83,6 +84,8 @@ class EnvTensors:
         self.next_view = torch.as_tensor(np.array(tr.next_view), device=dev)
         self.steps = torch.as_tensor(np.array(tr.steps), device=dev)
         self.mask = torch.as_tensor(np.array(tr.mask), device=dev)
+        #: (605, 3) float32 every view's (x, y, z) in metres, target at the origin
+        self.pose = torch.as_tensor(view_coords(np.arange(N_VIEWS)), dtype=torch.float32, device=dev)
         # flat views of the same memory for fast gathers
         self._features_flat = self.features.reshape(len(sel) * N_VIEWS, self.features.shape[2])
         self._boxes_flat = self.boxes.reshape(-1, 4)
@@ -97,7 +100,7 @@ class EnvTensors:
         # index_select on flattened tensors: several times faster than 2-D advanced indexing
         flat = local_scene * N_VIEWS + view
         a = self.config.max_range
-        return {
+        obs = {
             "features": self._features_flat.index_select(0, flat).float(),
             "box": self._boxes_flat.index_select(0, flat),
             "mask": self._mask_flat.index_select(0, view).view(-1, N_TYPES, a),
@@ -105,6 +108,9 @@ class EnvTensors:
             "scene": self.scenes.index_select(0, local_scene),
             "view": view,
         }
+        if self.config.pose:
+            obs["pose"] = self.pose.index_select(0, view)
+        return obs
 
     def check_actions(self, a_type: torch.Tensor, a_range: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         a_type = torch.as_tensor(a_type, device=self.device)

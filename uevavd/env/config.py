@@ -34,7 +34,7 @@ def _where(cond: Any, a: Any, b: Any) -> Any:
 
 #: What a run recorded before an env setting existed ran with: read into its recorded ``env``
 #: section on resume (:func:`uevavd.policy.rundir.with_legacy_settings`).
-LEGACY_ENV = {"train_per_block": 0, "holdout_block": 0}
+LEGACY_ENV = {"train_per_block": 0, "holdout_block": 0, "pose": False}
 #: The longest move that can stay on the grid (across its wider side), and a cap on the
 #: decisions of an episode (the paper's 5; buffers are allocated for t_max + 1 observations).
 MAX_RANGE = max(NX, NY) - 1
@@ -81,6 +81,13 @@ class EnvConfig:
     of its "train" split whole (0 = none): they join the "validation" split, a held-out set
     that is itself a distribution shift (an unseen target in unseen contexts), for choosing a
     setting on training data only. The test splits are untouched."""
+    pose: bool = False
+    """Add a ``pose`` entry to every observation: the viewpoint's (x, y, z) relative to the
+    target, in metres, float32, in the grid's frame (target at the origin; x right, y forward, z
+    up; x, y in -50..50, z in 60..100). The paper's task gives the target's position at the start
+    ("the target's initial position is given beforehand"), so the drone's pose relative to it is
+    information an agent may use; off by default, so the paper's observation (image and box) and
+    every published method's inputs stay as they were."""
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> EnvConfigError:
@@ -90,6 +97,8 @@ class EnvConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= most:
                 raise bad(name, f"an integer in 1..{most}")
+        if not isinstance(self.pose, bool | np.bool_):
+            raise bad("pose", "true or false (add the viewpoint's pose to the observation)")
         v = self.train_per_block
         if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= TRAIN_PER_BLOCK:
             raise bad("train_per_block", f"an integer in 0..{TRAIN_PER_BLOCK} (training contexts per target "

@@ -13,7 +13,8 @@ flat policy back into one the evaluation runs::
     evaluate_policy(table, "hard", FlatPolicy(bc.predict, max_range=flat.max_range))
 
 The flat observation is ``[features (D), box (4), t (1), action_mask (7 * A)]`` as float32
-(:func:`flat_observation`): the mask rides in the observation, so a learner sees which moves
+(:func:`flat_observation`), with the pose (3, metres) after the box where the data has it
+(``EnvConfig.pose``): the mask rides in the observation, so a learner sees which moves
 would be clamped, and :attr:`FlatTransitions.masks` holds it apart (bool) for a learner that
 masks its own outputs. The flat action is ``type * A + range``, as the env's ``actions="flat"``
 form and :class:`~uevavd.env.wrappers.DiscreteActions`.
@@ -30,16 +31,18 @@ import torch
 
 from ..data.grid import N_TYPES
 
-#: The parts of the flat observation, in order.
-FLAT_PARTS = ("features", "box", "t", "action_mask")
+#: The parts of the flat observation, in order ("pose" only where the observation has it).
+FLAT_PARTS = ("features", "box", "pose", "t", "action_mask")
 
 
 def flat_observation(obs: dict[str, Any]) -> np.ndarray:
     """The flat observation of one observation or a batch of them (the env's keys, or the
-    batched interface's, whose mask is ``mask``; numpy or torch): ``[features, box, t,
-    action_mask]`` as float32, one row each."""
+    batched interface's, whose mask is ``mask``; numpy or torch): ``[features, box, (pose,)
+    t, action_mask]`` as float32, one row each; the pose where the observation has one."""
     parts = []
     for key in FLAT_PARTS:
+        if key == "pose" and key not in obs:
+            continue
         value = obs[key] if key in obs or key != "action_mask" else obs["mask"]
         value = value.cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
         if key == "t":
@@ -52,8 +55,8 @@ def flat_observation(obs: dict[str, Any]) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FlatTransitions:
-    """A dataset's steps as flat arrays, one row per decision: ``observations`` (N, D + 5 + 7A)
-    float32, ``actions`` (N,) int64 flat indices, ``rewards`` (N,) float32, ``terminals`` and
+    """A dataset's steps as flat arrays, one row per decision: ``observations`` (N, D + 5 + 7A,
+    and + 3 with the pose) float32, ``actions`` (N,) int64 flat indices, ``rewards`` (N,) float32, ``terminals`` and
     ``timeouts`` (N,) bool (the env's episodes end by termination, never truncation), ``masks``
     (N, 7A) bool (the allowed moves; stop is always allowed)."""
 

@@ -114,6 +114,8 @@ class SB3Policy:
                    "box": torch.as_tensor(obs["box"]).float().cpu().numpy(),
                    "action_mask": torch.as_tensor(obs["mask"]).reshape(n, -1).to(torch.int8).cpu().numpy(),
                    "t": t.numpy()}
+        if "pose" in obs:  # a model trained with EnvConfig.pose
+            sb3_obs["pose"] = torch.as_tensor(obs["pose"]).float().cpu().numpy()
         if self.recurrent:
             flat, self.state = self.model.predict(sb3_obs, state=self.state, episode_start=(t == 0).numpy(),
                                                   deterministic=True)

@@ -1,7 +1,8 @@
 """The env's spaces and its action-mask forms, one definition for the single and the vector env.
 
 Observations: ``features`` (D,) float32 (stored as float16, whose finite range bounds them),
-``box`` (4,) in [0, 1], ``action_mask`` (7, A) int8 and ``t`` (decisions so far, 0..T_max).
+``box`` (4,) in [0, 1], ``action_mask`` (7, A) int8 and ``t`` (decisions so far, 0..T_max); with
+``EnvConfig.pose``, ``pose`` (3,) float32, the viewpoint's (x, y, z) in metres, target at the origin.
 Actions: MultiDiscrete (type 7, range A), or, in the vector env's ``"flat"`` form, one
 Discrete(7 x A) index with the joint mask.
 """
@@ -11,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
-from ..data.grid import N_TYPES, STOP
+from ..data.grid import N_TYPES, STOP, XS, YS, ZS
 from .config import EnvConfig
 
 F16_MAX = float(np.finfo(np.float16).max)
@@ -22,12 +23,16 @@ def observation_space(feature_dim: int, config: EnvConfig, *, actions: str = "mu
     a = config.max_range
     mask = (spaces.Box(0, 1, (N_TYPES * a,), np.int8) if actions == "flat"
             else spaces.Box(0, 1, (N_TYPES, a), np.int8))
-    return spaces.Dict({
+    entries = {
         "features": spaces.Box(-F16_MAX, F16_MAX, (feature_dim,), np.float32),
         "box": spaces.Box(0.0, 1.0, (4,), np.float32),
         "action_mask": mask,
         "t": spaces.Discrete(config.t_max + 1),
-    })
+    }
+    if config.pose:
+        entries["pose"] = spaces.Box(np.array([XS[0], YS[0], ZS[0]], np.float32),
+                                     np.array([XS[-1], YS[-1], ZS[-1]], np.float32), dtype=np.float32)
+    return spaces.Dict(entries)
 
 
 def action_space(config: EnvConfig, *, actions: str = "multi") -> spaces.Space:

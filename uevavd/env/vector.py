@@ -10,7 +10,8 @@ action is one index ``type * A + range`` of ``Discrete(7 * A)`` and the observat
 does for the single env (what SB3's DQN and sb3-contrib's MaskablePPO need).
 
 Observations are those of :class:`~uevavd.env.aod_env.AODEnv` batched: ``features`` (N, D)
-float32, ``box`` (N, 4) float32, ``action_mask`` (N, 7, A) int8 (or (N, 7 * A)), ``t`` (N,)
+float32, ``box`` (N, 4) float32, ``action_mask`` (N, 7, A) int8 (or (N, 7 * A)), with
+``EnvConfig.pose`` ``pose`` (N, 3) float32 metres, ``t`` (N,)
 int64. An episode always ends by termination (stop or T_max), never truncation; where it
 ends, the returned observation is the next episode's first and ``infos["final_obs"]`` holds
 the last one, ``infos["final_info"]`` its step info (Gymnasium's same-step convention), beside
@@ -234,8 +235,11 @@ class AODVectorEnv(gym.vector.VectorEnv):
         mask = obs["mask"].to(torch.int8).cpu().numpy()
         if self.actions == "flat":
             mask = mask.reshape(self.num_envs, -1)
-        return {"features": obs["features"].cpu().numpy(), "box": obs["box"].cpu().numpy(),
-                "action_mask": mask, "t": obs["t"].cpu().numpy()}
+        out = {"features": obs["features"].cpu().numpy(), "box": obs["box"].cpu().numpy(),
+               "action_mask": mask, "t": obs["t"].cpu().numpy()}
+        if "pose" in obs:  # EnvConfig.pose
+            out["pose"] = obs["pose"].cpu().numpy()
+        return out
 
     def _last_obs(self, info: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
         """Every env's observation at the end of its step (before any autoreset)."""

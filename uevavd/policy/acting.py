@@ -22,7 +22,7 @@ import torch
 from ..config import as_method, loads_method
 from ..data.grid import N_VIEWS, STOP
 from ..env.config import EnvConfig, make_config
-from ..state.base import InputGateCache
+from ..state.base import InputGateCache, estimator_boxes, reads_pose
 from ..table import ObservationTable, load_table
 from . import targets as T
 from .checkpoint import (
@@ -116,9 +116,10 @@ class GreedyPolicy:
         return self._proj
 
     @torch.no_grad()
-    def _input_gates(self, flat: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    def _input_gates(self, flat: torch.Tensor, boxes: torch.Tensor, inputs: torch.Tensor) -> torch.Tensor:
         """(N, 3H) GRU input gates W_ih g_t + b_ih of the rows at ``flat`` = scene * 605 + view
-        with ``boxes`` (N, 4); a row is computed the first time it is seen with that box."""
+        with ``boxes`` (N, 4); a row is computed the first time it is seen with that box, from
+        ``inputs``, the estimator's boxes input (the box, and the pose, a function of the view)."""
         est = self.net.estimator
         f = self._features
         if self._gates is None:
@@ -127,11 +128,11 @@ class GreedyPolicy:
             self._gates_box = torch.full((rows, 4), float("nan"), device=self.device)
         new = (self._gates_box.index_select(0, flat) != boxes).any(1)  # NaN: never computed
         if bool(new.any()):
-            idx, box = flat[new], boxes[new]
+            idx, box, inp = flat[new], boxes[new], inputs[new]
             f = f.reshape(-1, f.shape[-1])
             for i in range(0, len(idx), 4096):  # bounds the float32 copy of the features
                 j = idx[i:i + 4096]
-                g = est.encoder(f[j.cpu()].to(self.device).float(), box[i:i + 4096])
+                g = est.encoder(f[j.cpu()].to(self.device).float(), inp[i:i + 4096])
                 self._gates[j] = est.input_gates(g)
             self._gates_box[idx] = box
         return torch.index_select(self._gates, 0, flat, out=self._buffer("gi", len(flat), self._gates.shape[1]))
@@ -144,10 +145,10 @@ class GreedyPolicy:
             buf = self._buffers[name] = torch.empty(rows, width, device=self.device)
         return buf[:rows]
 
-    def _gru_step(self, flat: torch.Tensor, boxes: torch.Tensor, t: torch.Tensor,
+    def _gru_step(self, flat: torch.Tensor, boxes: torch.Tensor, inputs: torch.Tensor, t: torch.Tensor,
                   hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The estimator's step from cached input gates: s_t (N, state_dim), h_t (N, H)."""
-        gates = self._input_gates(flat, boxes)  # a work buffer, which the step may overwrite
+        gates = self._input_gates(flat, boxes, inputs)  # a work buffer, which the step may overwrite
         return self.net.estimator.step_from_gates(gates, hidden, from_zero=bool((t == 0).all()), buffer=self._buffer)
 
     def reset(self, n: int) -> None:
@@ -179,16 +180,18 @@ class GreedyPolicy:
             if not bool(keep.all()):  # x * 1 is x: skip the copy where no episode restarts
                 hidden = hidden * keep[:, None].to(hidden.dtype)
             est = self.net.estimator
+            pose = obs.get("pose") if reads_pose(est) else None
+            inputs = estimator_boxes(est, boxes, None if pose is None else rows(pose).float())
             if self._features is not None:
                 flat = rows(obs["scene"]) * N_VIEWS + rows(obs["view"])
                 if self._gru:
-                    s, hidden = self._gru_step(flat, boxes, t, hidden)
+                    s, hidden = self._gru_step(flat, boxes, inputs, t, hidden)
                 else:
                     proj = self._projections(rows(obs["scene"]))
                     img = proj.view(-1, proj.shape[-1]).index_select(0, flat)
-                    s, hidden = est.step_encoded(est.encoder.combine(img, boxes), hidden)
+                    s, hidden = est.step_encoded(est.encoder.combine(img, inputs), hidden)
             else:
-                s, hidden = est.step(rows(obs["features"]).float(), boxes, hidden)
+                s, hidden = est.step(rows(obs["features"]).float(), inputs, hidden)
             q = self.net.head(s)
             greedy_type, greedy_range = self.net.head.greedy(q, self.net.allowed(mask, boxes, s))
             if live is None:

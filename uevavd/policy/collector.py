@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from ..env.batched import BatchedAODEnv
+from ..state.base import estimator_boxes
 from .acting import epsilon_greedy
 from .level_replay import LevelReplay
 
@@ -91,7 +92,8 @@ class EpisodeCollector:
         t = obs["t"]
         with torch.no_grad():
             self.hidden = self.hidden * (t != 0)[:, None].to(self.hidden.dtype)
-            q, self.hidden = self.net.step(obs["features"], obs["box"], self.hidden)
+            boxes = estimator_boxes(self.net.estimator, obs["box"], obs.get("pose"))
+            q, self.hidden = self.net.step(obs["features"], boxes, self.hidden)
             mask = self.net.allowed(obs["mask"], obs["box"], training=True)  # train.stop_gate "box"
             a_type, a_range = self.net.head.greedy(q, mask)
             a_type, a_range = epsilon_greedy(a_type, a_range, mask, epsilon, self.generator)

@@ -19,8 +19,9 @@ from typing import Any
 import torch
 
 from ..config import Component
-from ..data.grid import DEFAULT_MAX_RANGE, N_TYPES
+from ..data.grid import DEFAULT_MAX_RANGE, N_TYPES, XS, YS, ZS
 from ..plugins.manager import manager
+from ..state.base import reads_pose
 from .network import QNetwork
 
 
@@ -88,7 +89,11 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
     g = torch.Generator().manual_seed(0)
     f = torch.randn(batch, steps, d, generator=g)
     b = torch.rand(batch, steps, 4, generator=g)
-    call = f"forward(features ({batch}, {steps}, {d}) float32, boxes ({batch}, {steps}, 4) float32)"
+    if reads_pose(est):  # the box, then the pose in metres on the grid (uevavd.state.base.estimator_boxes)
+        low, high = torch.tensor([XS[0], YS[0], ZS[0]]), torch.tensor([XS[-1], YS[-1], ZS[-1]])
+        b = torch.cat([b, low + (high - low) * torch.rand(batch, steps, 3, generator=g)], dim=-1)
+    w = b.shape[-1]
+    call = f"forward(features ({batch}, {steps}, {d}) float32, boxes ({batch}, {steps}, {w}) float32)"
     with _probing(est):
         with _calling(what, call):
             s = est(f, b)
@@ -117,7 +122,7 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
               "learn it inside forward/step from a zero memory instead")
         h0 = h
         for t in range(steps):
-            with _calling(what, f"step(features ({batch}, {d}), boxes ({batch}, 4), hidden {tuple(h.shape)})"):
+            with _calling(what, f"step(features ({batch}, {d}), boxes ({batch}, {w}), hidden {tuple(h.shape)})"):
                 out = est.step(f[:, t], b[:, t], h)
             _rule(isinstance(out, tuple) and len(out) == 2, what, "step() must return (s_t (N, state_dim), new hidden (N, H))")
             st, h2 = out

@@ -19,6 +19,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from ..state.base import estimator_boxes, reads_pose
 from . import targets as T
 from .network import QNetwork
 from .replay import EpisodeBatch
@@ -27,11 +28,11 @@ from .replay import EpisodeBatch
 class FeatureLookup:
     """Feature lookup for replayed episodes, sharing the environment's device tensors
     (:class:`uevavd.env.batched.EnvTensors`): features (S', 605, D), boxes (S', 605, 4),
-    mask (605, 7, A) bool, and ``local`` mapping table scene indices to rows."""
+    mask (605, 7, A) bool, pose (605, 3) metres, and ``local`` mapping table scene indices to rows."""
 
     def __init__(self, tensors: Any) -> None:
         self.features, self.boxes, self.mask, self.local = tensors.features, tensors.boxes, tensors.mask, tensors.local
-        self.reco = tensors.reco
+        self.reco, self.pose = tensors.reco, tensors.pose
 
     def recognized_rows(self, scene: torch.Tensor, views: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """(N,) bool: the recognizer recognises each view where ``seen``, in ``seen.nonzero()`` order."""
@@ -50,6 +51,10 @@ class FeatureLookup:
         flat = (self.local[scene][:, None] * self.features.shape[1] + views)[seen]
         f = self.features.reshape(-1, self.features.shape[-1]).index_select(0, flat).float()
         return f, self.boxes.reshape(-1, 4).index_select(0, flat), self.mask[views]
+
+    def pose_rows(self, views: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        """(N, 3) the pose in metres of the views where ``seen``, in ``seen.nonzero()`` order."""
+        return self.pose.index_select(0, views[seen])
 
 
 class FeatureDropout:
@@ -159,10 +164,12 @@ class Learner:
         feats, boxes, mask = lookup.gather_rows(batch.scene, batch.views, seen)
         if self.feature_dropout is not None:
             feats = self.feature_dropout(feats)
-        q_all, s = episode_q(self.net, feats, boxes, seen, with_state=True)
+        est = self.net.estimator  # the estimator's input: the box, and the pose where it reads one
+        inputs = estimator_boxes(est, boxes, lookup.pose_rows(batch.views, seen) if reads_pose(est) else None)
+        q_all, s = episode_q(self.net, feats, inputs, seen, with_state=True)
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
-            q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, boxes, seen, skip_first=True))
+            q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, inputs, seen, skip_first=True))
             if self.net.stop_gate == "box":  # the next decision's allowed actions, as acting saw them
                 seen_boxes = boxes.new_zeros(*seen.shape, 4)
                 seen_boxes[seen] = boxes
@@ -250,7 +257,7 @@ def needed_observations(batch: EpisodeBatch) -> torch.Tensor:
 def episode_q(net: QNetwork, feats: torch.Tensor, boxes: torch.Tensor, seen: torch.Tensor,
               *, skip_first: bool = False, with_state: bool = False) -> Any:
     """Q-values (B, T+1, n) per branch of padded episodes, computed only where ``seen``
-    (B, T+1) (zeros elsewhere). ``feats`` (N, D) / ``boxes`` (N, 4) hold the seen rows in
+    (B, T+1) (zeros elsewhere). ``feats`` (N, D) / ``boxes`` (N, 4; 7 with the pose) hold the seen rows in
     ``seen.nonzero()`` order. A memoryless estimator reads just those rows (and, with
     ``skip_first``, not o_0); a recurrent one is unrolled from the episode start, over
     packed sequences when it offers ``forward_packed`` (else over the padded batch). With
@@ -271,7 +278,7 @@ def episode_q(net: QNetwork, feats: torch.Tensor, boxes: torch.Tensor, seen: tor
     else:
         rows = seen
         pf = feats.new_zeros(b, t1, feats.shape[-1])
-        pb = boxes.new_zeros(b, t1, 4)
+        pb = boxes.new_zeros(b, t1, boxes.shape[-1])
         pf[seen], pb[seen] = feats, boxes
         s = est(pf, pb)[seen]
     out = []

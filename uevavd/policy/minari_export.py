@@ -91,7 +91,8 @@ def policy_env_config(name_or_run: str, overrides: dict[str, Any] | None = None)
 
 def _batched_obs(obs: dict[str, Any], info: dict[str, Any]) -> dict[str, torch.Tensor]:
     """One env's observation as the batched interface a policy acts on (a batch of 1)."""
-    return {
+    pose = {"pose": torch.as_tensor(obs["pose"])[None]} if "pose" in obs else {}  # EnvConfig.pose
+    return {**pose,
         "features": torch.as_tensor(obs["features"])[None],
         "box": torch.as_tensor(obs["box"])[None],
         "mask": torch.as_tensor(obs["action_mask"].astype(bool))[None],

@@ -5,7 +5,10 @@ g_t = [ReLU(Linear(D -> 512)) on the table feature, ReLU(Linear(4 -> 32)) on the
 (544-d). Estimators then map g_t (single view) or g_1..g_t (recurrent) to s_t.
 
 Shapes: features (B, T, D) float32 table features, boxes (B, T, 4) float32 XYXY
-normalised to [0, 1] (all zero = occluded). Sequences start at the episode's first
+normalised to [0, 1] (all zero = occluded). An estimator that reads the viewpoint's pose
+(``pose = True``, the ``state.pose`` setting) takes boxes (B, T, 7): the box, then the pose
+(x, y, z) in metres relative to the target, the env's ``pose`` entry (``env.pose``); see
+:func:`estimator_boxes`. Sequences start at the episode's first
 observation; padding after an episode's end is allowed (causal: position t never reads
 positions > t).
 """
@@ -17,24 +20,63 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import nn
 
+from ..data.grid import XS, YS, ZS
+
+#: The pose's centre and half-span per axis (metres): the encoder reads (pose - centre) / span, in [-1, 1].
+POSE_CENTRE = ((XS[0] + XS[-1]) / 2, (YS[0] + YS[-1]) / 2, (ZS[0] + ZS[-1]) / 2)
+POSE_SPAN = ((XS[-1] - XS[0]) / 2, (YS[-1] - YS[0]) / 2, (ZS[-1] - ZS[0]) / 2)
+#: Columns of an estimator's boxes input: the box (4), then the pose (3) where it reads one.
+BOX_COLUMNS, POSE_COLUMNS = 4, 3
+
+
+def reads_pose(estimator: Any) -> bool:
+    """Whether a state estimator declares that it reads the pose (its optional ``pose``
+    attribute, False where absent: the paper's estimators read the image and the box only)."""
+    return bool(getattr(estimator, "pose", False))
+
+
+def estimator_boxes(estimator: Any, box: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:
+    """What ``estimator`` reads as its ``boxes``: ``box`` (..., 4) itself, or, for an estimator
+    that reads the pose, ``[box, pose]`` (..., 7) with ``pose`` (..., 3) metres (the
+    observation's ``pose``). Raises ValueError where it needs a pose and the observation has none."""
+    if not reads_pose(estimator):
+        return box
+    if pose is None:
+        raise ValueError("the state estimator reads the viewpoint's pose (state.pose = true), but the observation "
+                         "has none: set env.pose = true")
+    return torch.cat([box, pose.to(box.dtype)], dim=-1)
+
 
 class ObservationEncoder(nn.Module):
-    """g_t = [ReLU(W_img f + b), ReLU(W_box b + c)]: (..., D), (..., 4) -> (..., image_dim + box_dim)."""
+    """g_t = [ReLU(W_img f + b), ReLU(W_box b + c)]: (..., D), (..., 4) -> (..., image_dim + box_dim).
 
-    def __init__(self, feature_dim: int, image_dim: int = 512, box_dim: int = 32) -> None:
+    With ``pose_dim`` > 0 the boxes carry the pose too, (..., 7) = [box, pose metres], and g_t
+    gains its own embedding, ReLU(W_pose p + e) of the pose scaled to [-1, 1] per axis
+    (:data:`POSE_CENTRE`, :data:`POSE_SPAN`): (..., image_dim + box_dim + pose_dim)."""
+
+    def __init__(self, feature_dim: int, image_dim: int = 512, box_dim: int = 32, pose_dim: int = 0) -> None:
         super().__init__()
-        if feature_dim < 1 or image_dim < 1 or box_dim < 1:
+        if feature_dim < 1 or image_dim < 1 or box_dim < 1 or pose_dim < 0:
             raise ValueError(
                 f"ObservationEncoder sizes must be >= 1: feature_dim={feature_dim}, "
-                f"image_dim={image_dim}, box_dim={box_dim}"
+                f"image_dim={image_dim}, box_dim={box_dim} (pose_dim={pose_dim} >= 0)"
             )
-        self.feature_dim, self.image_dim, self.box_dim = feature_dim, image_dim, box_dim
+        self.feature_dim, self.image_dim, self.box_dim, self.pose_dim = feature_dim, image_dim, box_dim, pose_dim
         self.image = nn.Linear(feature_dim, image_dim)
-        self.box = nn.Linear(4, box_dim)
+        self.box = nn.Linear(BOX_COLUMNS, box_dim)
+        if pose_dim:  # not in the paper's estimators' state dicts: their files load as before
+            self.pose = nn.Linear(POSE_COLUMNS, pose_dim)
+            self.register_buffer("pose_centre", torch.tensor(POSE_CENTRE), persistent=False)
+            self.register_buffer("pose_span", torch.tensor(POSE_SPAN), persistent=False)
 
     @property
     def out_dim(self) -> int:
-        return self.image_dim + self.box_dim
+        return self.image_dim + self.box_dim + self.pose_dim
+
+    @property
+    def box_columns(self) -> int:
+        """Columns of the boxes input: 4, or 7 with the pose."""
+        return BOX_COLUMNS + (POSE_COLUMNS if self.pose_dim else 0)
 
     def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
         return self.combine(self.project(features), boxes)
@@ -50,8 +92,14 @@ class ObservationEncoder(nn.Module):
         return torch.relu(self.image(features))
 
     def combine(self, image: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
-        """[projected image, ReLU(W_box b + c)] -> g_t (..., image_dim + box_dim)."""
-        return torch.cat([image, torch.relu(self.box(boxes))], dim=-1)
+        """[projected image, ReLU(W_box b + c)(, ReLU(W_pose p + e))] -> g_t (..., out_dim)."""
+        if boxes.shape[-1] != self.box_columns:
+            raise ValueError(f"boxes have {boxes.shape[-1]} columns but the encoder reads {self.box_columns} "
+                             + ("(the box, then the pose: set env.pose = true)" if self.pose_dim else "(the box)"))
+        if not self.pose_dim:
+            return torch.cat([image, torch.relu(self.box(boxes))], dim=-1)
+        pose = (boxes[..., BOX_COLUMNS:] - self.pose_centre) / self.pose_span
+        return torch.cat([image, torch.relu(self.box(boxes[..., :BOX_COLUMNS])), torch.relu(self.pose(pose))], dim=-1)
 
 
 @runtime_checkable
@@ -61,6 +109,9 @@ class StateEstimator(Protocol):
     feature_dim: int  #: D, the table feature size it reads
     state_dim: int  #: size of s_t
     recurrent: bool  #: True when s_t depends on earlier observations
+    # Optional: ``pose: bool`` - True when it reads the viewpoint's pose; its ``boxes`` are then
+    # (..., 7), the box and the pose in metres (:func:`estimator_boxes`). The built-ins take it as
+    # the ``state.pose`` setting; a plugin's builder that accepts ``pose`` gets it the same way.
 
     def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
         """(B, T, D), (B, T, 4) float32 -> (B, T, state_dim) float32: s_t for every t."""
