@@ -30,7 +30,7 @@ def _row(method, seed, setting, thre, C, episodes, final, split, ret, path_steps
 
 
 def make_results(final_returns: dict, *, seeds=(0, 1), noise=0.005, passive=(-0.1, -0.2), oracle=(0.45, 0.4),
-                 box_gate=(-0.05, -0.15), thre_sweep: dict | None = None, c_sweep: dict | None = None) -> pd.DataFrame:
+                 box_gate=(-0.05, -0.15), pose_seek=(-0.04, -0.12), thre_sweep: dict | None = None, c_sweep: dict | None = None) -> pd.DataFrame:
     """``final_returns``: method -> (train return, hard return) at the final point; each
     seed is offset by +-noise; curves ramp up linearly to the final value. Sweeps:
     setting value -> (hard return, path steps, accuracy) for ibe_map."""
@@ -51,6 +51,8 @@ def make_results(final_returns: dict, *, seeds=(0, 1), noise=0.005, passive=(-0.
             rows.append(_row("passive", 0, setting, thre, C, -1, True, split, p, 0.0))
             g = box_gate[0] if split == "train" else box_gate[1]
             rows.append(_row("box_gate", 0, setting, thre, C, -1, True, split, g, 1.0))
+            ps = pose_seek[0] if split == "train" else pose_seek[1]
+            rows.append(_row("pose_seek", 0, setting, thre, C, -1, True, split, ps, 1.0))
             rows.append(_row("oracle", 0, setting, thre, C, -1, True, split, o, 2.0, 0.9))
             for seed, off in zip(seeds, offsets, strict=True):
                 rows.append(_row("random", seed, setting, thre, C, -1, True, split, -0.35 + off, 6.0, 0.4))
@@ -102,8 +104,8 @@ def test_claims_agree_when_constructed_to():
         c_sweep={0.04: (0.25, 2.5, 0.55), 0.06: (0.2, 2.0, 0.5)},
     )
     claims = check_claims(df)
-    assert [c.id for c in claims] == list("abcdef")
-    assert {c.id: c.verdict for c in claims} == dict.fromkeys("abcdef", AGREES)
+    assert [c.id for c in claims] == list("abcdefg")
+    assert {c.id: c.verdict for c in claims} == dict.fromkeys("abcdefg", AGREES)
     assert all("[" in c.evidence for c in claims)  # the intervals are quoted
 
 
@@ -117,6 +119,7 @@ def test_claims_disagree_when_constructed_to():
     assert v["a"] == DISAGREES and v["b"] == DISAGREES and v["c"] == DISAGREES and v["d"] == DISAGREES
     assert v["e"] == CANNOT_TELL  # the C sweep was not run
     assert v["f"] == DISAGREES  # MAP's hard -0.3 is below the box gate's -0.15
+    assert v["g"] == DISAGREES  # and below the pose rule's -0.12
 
 
 def test_box_gate_claim_compares_with_the_box_gate_not_passive():
@@ -127,6 +130,15 @@ def test_box_gate_claim_compares_with_the_box_gate_not_passive():
     assert claims["f"].verdict == DISAGREES and "minus box_gate 0.000" in claims["f"].evidence
     no_gate = df[df["method"] != "box_gate"]
     assert {c.id: c for c in check_claims(no_gate)}["f"].verdict == CANNOT_TELL
+
+
+def test_pose_rule_claim_compares_with_the_pose_rule():
+    # every method above the box gate (-0.15 on hard) but below the pose rule (0.1): (f) agrees, (g) does not
+    df = make_results({"map": (0.5, 0.0), "ibe_map": (0.5, 0.0)}, pose_seek=(0.6, 0.1))
+    claims = {c.id: c for c in check_claims(df)}
+    assert claims["f"].verdict == AGREES
+    assert claims["g"].verdict == DISAGREES and "minus pose_seek 0.100" in claims["g"].evidence
+    assert {c.id: c for c in check_claims(df[df["method"] != "pose_seek"])}["g"].verdict == CANNOT_TELL
 
 
 def test_claims_cannot_tell_when_intervals_overlap_or_one_seed():
@@ -214,15 +226,15 @@ def test_report_has_every_section_and_figure(tmp_path):
     assert "](fig9_curves.png)" in text and "](fig8_strips.png)" in text  # relative links
     assert "thre=0.6" in text and "The C sweep was not run" in text
     assert "could not be found" not in text  # every crop was found by its canonical name
-    for claim in "abcdef":
+    for claim in "abcdefg":
         assert f"**({claim})" in text
     for fig in ("fig9_curves.png", "fig8_strips.png"):
         img = cv2.imread(str(d / "report" / fig))
         assert img is not None and img.shape[0] > 200 and img.shape[1] > 200
         assert (d / "report" / fig).with_suffix(".pdf").read_bytes()[:5] == b"%PDF-"  # vector copy for papers
     summary = pd.read_csv(d / "report" / "summary.csv")
-    # 2 methods + 4 baselines, 3 splits, default setting; ibe_map and baselines also in 2 thre settings
-    assert len(summary) == 6 * 3 + 2 * 5 * 3
+    # 2 methods + 5 baselines, 3 splits, default setting; ibe_map and baselines also in 2 thre settings
+    assert len(summary) == 7 * 3 + 2 * 6 * 3
     hard = summary[(summary["setting"] == "default") & (summary["split"] == "hard")].set_index("method")
     assert hard.loc["ibe_map", "return_mean"] == pytest.approx(0.3)
     assert hard.loc["passive", "return_ci_lo"] == hard.loc["passive", "return_ci_hi"] == pytest.approx(-0.2)
@@ -269,7 +281,7 @@ def test_claim_a_is_checked_on_every_split():
 def _with_exhaustive_final_rows(df, shift=0.2):
     """As the runner writes it: every curve point final=False, plus a final row per split
     (the exhaustive evaluation) at the last episode count, its return shifted."""
-    runs = ~df["method"].isin(("random", "passive", "box_gate", "oracle"))
+    runs = ~df["method"].isin(("random", "passive", "box_gate", "pose_seek", "oracle"))
     last = df[runs & df["final"]].copy()
     df = df.copy()
     df.loc[runs, "final"] = False
@@ -421,7 +433,7 @@ def test_curve_bands_stay_in_the_metrics_range():
 def test_the_report_shows_the_stopping_diagnosis_per_split_and_terrain(tmp_path):
     df = make_results({"map": (0.5, 0.05), "ibe_map": (0.4, 0.1)})
     df["box_start"], df["moved_if_box"], df["box_lost"], df["reco_lost"] = 0.6, 0.3, 0.05, 0.04
-    df.loc[df["method"].isin(("passive", "box_gate")), ["moved_if_box", "box_lost"]] = 0.0
+    df.loc[df["method"].isin(("passive", "box_gate", "pose_seek")), ["moved_if_box", "box_lost"]] = 0.0
     df["gated_return"] = np.where(df["episodes"] >= 0, df["return"] + 0.05, np.nan)
     d = tmp_path / "abl"
     d.mkdir()

@@ -11,7 +11,7 @@ import json
 import numpy as np
 import torch
 
-from ..data.grid import STOP
+from ..data.grid import ACTION_TYPES, N_VIEWS, STEP_M, STOP, view_coords
 from ..plugins.manager import manager
 from ..table import TableError
 from ..toy import toy_table
@@ -116,6 +116,69 @@ def box_gate_move(table, config) -> tuple[int, int, dict[tuple[int, int], float]
 _BOX_GATE_MOVES: dict[tuple[str, str], tuple[int, int, dict[tuple[int, int], float]]] = {}
 
 
+_LEFT, _RIGHT = ACTION_TYPES.index("left"), ACTION_TYPES.index("right")  # -x, +x
+_FORWARD, _BACKWARD = ACTION_TYPES.index("forward"), ACTION_TYPES.index("backward")  # +y, -y
+
+
+class PoseSeekPolicy:
+    """Scripted, from the observed box and the viewpoint's pose relative to the target (which the
+    task gives; read from the view index, so it runs under every env config). The rule, fixed
+    before any run:
+
+    * the observed box is non-empty: stop;
+    * the drone is above the target's column (x = y = 0): stop;
+    * else fly horizontally toward that column along the axis with the larger offset (x on a tie),
+      ``min(offset / 10 m, A)`` grid steps: never past the column, so never clamped at the grid's
+      edge (a move toward the column stays on the grid); the altitude is kept;
+    * after ``moves`` moves: stop.
+
+    ``moves`` (1..T_max) is its one choice, made on the training contexts
+    (:func:`pose_seek_moves`)."""
+
+    needs_features = False
+
+    def __init__(self, moves: int, max_range: int) -> None:
+        if isinstance(moves, bool) or not isinstance(moves, int) or moves < 1 or max_range < 1:
+            raise ValueError(f"pose_seek: moves={moves!r}, max_range={max_range!r}: expected integers >= 1")
+        self.moves, self.max_range = moves, int(max_range)
+        self._pose: torch.Tensor | None = None
+
+    def reset(self, n: int) -> None:
+        pass
+
+    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        view = obs["view"]
+        if self._pose is None or self._pose.device != view.device:
+            self._pose = torch.as_tensor(view_coords(np.arange(N_VIEWS)), dtype=torch.float64, device=view.device)
+        pose = self._pose.index_select(0, view)
+        dx, dy = -pose[:, 0], -pose[:, 1]  # metres to the target's column
+        along_x = dx.abs() >= dy.abs()
+        offset = torch.where(along_x, dx, dy)
+        steps = torch.round(offset.abs() / STEP_M).long().clamp(max=self.max_range)
+        a_type = torch.where(along_x, torch.where(dx > 0, _RIGHT, _LEFT), torch.where(dy > 0, _FORWARD, _BACKWARD))
+        fly = ~box_visible(obs["box"]) & (steps > 0) & (obs["t"] < self.moves)
+        return torch.where(fly, a_type, STOP), torch.where(fly, steps - 1, 0)
+
+
+def pose_seek_moves(table, config) -> tuple[int, dict[int, float]]:
+    """``pose_seek``'s number of moves, chosen on the table's training contexts alone (the
+    ``train`` split under ``config``, as :func:`box_gate_move`): each of 1..T_max evaluated from
+    every start view, the highest mean return wins, ties (to 12 decimals) to the fewest moves.
+    Returns ``(moves, {moves: return})``; a table without training contexts raises
+    :class:`uevavd.table.TableError`."""
+    cfg = make_config(config)
+    key = (table.key, json.dumps(cfg.to_dict(), sort_keys=True))
+    if key not in _POSE_SEEK_MOVES:
+        returns = {k: float(evaluate_policy(table, "train", PoseSeekPolicy(k, cfg.max_range), cfg).ret.mean())
+                   for k in range(1, cfg.t_max + 1)}
+        best = max(returns, key=lambda k: (round(returns[k], 12), -k))
+        _POSE_SEEK_MOVES[key] = (best, returns)
+    return _POSE_SEEK_MOVES[key]
+
+
+_POSE_SEEK_MOVES: dict[tuple[str, str], tuple[int, dict[int, float]]] = {}
+
+
 def build_random(*, table=None, config=None, seed: int = 0) -> RandomPolicy:
     return RandomPolicy(seed)
 
@@ -132,6 +195,16 @@ def build_box_gate(*, table, config, seed: int = 0) -> BoxGatePolicy | None:
     except TableError:
         return None
     return BoxGatePolicy(a_type, a_range)
+
+
+def build_pose_seek(*, table, config, seed: int = 0) -> PoseSeekPolicy | None:
+    """The scripted pose rule with its number of moves chosen on ``table``'s training contexts
+    (:func:`pose_seek_moves`), or None for a table without training contexts."""
+    try:
+        moves, _ = pose_seek_moves(table, config)
+    except TableError:
+        return None
+    return PoseSeekPolicy(moves, make_config(config).max_range)
 
 
 def build_visibility_oracle(*, table, config, seed: int = 0):

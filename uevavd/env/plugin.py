@@ -13,6 +13,9 @@ def register_baselines(registry):
     registry.add("box_gate", "uevavd.env.baselines:build_box_gate",
                  summary="scripted, observation only: stop where the target's box is non-empty, else one fixed "
                          "move chosen on the training contexts")
+    registry.add("pose_seek", "uevavd.env.baselines:build_pose_seek",
+                 summary="scripted, observation and pose: stop where the target's box is non-empty, else fly "
+                         "toward the column above the target (moves chosen on the training contexts)")
     registry.add("visibility_oracle", "uevavd.env.baselines:build_visibility_oracle",
                  summary="knows every view's visible fraction, flies the cheapest path to the most visible "
                          "reachable view (tables with visible fractions)")

@@ -46,6 +46,9 @@ def add_ablate(parser: argparse.ArgumentParser):
     parser.add_argument("--gpus-per-run", type=float, default=0.0,
                         help="Ray: GPUs each run reserves, fractional to share one (e.g. 0.25 with --device cuda)")
     parser.add_argument("--data", default=None, help="a UEVAVD-layout dataset root (default: the preset's synthetic world)")
+    parser.add_argument("--world-seed", type=int, default=None, metavar="N",
+                        help="draw the preset's synthetic world from seed N instead of its [world] seed: the same "
+                             "comparison on another world of the same kind")
     parser.add_argument("--out", required=True, help="results directory (resumes if it holds this ablation)")
     parser.add_argument("--sb3", default=None, metavar="AGENTS",
                         help="also train Stable-Baselines3 agents (dqn, ppo; comma-separated) on the first method's "
@@ -63,7 +66,7 @@ def run_ablate(args: argparse.Namespace) -> int:
                          sweep_methods=args.sweep_methods, data=args.data, workers=args.workers,
                          backend=args.backend, device=args.device, episodes=args.episodes,
                          gpus_per_run=args.gpus_per_run, recognizers=args.recognizers, sb3=args.sb3,
-                         use_zoo=args.use_zoo)
+                         use_zoo=args.use_zoo, world_seed=args.world_seed)
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("ablate", exc)

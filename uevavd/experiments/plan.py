@@ -190,11 +190,17 @@ def make_plan(
     recognizers: int | None = None,
     sb3: str | None = None,
     use_zoo: bool = True,
+    world_seed: int | None = None,
 ) -> Plan:
     try:
         cfg = load_preset(preset)
     except (ValueError, OSError) as exc:  # unknown name (lists the known ones), missing or bad TOML
         raise AblationError(f"--preset: {exc}") from None
+    if world_seed is not None:  # another world drawn the same way: a result must not belong to one world
+        if "world" not in cfg or data is not None:
+            raise AblationError(f"--world-seed {world_seed}: the preset's synthetic world only (not with --data)")
+        check_count("--world-seed", world_seed, low=0, high=2**31 - 1, exc=AblationError)
+        cfg = {**cfg, "world": {**cfg["world"], "seed": int(world_seed)}}
     unknown_sections = sorted(set(cfg) - PRESET_SECTIONS)
     if unknown_sections:
         raise AblationError(f"preset {preset!r}: unknown section(s) {unknown_sections}; "

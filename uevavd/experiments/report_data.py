@@ -77,9 +77,9 @@ def roles_now() -> dict[str, Any]:
 
 
 #: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = ("random", "passive", "box_gate", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
+METHOD_ORDER: tuple[str, ...] = ("random", "passive", "box_gate", "pose_seek", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
                                   "ibe_map_reco", "ibe_map_aug", "ibe_map_aux", "ibe_map_gate", "ibe_map_stop",
-                                  "ibe_map_pess", "ibe_map_gate_pess",
+                                  "ibe_map_pess", "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate",
                                   "sb3_dqn",
                                   "sb3_ppo",
                                   "visibility_oracle", "oracle")
@@ -97,9 +97,12 @@ LABELS: dict[str, str] = {
     "ibe_map_stop": "IBE-MAP (learned stop gate)",
     "ibe_map_pess": "IBE-MAP (pessimistic ensemble)",
     "ibe_map_gate_pess": "IBE-MAP (box gate + pessimistic ensemble)",
+    "ibe_map_pose": "IBE-MAP (pose in the state)",
+    "ibe_map_pose_gate": "IBE-MAP (pose + box gate in training)",
     "random": "Random",
     "passive": "Passive",
     "box_gate": "Box gate (scripted)",
+    "pose_seek": "Pose rule (scripted)",
     "visibility_oracle": "Visibility oracle",
     "oracle": "Class-knowing oracle (upper bound)",
     "sb3_dqn": "SB3 DQN (reference)",
@@ -150,7 +153,7 @@ def label(method: str) -> str:
 
 #: Baselines drawn first (the floor) and last (the ceilings); other baselines sit between the
 #: learned methods and these.
-_FIRST, _LAST = ("random", "passive", "box_gate"), ("visibility_oracle", "oracle")
+_FIRST, _LAST = ("random", "passive", "box_gate", "pose_seek"), ("visibility_oracle", "oracle")
 
 
 def order_methods(methods) -> list[str]:

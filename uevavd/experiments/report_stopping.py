@@ -31,7 +31,7 @@ from .report_data import (
 from .stats import Estimate, difference
 
 #: The rows besides the learned methods: what the gate is measured against.
-REFERENCES = ("passive", "box_gate")
+REFERENCES = ("passive", "box_gate", "pose_seek")
 
 
 def _cell(e: Estimate, digits: int = 3) -> str:
@@ -132,7 +132,7 @@ def stopping_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> l
 
 
 #: What each learned method is compared with, paired as the report pairs runs.
-AGAINST = (("ibe_map", "IBE-MAP"), ("passive", "passive"), ("box_gate", "box gate"))
+AGAINST = (("ibe_map", "IBE-MAP"), ("passive", "passive"), ("box_gate", "box gate"), ("pose_seek", "pose rule"))
 
 
 def _read_contexts(path: Path) -> pd.DataFrame:
