@@ -15,6 +15,7 @@ import pandas as pd
 import pytest
 import torch
 
+from uevavd.cli import main
 from uevavd.experiments.jobs import plan_jobs
 from uevavd.experiments.plan import AblationError, make_plan, parse_sweeps
 from uevavd.experiments.results import RESULT_COLUMNS, final_eval, is_done
@@ -915,3 +916,21 @@ def test_a_broken_plugin_component_is_refused_before_ablate_or_evaluate_write_an
             assert not (tmp_path / "e.json").exists()
     finally:
         manager.unregister_plugin("broken-test")
+
+
+def test_the_world_seed_draws_another_world_of_the_same_kind(tmp_path, capsys):
+    from uevavd.presets import world_root
+
+    one = make_plan(preset="quick", out=tmp_path / "a", methods=["map"])
+    two = make_plan(preset="quick", out=tmp_path / "b", methods=["map"], world_seed=1)
+    assert one.preset["world"]["seed"] == 0 and two.preset["world"]["seed"] == 1
+    assert {k: v for k, v in two.preset["world"].items() if k != "seed"} == {
+        k: v for k, v in one.preset["world"].items() if k != "seed"}
+    assert world_root(one.preset) != world_root(two.preset)  # its own cached world
+    with pytest.raises(AblationError, match="--world-seed -1: expected an integer in 0"):
+        make_plan(preset="quick", out=tmp_path / "c", methods=["map"], world_seed=-1)
+    with pytest.raises(AblationError, match="not with --data"):
+        make_plan(preset="quick", out=tmp_path / "d", methods=["map"], world_seed=1, data=tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        main(["ablate", "--preset", "quick", "--world-seed", "x", "--out", str(tmp_path / "e")])
+    assert exit_.value.code == 2 and "--world-seed" in capsys.readouterr().err

@@ -39,17 +39,14 @@ from ..atomic import folder_lock, remove_temporaries
 from ..config_rules import check_count, did_you_mean, parse_override
 from ..env import ENV_ID
 from ..env.aod_env import AODEnv
-from ..env.baselines import PassivePolicy, RandomPolicy
+from ..env.baselines import baseline_entries, baseline_names
 from ..env.config import EnvConfig, make_config
-from ..env.oracle import OraclePolicy
-from ..env.visibility_oracle import VisibilityOraclePolicy
 from ..paths import tables_dir
 from ..table import load_table
 from ..version import __version__
 from .acting import load_policy
 from .rundir import read_settings
 
-BASELINES = ("oracle", "visibility_oracle", "passive", "random")
 #: A Minari dataset id as export-minari writes it: ``[namespace/...]name-vN``, each part letters,
 #: digits, '_' and '-' (so it cannot name a folder outside the datasets folder).
 DATASET_ID = re.compile(r"^(?:[A-Za-z0-9_-]+/)*[A-Za-z0-9_-]*[A-Za-z0-9]-v\d+$")
@@ -64,19 +61,19 @@ def check_dataset_id(dataset_id: str) -> str:
 
 
 def make_policy(name_or_run: str, table: Any, config: EnvConfig, seed: int = 0) -> Any:
-    """A baseline by name, or the greedy policy of a trained run's folder."""
-    if name_or_run == "oracle":
-        return OraclePolicy(table, config)
-    if name_or_run == "visibility_oracle":
-        return VisibilityOraclePolicy(table, config)
-    if name_or_run == "passive":
-        return PassivePolicy()
-    if name_or_run == "random":
-        return RandomPolicy(seed)
+    """A registered baseline by name (every one ``uevavd evaluate`` shows), or the greedy policy
+    of a trained run's folder."""
+    if name_or_run in baseline_names():
+        entry = next(e for e in baseline_entries() if e.name == name_or_run)
+        policy = entry.load()(table=table, config=config, seed=seed)
+        if policy is None:
+            raise ValueError(f"--policy {name_or_run!r}: this baseline does not run on table {table.key} (e.g. the "
+                             "visibility oracle needs visible fractions, the scripted gates training contexts)")
+        return policy
     path = Path(name_or_run)
     if not (path / "settings.json").is_file():
-        raise ValueError(f"--policy {name_or_run!r}: expected one of {list(BASELINES)} or a trained run's folder "
-                         "(one holding settings.json)")
+        raise ValueError(f"--policy {name_or_run!r}: expected one of {list(baseline_names())} or a trained run's "
+                         "folder (one holding settings.json)")
     return load_policy(path, device="cpu", table=table)  # acting on the exported table's features
 
 
@@ -84,7 +81,7 @@ def policy_env_config(name_or_run: str, overrides: dict[str, Any] | None = None)
     """The env config an export records episodes under: a trained run's own (its reward's thre,
     C, ... as it trained), the paper's defaults for a baseline; ``overrides`` (``env`` keys) win."""
     base = EnvConfig()
-    if name_or_run not in BASELINES and (Path(name_or_run) / "settings.json").is_file():
+    if name_or_run not in baseline_names() and (Path(name_or_run) / "settings.json").is_file():
         base = make_config(read_settings(Path(name_or_run))["env"])
     return base.replace(**overrides) if overrides else base
 
@@ -188,7 +185,7 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
             minari.create_dataset_from_buffers(
                 dataset_id=dataset_id, buffer=buffers, env=portable, eval_env=portable,
                 author="uevavd export-minari", code_permalink=f"uevavd {__version__}",
-                algorithm_name=f"uevavd {policy if policy in BASELINES else 'trained run ' + Path(policy).name}",
+                algorithm_name=f"uevavd {policy if policy in baseline_names() else 'trained run ' + Path(policy).name}",
                 observation_space=env.observation_space, action_space=env.action_space,
                 description=f"{episodes} episodes of {policy} on the {split} split of table {table.key} "
                             f"(starts uniform over its contexts and views, seed {seed}). {_rebuild(table)}",
@@ -245,7 +242,8 @@ def add_export_minari(p: Any):
     p.add_argument("table", help="an observation table's folder (`uevavd prepare` writes it)")
     p.add_argument("--split", default="hard", help="train, simple, hard or test (default: hard)")
     p.add_argument("--policy", default="oracle",
-                   help=f"one of {list(BASELINES)} or a trained run's folder (default: oracle)")
+                   help="a baseline's name (any that `uevavd evaluate` shows beside a run: random, passive, box_gate, "
+                        "pose_seek, the oracles, a plugin's) or a trained run's folder (default: oracle)")
     p.add_argument("--episodes", type=int, default=1000, help="episodes to record (default 1000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts (and of the random policy)")
     p.add_argument("--id", required=True, dest="dataset_id", help="Minari dataset id, e.g. uevavd/quick-hard-oracle-v0")
