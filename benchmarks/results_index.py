@@ -33,6 +33,7 @@ GROUPS = (
                                            "generalisation-paper64")),
     ("Knowing when not to fly", ("stopping-validation-stop", "stopping-validation-pess",
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
+    ("Where to fly: the pose", ("pose-quick",)),
 )
 MACHINE = "2 CPU cores (the development VM, an AMD EPYC)"
 V = "--preset benchmarks/generalisation_validation.toml --seeds 3 --recognizers 1"
@@ -75,9 +76,11 @@ COMMANDS = {
                       "ibe_map_pess ibe_map_gate_pess --seeds 5 --recognizers 2",
     "stopping-paper64": "uevavd ablate --preset paper64 --methods ibe_map ibe_map_gate ibe_map_stop ibe_map_pess "
                         "ibe_map_gate_pess",
+    "pose-quick": "uevavd ablate --preset quick --methods map memo_map ibe_map ibe_map_gate ibe_map_pose "
+                  "ibe_map_pose_gate --seeds 5 --recognizers 2 --sweep env.train_per_block=4",
 }
 ORDER = ("map", "memo_map", "ibe_map")
-REFERENCES = ("random", "passive", "box_gate", "visibility_oracle", "oracle")
+REFERENCES = ("random", "passive", "box_gate", "pose_seek", "visibility_oracle", "oracle")
 
 
 def _git(*args: str) -> str:

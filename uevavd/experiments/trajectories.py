@@ -59,10 +59,10 @@ def trajectory_rows(plan: Plan, jobs: list[Job], tables: dict[str, Path]) -> lis
     scene, start = pick_trajectory_start(first, config)
     out = []
 
-    def one(name: str, seed: int, policy, table_path: Path) -> None:
+    def one(name: str, seed: int, policy, table_path: Path, env=config) -> None:
         tbl = ObservationTable.load(table_path)
         context = int(tbl.contexts[scene])
-        res = evaluate_policy(tbl, "hard", policy, config, contexts=[context])
+        res = evaluate_policy(tbl, "hard", policy, env, contexts=[context])
         i = int(np.flatnonzero(res.start_view == start)[0])
         views = [int(v) for v in res.trajectories[i] if v >= 0]
         out.append({
@@ -73,7 +73,8 @@ def trajectory_rows(plan: Plan, jobs: list[Job], tables: dict[str, Path]) -> lis
 
     for job in jobs:
         if job.setting == "default" and job.seed == 0 and job.recognizer == plan.recognizers[0] and is_done(job):
-            one(job.method, 0, load_policy(job.out), Path(job.table))
+            # under the method's own env: the same reward and horizon, and the observation it reads (env.pose)
+            one(job.method, 0, load_policy(job.out), Path(job.table), plan.spec(job.method).env)
     tbl = ObservationTable.load(first)
     one("random", 0, RandomPolicy(seed=0), first)
     one("oracle", 0, OraclePolicy(tbl, config), first)
