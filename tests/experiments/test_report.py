@@ -463,3 +463,45 @@ def test_the_report_shows_the_stopping_diagnosis_per_split_and_terrain(tmp_path)
     old.mkdir()
     make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)
     assert "## Stopping" not in write_report(old, window=2).read_text(encoding="utf-8")
+
+
+def test_the_room_table_gives_each_policy_its_share_of_the_oracles_gain_by_kind_of_start(tmp_path):
+    from uevavd.experiments.report_room import room_section
+
+    df = make_results({"map": (0.5, 0.05), "ibe_map": (0.35, 0.3)})
+    vis = df[df["method"] == "oracle"].assign(method="visibility_oracle")
+    df = pd.concat([df, vis], ignore_index=True)
+    # a third of the starts have the box in view; on the others passive -0.3, the oracle +0.1
+    returns = {"passive": (0.2, -0.3), "visibility_oracle": (0.3, 0.1), "map": (0.1, -0.2), "ibe_map": (0.2, 0.0)}
+    df["box_start"] = 1 / 3
+    for m, (box, hidden) in returns.items():
+        df.loc[df["method"] == m, ["box_return", "hidden_return"]] = (box, hidden)
+    final = final_rows(df)
+    lines = room_section(final, "default", tmp_path)
+    table = {tuple(c.strip() for c in line.split("|")[1:3]): [c.strip() for c in line.split("|")[3:-1]]
+             for line in lines if line.startswith("| hard")}
+    assert table[("hard", "box hidden")][:4] == ["67%", "-0.300", "0.100", "+0.400"]
+    # box gate and pose rule (no room columns in their rows here), MAP, IBE-MAP
+    assert table[("hard", "box hidden")][4:] == ["–", "–", "-0.200 (+25%)", "0.000 (+75%)"]
+    assert table[("hard", "box in view")][6:] == ["0.100 (-100%)", "0.200 (+0%)"]
+    assert room_section(final.drop(columns=["hidden_return"]), "default", tmp_path) == []  # earlier results
+    assert room_section(final[final["method"] != "visibility_oracle"], "default", tmp_path) == []
+
+
+def test_the_start_kinds_split_the_return():
+    from uevavd.env import EnvConfig, evaluate_policy
+    from uevavd.env.baselines import RandomPolicy
+    from uevavd.testing.policy import toy_table
+
+    table = toy_table(n_train=1, n_hard=2, feature_dim=8)
+    boxes = np.array(table.boxes)
+    boxes[:, ::3] = 0.0  # a third of the views hide the target
+    from uevavd.table import ObservationTable
+
+    hidden = ObservationTable.from_arrays(np.array(table.features), np.array(table.probs), boxes,
+                                          scenes=list(table.scenes), contexts=list(table.contexts),
+                                          targets=list(table.targets), splits=list(table.splits))
+    s = evaluate_policy(hidden, "hard", RandomPolicy(0), EnvConfig()).summary()
+    assert 0.3 < 1 - s["box_start"] < 0.4
+    assert s["box_start"] * s["box_return"] + (1 - s["box_start"]) * s["hidden_return"] == pytest.approx(
+        s["mean_return"])

@@ -93,6 +93,9 @@ class EvalResult:
             "moved_if_box": float(np.mean(moved[box])) if box.any() else float("nan"),
             "box_lost": float(np.mean(box & moved & lost)),
             "reco_lost": float(np.mean(r.start_recognized[idx] & lost)),
+            # where the room is: the mean return of the starts with the box in view, and of those without
+            "box_return": float(np.mean(r.ret[idx][box])) if box.any() else float("nan"),
+            "hidden_return": float(np.mean(r.ret[idx][~box])) if (~box).any() else float("nan"),
         }
 
     def summary(self) -> dict[str, float]:
@@ -101,7 +104,9 @@ class EvalResult:
         stopping diagnosis: box_start (share of starts whose observed box is non-empty),
         moved_if_box (of those, the share where the first decision is a move; NaN without
         any), box_lost (share of all episodes that start with the box non-empty, move, and end
-        unrecognised), reco_lost (share of all episodes that start recognised and end not)."""
+        unrecognised), reco_lost (share of all episodes that start recognised and end not); and
+        box_return / hidden_return, the mean return of the starts whose observed box is non-empty
+        / empty (NaN without any)."""
         return self._stats(self)
 
     def _grouped(self, key: np.ndarray, name: str, label: Any) -> Any:

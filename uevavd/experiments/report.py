@@ -53,6 +53,7 @@ from .report_data import (
     sweep_methods,
     sweep_rows,
 )
+from .report_room import room_section
 from .report_stopping import stopping_section
 from .stats import Estimate
 from .strips import load_trajectories, strip_images
@@ -388,6 +389,7 @@ def _write_report(ablation_dir: Path, results: pd.DataFrame, meta: dict | None, 
     lines += _sweep_section(final, "C", 3, ablation_dir)
     lines += contexts_section(final, out_dir)
     lines += stopping_section(final, setting, ablation_dir)
+    lines += room_section(final, setting, ablation_dir)
     lines += _strips_section(ablation_dir, meta, out_dir)
     lines += _claims_section(claims, diagnose(results, claims))
     path = out_dir / "report.md"

@@ -122,6 +122,9 @@ METRICS: tuple[str, ...] = (
 #: The stopping diagnosis (:meth:`uevavd.env.evaluate.EvalResult.summary`) and a learned policy's
 #: return behind the stop gate (NaN for the baselines and the per-epoch rows); optional columns.
 STOPPING: tuple[str, ...] = ("box_start", "moved_if_box", "box_lost", "reco_lost", "gated_return")
+#: Where the room is: the mean return of the starts whose observed box is non-empty, and of the
+#: others (:meth:`uevavd.env.evaluate.EvalResult.summary`); optional columns.
+ROOM: tuple[str, ...] = ("box_return", "hidden_return")
 REQUIRED_COLUMNS: tuple[str, ...] = (
     "method", "seed", "setting", "thre", "C", "episodes", "final", "split", *METRICS,
 )
@@ -219,7 +222,7 @@ def load_results(path: str | Path) -> pd.DataFrame:
             df[col] = pd.to_numeric(df[col], errors="raise").astype(np.int64)
         except (ValueError, TypeError):
             raise ValueError(f"{path}: column {col!r} must hold integers") from None
-    for col in ("thre", "C", *METRICS, *(c for c in STOPPING if c in df.columns)):
+    for col in ("thre", "C", *METRICS, *(c for c in (*STOPPING, *ROOM) if c in df.columns)):
         try:
             df[col] = pd.to_numeric(df[col], errors="raise").astype(np.float64)
         except (ValueError, TypeError):
@@ -270,7 +273,7 @@ def final_rows(df: pd.DataFrame) -> pd.DataFrame:
         parts.append(pd.concat([flagged, rest]).groupby(keys, as_index=False).last())
     if not base.empty:
         parts.append(base.groupby(keys, as_index=False).agg({
-            **{m: "mean" for m in (*METRICS, *(c for c in STOPPING if c in base))}, "thre": "first", "C": "first", "episodes": "max", "final": "first"}))
+            **{m: "mean" for m in (*METRICS, *(c for c in (*STOPPING, *ROOM) if c in base))}, "thre": "first", "C": "first", "episodes": "max", "final": "first"}))
     if not parts:
         return df.iloc[0:0]
     return pd.concat(parts, ignore_index=True)

@@ -20,18 +20,18 @@ from ..policy.acting import load_policy
 from ..policy.rundir import RunDir, read_done, read_evals, read_settings
 from ..table import ObservationTable
 from .plan import SWEEPABLE, AblationError, Job, Plan, env_config
-from .report_data import STOPPING
+from .report_data import ROOM, STOPPING
 
 log = logging.getLogger(__name__)
 
 RESULT_COLUMNS = [
     "method", "recognizer", "seed", "setting", "thre", "C", "episodes", "final", "split", "eval_contexts", "return",
-    "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s", *STOPPING,
+    "accuracy", "recognition", "path_m", "path_steps", "stop_rate", "steps", "wall_s", *STOPPING, *ROOM,
 ]
 #: Per-context rows of every final evaluation (``contexts.csv``).
 CONTEXT_COLUMNS = [
     "method", "recognizer", "seed", "setting", "split", "context", "target", "terrain", "return", "accuracy",
-    "recognition", "path_m", "stop_rate", "steps", *STOPPING,
+    "recognition", "path_m", "stop_rate", "steps", *STOPPING, *ROOM,
 ]
 
 def is_done(job: Job) -> bool:
@@ -74,7 +74,7 @@ def final_eval(job: Job, *, device: str | None = None) -> dict[str, Any] | None:
         if cached is None:
             log.warning("%s is damaged or was edited since it was written: evaluating the run again", path)
         if isinstance(cached, dict) and cached.get("key") == key and all(
-                "per_context" in v for v in cached.get("splits", {}).values()):
+                "per_context" in v and "hidden_return" in v for v in cached.get("splits", {}).values()):
             return cached
     table = ObservationTable.load(Path(job.table))
     if table.key != key["table_key"]:
@@ -128,7 +128,7 @@ def metric_row(summary: dict[str, Any]) -> dict[str, Any]:
         "stop_rate": summary["stop_rate"],
         "steps": summary["steps_per_episode"],
         # absent from evaluations written before the diagnosis existed
-        **{k: summary.get(k, float("nan")) for k in STOPPING},
+        **{k: summary.get(k, float("nan")) for k in (*STOPPING, *ROOM)},
     }
 
 
@@ -194,7 +194,7 @@ def baseline_rows(plan: Plan, tables: dict[int, Path], splits: Sequence[str], lo
             for split in splits:
                 for entry, seed in todo:
                     key = f"{tbl.key}|{setting_name}|{split}|{entry.name}|{seed}"
-                    if key not in done or "per_context" not in done[key] or "box_start" not in done[key]:
+                    if key not in done or "per_context" not in done[key] or "hidden_return" not in done[key]:
                         policy = entry.load()(table=tbl, config=config, seed=seed)
                         if policy is None:  # does not apply to this table
                             continue
