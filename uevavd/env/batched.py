@@ -78,6 +78,7 @@ class EnvTensors:
         self.acc = torch.as_tensor(table.argmax_correct()[sel], device=dev)
         self.targets = torch.as_tensor(table.targets[sel], device=dev)
         self.contexts = np.asarray(table.contexts[sel], np.int64)  # (S',) context ids
+        self.visible = np.asarray(table.visible[sel], np.float64)  # (S', 605) visible fractions (NaN: unknown)
         self.class_names = table.class_names
         self.split = split
         tr = transitions(config.max_range)

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from .report_data import ROOM, SPLITS, estimate, is_baseline, label, learned, md_table
-from .report_stopping import _read_contexts
+from .report_stopping import read_contexts
 
 #: The two references the room lies between, and the scripted rules shown beside the learned methods.
 FLOOR, CEILING = "passive", "visibility_oracle"
@@ -66,7 +66,7 @@ def room_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> list[
             if estimate(final, m, split, "return", setting).n:
                 means.append({"method": m, "where": split, **{c: estimate(final, m, split, c, setting).mean
                                                              for c in ("box_start", *ROOM)}})
-    frame = pd.concat([pd.DataFrame(means), terrain_room(_read_contexts(ablation_dir / "contexts.csv"), setting)],
+    frame = pd.concat([pd.DataFrame(means), terrain_room(read_contexts(ablation_dir / "contexts.csv"), setting)],
                       ignore_index=True)
     rows = []
     for where, g in frame.groupby("where", sort=False):

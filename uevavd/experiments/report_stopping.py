@@ -110,7 +110,7 @@ def stopping_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> l
                          _diff_cell(_paired(final, m, split, setting))])
     out += md_table(["split", "policy", "box starts", "moves", "lost", "return", "gated return",
                      "gated minus return"], rows) + [""]
-    contexts = _read_contexts(ablation_dir / "contexts.csv")
+    contexts = read_contexts(ablation_dir / "contexts.csv")
     by_terrain = terrain_final(contexts, setting)
     out += _against_section(final, by_terrain, setting, methods, splits)
     if not contexts.empty:
@@ -135,7 +135,7 @@ def stopping_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> l
 AGAINST = (("ibe_map", "IBE-MAP"), ("passive", "passive"), ("box_gate", "box gate"), ("pose_seek", "pose rule"))
 
 
-def _read_contexts(path: Path) -> pd.DataFrame:
+def read_contexts(path: Path) -> pd.DataFrame:
     if not path.is_file():
         return pd.DataFrame()
     try:
@@ -192,4 +192,4 @@ def _paired(final: pd.DataFrame, method: str, split: str, setting: str) -> Estim
     return estimate_units(sel["seed"].to_numpy(), (sel["gated_return"] - sel["return"]).to_numpy(dtype=float))
 
 
-__all__ = ["stopping_section", "terrain_rows"]
+__all__ = ["read_contexts", "stopping_section", "terrain_rows"]

@@ -25,7 +25,9 @@ MAX_UPDATES_PER_STEP = 1024
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
 LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", "plr_temperature": 0.1,
                 "plr_staleness": 0.1, "feature_dropout": 0.0, "aux_recognition": 0.0,
-                "stop_gate": "none", "stop_threshold": 0.5}
+                "stop_gate": "none", "stop_threshold": 0.5, "imitation": "none", "imitation_fraction": 1.0}
+#: What a run may imitate (``train.imitation``).
+IMITATIONS = ("none", "visibility_oracle")
 #: How training picks each new episode's context (``train.context_sampling``).
 CONTEXT_SAMPLINGS = ("uniform", "level_replay")
 
@@ -126,6 +128,17 @@ class TrainConfig:
     greedy acting only."""
     stop_threshold: float = 0.5
     """The learned stop gate's threshold on the stop probe's probability."""
+    imitation: Literal["none", "visibility_oracle"] = "none"
+    """"visibility_oracle": DAgger (Ross et al. 2011) with the visibility oracle as the expert. The
+    student acts (epsilon-greedy, as in every run), and every decision it takes is labelled with
+    the oracle's action for the steps left (its plan from that view with T_max set to them,
+    :func:`uevavd.env.visibility_oracle.visibility_plans`); the updates minimise the
+    cross-entropy of the head's type and range branches with those labels instead of the TD
+    loss, over the replayed episodes (the aggregated dataset). Needs a table with visible
+    fractions and a head with a type and a range branch."""
+    imitation_fraction: float = 1.0
+    """The share of the training episodes that imitate (``imitation``); the updates after it
+    are the usual double-DQN ones, from the imitated weights."""
 
     def __post_init__(self) -> None:
         """Ranges, not only types: a value that would crash training later (a zero
@@ -167,6 +180,9 @@ class TrainConfig:
         need(isinstance(self.aux_recognition, int | float) and 0.0 <= self.aux_recognition <= 100.0, "aux_recognition",
              "a loss weight in [0, 100]")
         need(self.stop_gate in STOP_GATES, "stop_gate", f"one of {STOP_GATES}")
+        need(self.imitation in IMITATIONS, "imitation", f"one of {IMITATIONS}")
+        need(isinstance(self.imitation_fraction, int | float) and 0.0 < self.imitation_fraction <= 1.0,
+             "imitation_fraction", "a share of training in (0, 1]")
         need(isinstance(self.stop_threshold, int | float) and 0.0 <= self.stop_threshold <= 1.0, "stop_threshold",
              "a probability in [0, 1]")
         need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
@@ -220,6 +236,10 @@ class TrainConfig:
         span = max(1.0, self.eps_fraction * total)
         frac = min(1.0, episodes_done / span)
         return self.eps_start + frac * (self.eps_end - self.eps_start)
+
+    def imitating(self, episodes_done: int) -> bool:
+        """Whether the updates after ``episodes_done`` training episodes imitate (``imitation``)."""
+        return self.imitation != "none" and episodes_done < self.imitation_fraction * self.episodes
 
     def beta(self, episodes_done: int, total: int | None = None) -> float:
         total = total or self.episodes

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 
 from ..state.base import estimator_boxes, reads_pose
 from . import targets as T
+from .imitation import OracleLabels, imitation_loss
 from .network import QNetwork
 from .replay import EpisodeBatch
 
@@ -125,8 +126,10 @@ class Learner:
     """Online and target networks, Adam, and the double-DQN update over episode batches."""
 
     def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber",
-                 feature_dropout: FeatureDropout | None = None, aux_recognition: RecognitionProbe | None = None) -> None:
+                 feature_dropout: FeatureDropout | None = None, aux_recognition: RecognitionProbe | None = None,
+                 imitation: OracleLabels | None = None) -> None:
         self.net = net
+        self.imitation = imitation  # the expert's labels (train.imitation), read where update(imitate=True)
         self.feature_dropout, self.aux_recognition = feature_dropout, aux_recognition
         self.stop_probe = StopProbeLearner(net, lr=lr) if net.stop_probe is not None else None
         self.target = copy.deepcopy(net).requires_grad_(False)
@@ -151,8 +154,11 @@ class Learner:
         return {k: v for k, v in (("feature_dropout", self.feature_dropout), ("aux_recognition", self.aux_recognition),
                                   ("stop_probe", self.stop_probe)) if v is not None}
 
-    def update(self, batch: EpisodeBatch, lookup: FeatureLookup) -> tuple[float, torch.Tensor]:
-        """One gradient step. Returns (loss, per-episode mean |TD error| (B,))."""
+    def update(self, batch: EpisodeBatch, lookup: FeatureLookup, *, imitate: bool = False
+               ) -> tuple[float, torch.Tensor]:
+        """One gradient step. Returns (loss, per-episode mean |TD error| (B,)); with ``imitate``
+        (DAgger, ``train.imitation``), the step minimises the cross-entropy with the expert's
+        labels instead, and the per-episode errors are that cross-entropy."""
         head = self.net.head
         # Only the observations the loss reads are encoded (see needed_observations): o_0..o_L
         # of an episode of L decisions, less o_L when its last decision ended it (always, in
@@ -167,6 +173,11 @@ class Learner:
         est = self.net.estimator  # the estimator's input: the box, and the pose where it reads one
         inputs = estimator_boxes(est, boxes, lookup.pose_rows(batch.views, seen) if reads_pose(est) else None)
         q_all, s = episode_q(self.net, feats, inputs, seen, with_state=True)
+        if imitate:
+            assert self.imitation is not None, "imitate=True on a learner without the expert's labels"
+            loss, td = imitation_loss(q_all, *self.imitation.labels(batch.scene, batch.views), batch.valid,
+                                      batch.weight)
+            return self._finish(loss, s, seen, batch, lookup, td, None, None)
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
             q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, inputs, seen, skip_first=True))
@@ -183,6 +194,13 @@ class Learner:
         else:
             per = 0.5 * (q_taken - y) ** 2
         loss = (per * w * batch.weight[:, None, None]).sum() / w.sum().clamp_min(1.0)
+        td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
+        return self._finish(loss, s, seen, batch, lookup, td, q_taken.detach(), w)
+
+    def _finish(self, loss: torch.Tensor, s: torch.Tensor, seen: torch.Tensor, batch: EpisodeBatch,
+                lookup: FeatureLookup, td: torch.Tensor, q_taken: torch.Tensor | None, w: torch.Tensor | None
+                ) -> tuple[float, torch.Tensor]:
+        """The auxiliary losses on the state, the optimizer step and the diagnostics, after either loss."""
         if self.aux_recognition is not None or self.stop_probe is not None:
             # s holds the seen rows in seen.nonzero() order, as the lookup's rows
             recognized = lookup.recognized_rows(batch.scene, batch.views, seen)
@@ -192,8 +210,7 @@ class Learner:
                 self.stop_probe.update(s, recognized)
         norm = self.step(loss)
         self.updates += 1
-        td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
-        self._last = (td, q_taken.detach(), w, norm)
+        self._last = (td, q_taken, w, norm)
         return float(loss.detach()), td
 
     def step(self, loss: torch.Tensor) -> torch.Tensor | None:
@@ -227,7 +244,9 @@ class Learner:
         if not self._last:
             return {}
         td, q_taken, w, norm = self._last
-        out = {"td_error": float(td.mean()), "mean_q": float((q_taken * w).sum() / w.sum().clamp_min(1.0))}
+        out = {"td_error": float(td.mean())}  # (the cross-entropy, in an imitating update)
+        if q_taken is not None:
+            out["mean_q"] = float((q_taken * w).sum() / w.sum().clamp_min(1.0))
         if norm is not None:
             out["grad_norm"] = float(norm)
         return out

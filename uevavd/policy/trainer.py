@@ -44,6 +44,7 @@ from .checkpoint import (
 from .collector import EpisodeCollector, RunSeeds
 from .config import TrainConfig
 from .contract import build_checked_network
+from .imitation import OracleLabels, check_branches
 from .learner import FeatureDropout, FeatureLookup, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
@@ -278,11 +279,16 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
                        if cfg.feature_dropout else None)
     aux_recognition = (RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev)
                        if cfg.aux_recognition else None)
-    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
-                      feature_dropout=feature_dropout, aux_recognition=aux_recognition)
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=seeds.replay, sampling=cfg.replay_sampling, device=dev)
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=seeds.env, features_dtype=torch.float16)
+    imitation = None
+    if cfg.imitation != "none":  # DAgger: the expert's labels, and a head whose branches they fit
+        with torch.no_grad():
+            check_branches(net.head(torch.zeros(1, net.estimator.state_dim, device=dev)), env_cfg.max_range)
+        imitation = OracleLabels(env.tensors)
+    learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
+                      feature_dropout=feature_dropout, aux_recognition=aux_recognition, imitation=imitation)
     lookup = FeatureLookup(env.tensors)
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
@@ -298,7 +304,7 @@ def _update(run: _Run, log: TrainLog) -> None:
     """One gradient update on a prioritised batch of replayed episodes."""
     cfg = run.cfg
     batch = run.replay.sample(cfg.batch_size, cfg.beta(run.loop.episodes))
-    log.loss, td = run.learner.update(batch, run.lookup)
+    log.loss, td = run.learner.update(batch, run.lookup, imitate=cfg.imitating(run.loop.episodes))
     run.replay.update_priorities(batch.index, td)
     run.collector.score(batch.scene, td)  # the context sampler's scores (train.context_sampling)
     if run.learner.updates % cfg.target_update == 0:
