@@ -183,3 +183,58 @@ def test_a_learned_start_trained_through_the_api_is_refused_too(table, tmp_path,
     with pytest.raises(ComponentError, match="initial_hidden"):
         train(spec, table, out=tmp_path / "run", device="cpu", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+class Window(nn.Module):
+    """A causal 1-D convolution over the last 3 views (a windowed memory): s_t reads o_{t-2}..o_t,
+    never o_0 once t >= 3. Its memory is the last two encoded views."""
+
+    recurrent = True
+
+    def __init__(self, feature_dim: int, state_dim: int = 16, k: int = 3):
+        super().__init__()
+        self.feature_dim, self.state_dim, self.k = feature_dim, state_dim, k
+        self.enc = ObservationEncoder(feature_dim, 16, 8)
+        self.conv = nn.Conv1d(24, state_dim, k)
+
+    def initial_hidden(self, n, device="cpu"):
+        return torch.zeros(n, 24 * (self.k - 1), device=device)
+
+    def forward(self, features, boxes):
+        g = self.enc(features, boxes).transpose(1, 2)  # (B, 24, T)
+        return torch.relu(self.conv(nn.functional.pad(g, (self.k - 1, 0)))).transpose(1, 2)
+
+    def step(self, features, boxes, hidden):
+        past = hidden.view(len(hidden), self.k - 1, 24)
+        window = torch.cat([past, self.enc(features, boxes)[:, None]], 1)  # (N, k, 24)
+        s = torch.relu(self.conv(window.transpose(1, 2)))[:, :, 0]
+        return s, window[:, 1:].reshape(len(hidden), -1)
+
+
+class CurrentViewOnly(nn.Module):
+    """Declares a memory but reads the current view alone."""
+
+    recurrent = True
+
+    def __init__(self, feature_dim: int, state_dim: int = 16):
+        super().__init__()
+        self.feature_dim, self.state_dim = feature_dim, state_dim
+        self.enc = ObservationEncoder(feature_dim, 16, 8)
+        self.out = nn.Linear(24, state_dim)
+
+    def initial_hidden(self, n, device="cpu"):
+        return torch.zeros(n, 1, device=device)
+
+    def forward(self, features, boxes):
+        return torch.relu(self.out(self.enc(features, boxes)))
+
+    def step(self, features, boxes, hidden):
+        return torch.relu(self.out(self.enc(features, boxes))), hidden
+
+
+def test_a_windowed_estimator_is_a_recurrent_one_and_a_current_view_one_is_told_what_to_declare():
+    from uevavd.policy.contract import check_estimator_rules
+
+    check_estimator_rules(Window(8), feature_dim=8)  # s_T ignores o_0, and it is still a memory
+    with pytest.raises(ComponentError, match=r"reads no earlier view than o_t.*set recurrent = False.*window"):
+        check_estimator_rules(CurrentViewOnly(8), feature_dim=8)

@@ -135,13 +135,15 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
             h = h2
         if hasattr(est, "step_encoded"):
             _check_fast_path(est, f, b, h0, what)
-        if est.recurrent:
+        if est.recurrent:  # it reads earlier views: at least the one before (a memory, or a window of k >= 2)
             f3 = f.clone()
-            f3[:, 0] += 5.0
+            f3[:, -2] += 5.0
             with _calling(what, call):
                 s3 = est(f3, b)
             _rule(not torch.allclose(s3[:, -1], s[:, -1]), what,
-                  "recurrent = True but s_T ignores o_0; set recurrent = False for a single-view estimator")
+                  "recurrent = True but s_t reads no earlier view than o_t (it did not change with o_{t-1}): set "
+                  "recurrent = False for an estimator of the current view alone (training then reads each view by "
+                  "itself); a memory or a window of the last k views reads o_{t-1} and keeps recurrent = True")
 
 
 def _check_fast_path(est: Any, f: torch.Tensor, b: torch.Tensor, h: torch.Tensor, what: str) -> None:
