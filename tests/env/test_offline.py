@@ -48,8 +48,8 @@ def test_a_flat_policy_is_scored_by_the_evaluation_as_its_actions_say(table, ora
     from uevavd.env.offline import FlatPolicy, flat_dataset
 
     stop = FlatPolicy(lambda x: np.full(len(x), 6 * 4), max_range=4)
-    assert evaluate_policy(table, "hard", stop, EnvConfig()).summary() == \
-        evaluate_policy(table, "hard", PassivePolicy(), EnvConfig()).summary()
+    np.testing.assert_equal(evaluate_policy(table, "hard", stop, EnvConfig()).summary(),  # NaN where no start hides
+                            evaluate_policy(table, "hard", PassivePolicy(), EnvConfig()).summary())
     flat = flat_dataset(oracle_dataset)
     x, y = torch.as_tensor(flat.observations), torch.as_tensor(flat.actions)
     torch.manual_seed(0)
@@ -93,3 +93,27 @@ def test_d3rlpy_discrete_bc_trains_on_the_flat_view_and_is_evaluated(table, orac
     random = evaluate_policy(table, "train", RandomPolicy(0), cfg).summary()
     oracle = evaluate_policy(table, "train", OraclePolicy(table, cfg), cfg).summary()
     assert random["mean_return"] < cloned["mean_return"] <= oracle["mean_return"] + 1e-9, (cloned, random, oracle)
+
+
+def test_the_flat_view_refuses_what_the_env_refuses(table, oracle_dataset):
+    """FlatPolicy(max_range=3) on a table of 4 ranges evaluated every index split by 3; a predict
+    returning 3.7 was truncated to 3; max_range=0 was taken; another dataset was an AttributeError."""
+    from uevavd.env import EnvConfig, evaluate_policy
+    from uevavd.env.offline import FlatPolicy, flat_dataset
+
+    with pytest.raises(ValueError, match=r"FlatPolicy\(max_range=3\) on an env whose actions have 4 ranges"):
+        evaluate_policy(table, "hard", FlatPolicy(lambda x: np.full(len(x), 18), max_range=3), EnvConfig())
+    with pytest.raises(ValueError, match=r"returned \[3.7, .*integer indices"):
+        evaluate_policy(table, "hard", FlatPolicy(lambda x: np.full(len(x), 3.7), max_range=4), EnvConfig())
+    stop = FlatPolicy(lambda x: np.full(len(x), 24.0), max_range=4)  # a float equal to an integer: the env's rule
+    assert evaluate_policy(table, "hard", stop, EnvConfig()).summary()["stop_rate"] == 1.0
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="an integer >= 1"):
+            FlatPolicy(lambda x: x, max_range=bad)
+
+    class Episode:  # a dataset of another env: a flat Box observation
+        observations, rewards = np.zeros((3, 5)), np.zeros(2)
+
+    with pytest.raises(ValueError, match=r"is not one `uevavd export-minari` wrote: its observations hold ndarray"):
+        flat_dataset([Episode()])
+    assert flat_dataset(oracle_dataset).max_range == 4

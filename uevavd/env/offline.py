@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from ..data.grid import N_TYPES
+from .aod_env import integral_actions
 
 #: The parts of the flat observation, in order ("pose" only where the observation has it).
 FLAT_PARTS = ("features", "box", "pose", "t", "action_mask")
@@ -77,11 +78,16 @@ def flat_dataset(episodes: Iterable[Any]) -> FlatTransitions:
     """Flatten a Minari dataset (or any iterable of its ``EpisodeData``) written by
     ``uevavd export-minari``: each episode's decisions, the observation each was taken on
     (not the last one, which no action follows)."""
+    name = getattr(getattr(episodes, "spec", None), "dataset_id", None) or type(episodes).__name__
     episodes = getattr(episodes, "iterate_episodes", lambda: episodes)()
     obs, actions, rewards, terminals, timeouts = [], [], [], [], []
     max_range = None
     for ep in episodes:
         n = len(ep.rewards)
+        if not isinstance(ep.observations, dict) or not set(FLAT_PARTS) - {"pose"} <= set(ep.observations):
+            have = sorted(ep.observations) if isinstance(ep.observations, dict) else type(ep.observations).__name__
+            raise ValueError(f"dataset {name} is not one `uevavd export-minari` wrote: its observations hold {have}, "
+                             f"not the env's {sorted(set(FLAT_PARTS) - {'pose'})}")
         o = {k: np.asarray(v)[:n] for k, v in ep.observations.items()}
         a = np.asarray(ep.actions).reshape(n, 2)
         max_range = o["action_mask"].shape[-1] if max_range is None else max_range
@@ -106,6 +112,9 @@ class FlatPolicy:
     needs_features = True
 
     def __init__(self, act: Callable[[np.ndarray], Any], *, max_range: int) -> None:
+        if isinstance(max_range, bool) or not isinstance(max_range, int | np.integer) or max_range < 1:
+            raise ValueError(f"FlatPolicy(max_range={max_range!r}): expected the dataset's number of ranges, an "
+                             "integer >= 1 (flat_dataset(...).max_range)")
         self._act = act
         self.max_range = int(max_range)
 
@@ -113,8 +122,19 @@ class FlatPolicy:
         pass
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        flat = np.asarray(self._act(flat_observation(obs))).astype(np.int64).reshape(-1)
-        if flat.shape != (len(obs["t"]),) or bool(((flat < 0) | (flat >= N_TYPES * self.max_range)).any()):
+        mask = obs["mask"] if "mask" in obs else obs["action_mask"]
+        if mask.shape[-1] != self.max_range:  # every index would be split by the wrong A
+            raise ValueError(f"FlatPolicy(max_range={self.max_range}) on an env whose actions have "
+                             f"{mask.shape[-1]} ranges: use the max_range of the dataset it learned from, on a table "
+                             "and env config of the same action space")
+        raw = self._act(flat_observation(obs))
+        flat = integral_actions(raw)  # the env's rule: integers, or floats equal to them
+        if flat is None or flat.reshape(-1).shape != (len(obs["t"]),):
+            raise ValueError(f"the flat policy returned {np.asarray(raw).reshape(-1)[:8].tolist()} (shape "
+                             f"{np.shape(raw)}): expected ({len(obs['t'])},) integer indices of "
+                             f"Discrete({N_TYPES * self.max_range})")
+        flat = flat.reshape(-1)
+        if bool(((flat < 0) | (flat >= N_TYPES * self.max_range)).any()):
             raise ValueError(f"the flat policy returned {flat[:8].tolist()} (shape {flat.shape}): expected "
                              f"({len(obs['t'])},) indices of Discrete({N_TYPES * self.max_range})")
         a_type, a_range = np.divmod(flat, self.max_range)
