@@ -83,3 +83,25 @@ def test_what_dagger_cannot_run_on_is_refused_before_the_run_starts(tmp_path):
               device="cpu", progress=False)
     with pytest.raises(ConfigError, match="imitation_fraction"):
         _spec(**{"train.imitation_fraction": 0.0}).train_config()
+
+
+def test_behind_the_box_gate_only_the_decisions_where_the_box_is_hidden_are_imitated(table):
+    from uevavd.policy.acting import method_network
+    from uevavd.policy.learner import FeatureLookup, Learner
+    from uevavd.policy.replay import EpisodeReplay
+
+    cfg = EnvConfig(pose=True)
+    tensors = EnvTensors(table, "train", cfg)  # the toy table shows the box at every view
+    replay = EpisodeReplay(4, cfg.t_max)
+    views = torch.tensor([[10, 20, 30, 0, 0, 0], [300, 301, 0, 0, 0, 0]])
+    zeros = torch.zeros(2, cfg.t_max, dtype=torch.int64)
+    replay.add(torch.zeros(2, dtype=torch.int64), views, zeros, zeros, zeros.float(), torch.tensor([3, 2]))
+    batch = replay.sample(2, 1.0)
+    losses = {}
+    for method in ("ibe_map_pose_dagger", "ibe_map_pose_dagger_gate"):
+        spec = _spec(method)
+        torch.manual_seed(0)
+        net = method_network(spec, table.feature_dim, cfg.max_range)
+        learner = Learner(net, lr=1e-3, gamma=0.9, grad_clip=10.0, imitation=OracleLabels(tensors))
+        losses[method], _ = learner.update(batch, FeatureLookup(tensors), imitate=True)
+    assert losses["ibe_map_pose_dagger"] > 0.5 and losses["ibe_map_pose_dagger_gate"] == 0.0

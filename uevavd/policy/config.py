@@ -134,8 +134,9 @@ class TrainConfig:
     the oracle's action for the steps left (its plan from that view with T_max set to them,
     :func:`uevavd.env.visibility_oracle.visibility_plans`); the updates minimise the
     cross-entropy of the head's type and range branches with those labels instead of the TD
-    loss, over the replayed episodes (the aggregated dataset). Needs a table with visible
-    fractions and a head with a type and a range branch."""
+    loss, over the replayed episodes (the aggregated dataset); with ``stop_gate = "box"``, over the
+    decisions where the gate leaves the choice to the student (the box hidden). Needs a table
+    with visible fractions and a head with a type and a range branch."""
     imitation_fraction: float = 1.0
     """The share of the training episodes that imitate (``imitation``); the updates after it
     are the usual double-DQN ones, from the imitated weights."""

@@ -19,6 +19,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from ..env.gate import box_visible
 from ..state.base import estimator_boxes, reads_pose
 from . import targets as T
 from .imitation import OracleLabels, imitation_loss
@@ -175,7 +176,12 @@ class Learner:
         q_all, s = episode_q(self.net, feats, inputs, seen, with_state=True)
         if imitate:
             assert self.imitation is not None, "imitate=True on a learner without the expert's labels"
-            loss, td = imitation_loss(q_all, *self.imitation.labels(batch.scene, batch.views), batch.valid,
+            decides = batch.valid
+            if self.net.stop_gate == "box":  # where the gate closes it decides (stop), not the student
+                seen_boxes = boxes.new_zeros(*seen.shape, 4)
+                seen_boxes[seen] = boxes
+                decides = decides & ~box_visible(seen_boxes[:, :-1])
+            loss, td = imitation_loss(q_all, *self.imitation.labels(batch.scene, batch.views), decides,
                                       batch.weight)
             return self._finish(loss, s, seen, batch, lookup, td, None, None)
         with torch.no_grad():
