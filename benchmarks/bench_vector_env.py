@@ -13,6 +13,7 @@ round by round, so the machine's load hits both alike. Prints env-steps/s of eac
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 import time
 from pathlib import Path
@@ -56,7 +57,10 @@ def main() -> int:
     for name, root in checkouts.items():
         vector, testing = _package(root)
         table = testing.toy_table(n_train=25, n_hard=2, feature_dim=544, seed=0)
-        envs[name] = vector.AODVectorEnv(table, "train", num_envs=args.envs)
+        # same-step autoreset in both (the default of checkouts before next-step became it)
+        same = {"autoreset_mode": "same_step"} if "autoreset_mode" in inspect.signature(
+            vector.AODVectorEnv.__init__).parameters else {}
+        envs[name] = vector.AODVectorEnv(table, "train", num_envs=args.envs, **same)
     rng = np.random.default_rng(0)
     actions = [np.stack([rng.integers(0, 7, args.envs), rng.integers(0, 4, args.envs)], 1) for _ in range(args.steps)]
     best = {name: float("inf") for name in envs}

@@ -23,7 +23,7 @@ def _vec(table, n=6, **kw):
 
 
 def test_make_vec_is_the_batched_env_step_for_step(table):
-    venv = _vec(table, n=6, split="train", config=EnvConfig(t_max=3))
+    venv = _vec(table, n=6, split="train", config=EnvConfig(t_max=3), autoreset_mode="same_step")
     assert isinstance(venv, AODVectorEnv) and venv.num_envs == 6
     ref = BatchedAODEnv(table, "train", 6, EnvConfig(t_max=3), seed=5)
     obs, _ = venv.reset(seed=5)
@@ -54,8 +54,8 @@ def test_make_vec_is_the_batched_env_step_for_step(table):
 
 
 def test_flat_actions_match_the_pairs_and_masks_follow_the_space(table):
-    multi = _vec(table, n=4, config=EnvConfig())
-    flat = _vec(table, n=4, config=EnvConfig(), actions="flat")
+    multi = _vec(table, n=4, config=EnvConfig(), autoreset_mode="same_step")
+    flat = _vec(table, n=4, config=EnvConfig(), actions="flat", autoreset_mode="same_step")
     assert flat.single_action_space == gym.spaces.Discrete(28)
     om, _ = multi.reset(seed=1)
     of, _ = flat.reset(seed=1)
@@ -179,9 +179,14 @@ def test_the_vector_env_states_its_autoreset_mode_and_refuses_use_after_close(ta
     """Gymnasium 1.x conventions: ``autoreset_mode`` as an attribute (TorchRL reads it there)
     beside the metadata key; ``close()`` sets ``closed`` and a later step or reset is an error."""
     env = AODVectorEnv(table, "train", num_envs=4)
-    if hasattr(gym.vector, "AutoresetMode"):  # Gymnasium 1.1 on
+    if hasattr(gym.vector, "AutoresetMode"):  # Gymnasium 1.1 on: its own vector envs' default
+        assert env.autoreset_mode == gym.vector.AutoresetMode.NEXT_STEP == env.metadata["autoreset_mode"]
+        assert _vec(table, n=2).autoreset_mode == gym.vector.AutoresetMode.NEXT_STEP  # make_vec's too
+        env.use_autoreset_mode("same_step")
         assert env.autoreset_mode == gym.vector.AutoresetMode.SAME_STEP == env.metadata["autoreset_mode"]
     env.reset(seed=0)
+    with pytest.raises(RuntimeError, match="before the first reset"):
+        env.use_autoreset_mode("next_step")
     env.close()
     assert env.closed
     with pytest.raises(RuntimeError, match="closed"):
@@ -196,7 +201,7 @@ def test_the_vector_env_follows_gymnasium_1_conventions_like_the_single_env(tabl
     ``final_info`` with its masks), a list of seeds uses all its entries, no seed is not
     always seed 0, and make_vec takes ``render_mode``."""
     cfg = EnvConfig(t_max=3)
-    venv = _vec(table, n=4, split="train", config=cfg)
+    venv = _vec(table, n=4, split="train", config=cfg, autoreset_mode="same_step")
     singles = [AODEnv(table, "train", cfg) for _ in range(4)]
     obs, _ = venv.reset(seed=3)
     scenes = venv.unwrapped._batched.tensors.scenes[venv.unwrapped._batched._scene].tolist()
@@ -248,17 +253,23 @@ def obs_scene(venv, i):
 
 def test_torchrl_and_gymnasiums_vector_wrappers_take_the_vector_env(table):
     """TorchRL's GymWrapper over the vector env passes its spec check (it failed on the missing
-    ``autoreset_mode``); Gymnasium's RecordEpisodeStatistics reads its infos; FlattenObservation,
-    which needs next-step autoreset, runs through the documented sync-mode recipe."""
+    ``autoreset_mode``); Gymnasium's RecordEpisodeStatistics reads its infos; FlattenObservation
+    takes the default vector env (next-step autoreset, Gymnasium's own) and refuses a same-step
+    one, and runs through the sync-mode recipe too."""
     venv = _vec(table, n=4, split="train")
     stats = gym.wrappers.vector.RecordEpisodeStatistics(venv)
     stats.reset(seed=0)
     for _ in range(8):
         _, _, term, _, infos = stats.step(stats.action_space.sample())
     assert "episode" in infos or len(stats.return_queue) > 0
+    wrapped = gym.wrappers.vector.RecordEpisodeStatistics(gym.wrappers.vector.FlattenObservation(
+        _vec(table, n=3, split="train")))
+    obs, _ = wrapped.reset(seed=0)
+    assert obs.shape[0] == 3 and obs.ndim == 2
+    wrapped.step(wrapped.action_space.sample())
     if hasattr(gym.vector, "AutoresetMode"):  # Gymnasium 1.1 on checks the mode; 1.0's wrappers assume next-step
         with pytest.raises(ValueError, match="NEXT_STEP"):
-            gym.wrappers.vector.FlattenObservation(_vec(table, n=2, split="train"))
+            gym.wrappers.vector.FlattenObservation(_vec(table, n=2, split="train", autoreset_mode="same_step"))
     flat = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode="sync", wrappers=[gym.wrappers.FlattenObservation],
                         table=table, split="train")
     obs, _ = flat.reset(seed=0)
@@ -268,7 +279,9 @@ def test_torchrl_and_gymnasiums_vector_wrappers_take_the_vector_env(table):
     from torchrl.envs import GymWrapper
     from torchrl.envs.utils import check_env_specs
 
-    env = GymWrapper(_vec(table, n=4, split="train"))
+    with pytest.raises(RuntimeError, match="SAME_STEP"):  # TorchRL asks for same-step, as SB3 does
+        GymWrapper(_vec(table, n=4, split="train"))
+    env = GymWrapper(_vec(table, n=4, split="train", autoreset_mode="same_step"))
     assert tuple(env.batch_size) == (4,)
     check_env_specs(env)
     assert env.rollout(12)["next", "done"].any()
@@ -304,8 +317,8 @@ def test_next_step_autoreset_returns_the_last_observation_then_resets_ignoring_t
     step starts the next episode (the same-step env's first observation, reward 0, not
     terminated), whatever action it is given."""
     cfg = EnvConfig(t_max=3)
-    same = _vec(table, n=1, split="train", config=cfg)
-    nxt = _vec(table, n=1, split="train", config=cfg, autoreset_mode="next_step")
+    same = _vec(table, n=1, split="train", config=cfg, autoreset_mode="same_step")
+    nxt = _vec(table, n=1, split="train", config=cfg)  # the default
     if hasattr(gym.vector, "AutoresetMode"):
         assert nxt.autoreset_mode == gym.vector.AutoresetMode.NEXT_STEP == nxt.metadata["autoreset_mode"]
     o1, _ = same.reset(seed=3)
@@ -352,11 +365,15 @@ def test_gymnasiums_vector_wrappers_run_over_next_step_autoreset(table):
     assert np.allclose(np.array(sorted(recorded)), np.array(sorted(summed)), atol=1e-5)
 
 
-def test_sb3_vec_env_refuses_next_step_autoreset(table):
+def test_sb3_vec_env_asks_for_same_step_autoreset_itself(table):
     pytest.importorskip("stable_baselines3")
     from uevavd.env.sb3 import SB3VecEnv
 
-    with pytest.raises(ValueError, match="same-step autoreset"):
-        SB3VecEnv(_vec(table, n=2, split="train", autoreset_mode="next_step"))
+    venv = SB3VecEnv(_vec(table, n=2, split="train"))  # make_vec's default, next-step
+    assert not venv.venv._next_step
+    started = _vec(table, n=2, split="train")
+    started.reset(seed=0)
+    with pytest.raises(ValueError, match="same-step autoreset .* wrap it before its first reset"):
+        SB3VecEnv(started)
     with pytest.raises(ValueError, match="autoreset_mode='every_step'"):
         _vec(table, n=2, split="train", autoreset_mode="every_step")

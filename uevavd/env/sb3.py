@@ -36,9 +36,13 @@ class SB3VecEnv(VecEnv):
         venv = getattr(venv, "unwrapped", venv)
         if not isinstance(venv, AODVectorEnv):
             raise TypeError(f"SB3VecEnv wraps an AODVectorEnv (gymnasium.make_vec of uevavd/AOD-v0), got {type(venv)}")
-        if venv._next_step:
-            raise ValueError("SB3VecEnv needs the vector env's same-step autoreset (SB3's VecEnv convention: the last "
-                             "observation in terminal_observation); make it with autoreset_mode='same_step'")
+        if venv._next_step:  # SB3's convention: the last observation in terminal_observation, the next one returned
+            try:
+                venv.use_autoreset_mode("same_step")
+            except RuntimeError:
+                raise ValueError("SB3VecEnv needs the vector env's same-step autoreset (SB3's VecEnv convention), and "
+                                 "this one was reset in next-step mode already: wrap it before its first reset, or make "
+                                 "it with autoreset_mode='same_step'") from None
         self.venv = venv
         self.render_mode = None
         super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)

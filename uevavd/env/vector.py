@@ -1,7 +1,7 @@
 """The batched environment behind the standard vector interfaces.
 
 :class:`AODVectorEnv` is :class:`~uevavd.env.batched.BatchedAODEnv` as a Gymnasium
-``VectorEnv`` (numpy in and out, same-step autoreset), what
+``VectorEnv`` (numpy in and out, next-step autoreset by default, as Gymnasium's own), what
 ``gymnasium.make_vec("uevavd/AOD-v0", num_envs=N, vectorization_mode="vector_entry_point",
 table=..., split=...)`` returns. :class:`SB3VecEnv` adapts it to Stable-Baselines3's
 ``VecEnv`` (SB3 has no adapter for Gymnasium vector envs). With ``actions="flat"`` the
@@ -12,11 +12,15 @@ does for the single env (what SB3's DQN and sb3-contrib's MaskablePPO need).
 Observations are those of :class:`~uevavd.env.aod_env.AODEnv` batched: ``features`` (N, D)
 float32, ``box`` (N, 4) float32, ``action_mask`` (N, 7, A) int8 (or (N, 7 * A)), with
 ``EnvConfig.pose`` ``pose`` (N, 3) float32 metres, ``t`` (N,)
-int64. An episode always ends by termination (stop or T_max), never truncation; where it
-ends, the returned observation is the next episode's first and ``infos["final_obs"]`` holds
-the last one, ``infos["final_info"]`` its step info (Gymnasium's same-step convention), beside
-the ``final_*`` fields of ``BatchedAODEnv`` (``final_return``, ``final_recognized``, ...), each
-with its ``_key`` mask; the envs going on get the single env's step info at the top level.
+int64. An episode always ends by termination (stop or T_max), never truncation. Where it ends,
+with ``autoreset_mode="next_step"`` (the default, Gymnasium's own vector envs' and what its vector
+wrappers and CleanRL's scripts assume) the step returns its last observation and the env's next
+step starts the next episode (reward 0, its action ignored); with ``"same_step"`` (SB3's
+convention, which :class:`SB3VecEnv` asks for itself) the returned observation is the next
+episode's first and ``infos["final_obs"]`` holds the last one, ``infos["final_info"]`` its step
+info. Either way the ending step's info has the ``final_*`` fields of ``BatchedAODEnv``
+(``final_return``, ``final_recognized``, ...), each with its ``_key`` mask; the envs going on get
+the single env's step info at the top level.
 Rewards are float64 and float actions equal to integers are taken, as the single env does.
 """
 
@@ -37,10 +41,10 @@ from .render import render_frame
 from .spaces import action_masks, action_space, observation_space
 
 ACTION_FORMS = ("multi", "flat")
-#: ``same_step`` (the default): where an episode ends, the step returns the next episode's first
-#: observation and the last one in ``infos["final_obs"]``; ``next_step``: it returns the last one,
-#: and the env's next step starts the next episode (reward 0, its action ignored), as Gymnasium's
-#: own vector envs and its vector wrappers expect.
+#: ``next_step`` (the default): where an episode ends, the step returns its last observation, and
+#: the env's next step starts the next episode (reward 0, its action ignored), as Gymnasium's own
+#: vector envs and its vector wrappers expect; ``same_step`` (SB3's convention): the step returns
+#: the next episode's first observation and the last one in ``infos["final_obs"]``.
 AUTORESET_MODES = ("same_step", "next_step")
 #: The single env's per-step info keys the vector env reports at every step (``info[key]`` of
 #: the envs going on, ``info["final_info"][key]`` of those whose episode ended), and the
@@ -83,14 +87,13 @@ class AODVectorEnv(gym.vector.VectorEnv):
 
     def __init__(self, table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
                  num_envs: int = 1, actions: str = "multi", device: str | torch.device = "cpu",
-                 contexts: Any = None, render_mode: str | None = None, autoreset_mode: Any = "same_step",
+                 contexts: Any = None, render_mode: str | None = None, autoreset_mode: Any = "next_step",
                  **overrides: Any) -> None:
         if actions not in ACTION_FORMS:
             raise ValueError(f"actions={actions!r}: expected one of {ACTION_FORMS}")
-        self._next_step = _autoreset_mode(autoreset_mode) == "next_step"
-        modes = getattr(gym.vector, "AutoresetMode", None)  # Gymnasium 1.1 on; 1.0's wrappers assume next-step
-        self.metadata = {**type(self).metadata, **({"autoreset_mode": modes.NEXT_STEP if self._next_step else
-                                                    modes.SAME_STEP} if modes else {})}
+        self.metadata = dict(type(self).metadata)
+        self._obs = None
+        self.use_autoreset_mode(autoreset_mode)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode={render_mode!r}: expected None or one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
@@ -199,6 +202,16 @@ class AODVectorEnv(gym.vector.VectorEnv):
             raise RuntimeError("action_masks() before reset()")
         return action_masks(self._obs["mask"].cpu().numpy(), self.actions)
 
+    def use_autoreset_mode(self, mode: Any) -> None:
+        """Set the autoreset mode (``"next_step"``, Gymnasium's default, or ``"same_step"``, SB3's
+        convention, which :class:`~uevavd.env.sb3.SB3VecEnv` asks for), before the first reset."""
+        if getattr(self, "_obs", None) is not None:
+            raise RuntimeError("use_autoreset_mode() after reset(): set the autoreset mode before the first reset")
+        self._next_step = _autoreset_mode(mode) == "next_step"
+        modes = getattr(gym.vector, "AutoresetMode", None)  # Gymnasium 1.1 on; 1.0's wrappers assume next-step
+        if modes:
+            self.metadata["autoreset_mode"] = modes.NEXT_STEP if self._next_step else modes.SAME_STEP
+
     @property
     def autoreset_mode(self) -> Any:
         """The autoreset mode (``metadata["autoreset_mode"]``, Gymnasium's ``AutoresetMode``), as
@@ -256,7 +269,7 @@ class AODVectorEnv(gym.vector.VectorEnv):
 
 def make_vector_env(table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
                     num_envs: int = 64, actions: str = "multi", device: str | torch.device = "cpu",
-                    autoreset_mode: Any = "same_step", **overrides: Any) -> AODVectorEnv:
+                    autoreset_mode: Any = "next_step", **overrides: Any) -> AODVectorEnv:
     """The vector entry point of ``uevavd/AOD-v0`` (``gymnasium.make_vec``)."""
     return AODVectorEnv(table, split, config, num_envs=num_envs, actions=actions, device=device,
                         autoreset_mode=autoreset_mode, **overrides)
