@@ -177,6 +177,40 @@ def test_evaluate_never_writes_over_the_run_it_evaluates_nor_into_the_package(ru
     assert not shipped.with_name("shipped.eval_hard.json").exists()
 
 
+def test_evaluate_json_writes_a_new_file_or_its_own_kind_only(run, table, tmp_path, capsys, monkeypatch):
+    """--json at a table's meta.json or another run's settings.json replaced it (the table no longer
+    loaded); a zoo policy in a git checkout (the package's model_zoo a link to the checkout's) wrote
+    its JSON into model_zoo/."""
+    from uevavd.policy import cli as policy_cli
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    table_dir = table.save(tmp_path / "table")
+    other = tmp_path / "other.json"
+    other.write_text('{"key": "not an evaluation"}')
+    for target in (table_dir / "meta.json", other, tmp_path):
+        before = target.read_bytes() if target.is_file() else None
+        assert main(["evaluate", str(run), "--split", "hard", "--json", str(target)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "choose a new path (nothing was evaluated)" in err
+        assert (target.read_bytes() if target.is_file() else None) == before
+    out = tmp_path / "e.json"
+    assert main(["evaluate", str(run), "--split", "hard", "--json", str(out)]) == 0  # a new file
+    assert main(["evaluate", str(run), "--split", "hard", "--json", str(out)]) == 0  # its own kind, again
+    capsys.readouterr()
+    # a git checkout: the package's model_zoo is a link to the checkout's model_zoo/
+    checkout = tmp_path / "checkout"
+    (checkout / "model_zoo" / "pretrained").mkdir(parents=True)
+    (checkout / "uevavd").mkdir()
+    (checkout / "uevavd" / "model_zoo").symlink_to(checkout / "model_zoo")
+    shipped = checkout / "model_zoo" / "pretrained" / "shipped.safetensors"
+    shutil.copy(run / "policy.safetensors", shipped)
+    monkeypatch.setattr(policy_cli, "PACKAGE_DIR", checkout / "uevavd")
+    monkeypatch.chdir(tmp_path)
+    settings = json.loads((run / "settings.json").read_text())
+    assert main(["evaluate", str(shipped), "--table", settings["table_path"], "--split", "hard"]) == 0
+    assert (tmp_path / "shipped.eval_hard.json").is_file() and not shipped.with_name("shipped.eval_hard.json").exists()
+
+
 def test_names_too_long_for_the_file_system_are_one_line_before_any_work(run, table, tmp_path, capsys, monkeypatch):
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     long = "x" * 250

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -163,6 +164,9 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
     from ..pretrained import evaluate_pretrained
     from ..zoo import PUBLISHED
 
+    problem = refuse_foreign_json(args.json) if args.json else None
+    if problem:  # before the evaluation, not after it
+        return _error("evaluate", problem)
     t0 = time.perf_counter()
     frame, published, _ = evaluate_pretrained(args.pretrained, args.split, workers=args.workers or os.cpu_count() or 1,
                                            device=args.device)
@@ -238,10 +242,11 @@ def _json_path(args: argparse.Namespace, default: Path) -> Path | str:
     file, except beside a policy shipped inside the installed package (then the current
     folder); a str saying why not where ``--json`` would replace the evaluated run's own files
     or the policy file itself."""
-    package = PACKAGE_DIR.resolve()
     out = args.json if args.json else default
-    if not args.json and package in default.resolve().parents:
-        out = Path.cwd() / default.name  # never write into the installed package
+    # never into the installed package, nor where its model_zoo link points (a git checkout's model_zoo/)
+    inside = {PACKAGE_DIR.resolve(), (PACKAGE_DIR / "model_zoo").resolve()}
+    if not args.json and inside & ({*default.parents, *default.resolve().parents} | {default.resolve().parent}):
+        out = Path.cwd() / default.name
     try:  # a name the file system refuses (too long, say) is an OS fault now, not after the evaluation
         os.stat(Path(out).parent / f".{Path(out).name}.xxxxxxxx.tmp")  # the longest name the write uses
     except FileNotFoundError:
@@ -251,7 +256,27 @@ def _json_path(args: argparse.Namespace, default: Path) -> Path | str:
     if target == args.run_dir.resolve() or RunDir(run).owns(target):
         return (f"--json {out}: that is the evaluated run's own file, which the evaluation would replace; "
                 "choose another path")
-    return Path(out)
+    return refuse_foreign_json(Path(out)) or Path(out)
+
+
+def refuse_foreign_json(path: Path) -> str | None:
+    """Why ``evaluate`` must not write ``path`` (None where it may): it writes a new file, or over
+    an earlier evaluation JSON of its own (a run's, a policy file's or a pretrained one's); a
+    folder, a table's ``meta.json``, another run's ``settings.json`` or any other file is refused
+    before anything is evaluated."""
+    if not path.exists() and not path.is_symlink():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+    except (OSError, UnicodeDecodeError, ValueError):
+        data = None
+    ours = isinstance(data, dict) and data and (
+        set(data) == {"split", "results", "published"}  # evaluate --pretrained
+        or all(isinstance(v, dict) and {"split", "summary"} <= set(v) for v in data.values()))  # a run's, a file's
+    if ours:
+        return None
+    what = "a folder" if path.is_dir() else "a file that is not an evaluation JSON of uevavd evaluate"
+    return f"--json {path}: {what} is there, and the evaluation would replace it; choose a new path (nothing was evaluated)"
 
 
 def _split_table(path: Path, split: str) -> Any:
