@@ -120,6 +120,8 @@ def _apply_override(data: dict[str, Any], key: str, value: Any) -> None:
 
 # -- validation -----------------------------------------------------------------------------
 def _type_name(tp: Any) -> str:
+    if typing.get_origin(tp) is typing.Literal:  # the accepted values, not "Literal"
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
     return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
 
 

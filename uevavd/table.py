@@ -265,6 +265,10 @@ class ObservationTable:
         is_train = np.asarray(self.splits)[idx] == "train"
         if holdout_block:
             held = np.array([block_of(int(c)) + 1 == holdout_block for c in self.contexts[idx]], bool)
+            if split == "train" and is_train.any() and (is_train <= held).all():  # every training context held out
+                raise TableError(f"env.holdout_block = {holdout_block} holds out every training context of table "
+                                 f"{self.key!r} (all lie in target block {holdout_block}): choose another block, or "
+                                 "0 for none")
             idx, is_train = idx[~(is_train & held)], is_train[~(is_train & held)]
         if not train_per_block:
             return idx

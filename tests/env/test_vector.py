@@ -377,3 +377,10 @@ def test_sb3_vec_env_asks_for_same_step_autoreset_itself(table):
         SB3VecEnv(started)
     with pytest.raises(ValueError, match="autoreset_mode='every_step'"):
         _vec(table, n=2, split="train", autoreset_mode="every_step")
+
+
+def test_a_seed_past_64_bits_is_named(table):
+    venv = _vec(table, n=2, split="train")
+    with pytest.raises(ValueError, match=r"reset\(seed=18446744073709551616\): expected an int in 0..2\*\*64 - 1"):
+        venv.reset(seed=2**64)
+    venv.reset(seed=2**64 - 1)

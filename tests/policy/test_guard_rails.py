@@ -39,6 +39,12 @@ from .test_cli import _sets
     ("train.updates_per_step", 5000, "train.updates_per_step = 5000: expected a number in (0, 1024]"),
     ("train.per_alpha", float("inf"), "train.per_alpha = inf: expected a finite number"),
     ("train.per_eps", float("inf"), "train.per_eps = inf: expected a finite number"),
+    # finite but huge ones overflowed the float32 priorities after the run's files were written
+    ("train.per_eps", 1e308, "train.per_eps = 1e+308: expected a small priority floor in (0, 1]"),
+    ("train.per_alpha", 1e4, "train.per_alpha = 10000.0: expected a prioritisation exponent in [0, 10]"),
+    ("train.per_alpha", 1e308, "train.per_alpha = 1e+308: expected a prioritisation exponent in [0, 10]"),
+    ("train.stop_gate", "boxx", "train.stop_gate = 'boxx' has the wrong type: expected one of 'none', 'box', "
+                                "'learned'"),
 ])
 def test_out_of_range_training_values_are_refused_before_the_run_starts(table, tmp_path, capsys, monkeypatch,
                                                                         key, value, needle):
@@ -475,3 +481,23 @@ def test_an_unfinished_run_resumes_only_on_the_kind_of_device_it_started_on(tabl
     assert main(args) == 0 and (run / "done.json").is_file()  # on its own device it resumes
     write_settings(run, {**settings, "device": "cuda:0"})
     assert main(args) == 0  # a finished run is finished on any device
+
+
+def test_a_holdout_block_that_empties_the_training_split_names_the_setting(table, tmp_path, capsys, monkeypatch):
+    """It blamed the table: "no scenes in split 'train' (splits present: [..., 'train'])"."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    path = table.save(tmp_path / "table")
+    assert main(["train", "--method", "map", "--table", str(path), "--episodes", "100", "--out",
+                 str(tmp_path / "run"), "--no-progress", *_sets(**{"env.holdout_block": 1})]) == 2
+    _one_line(capsys, "env.holdout_block = 1 holds out every training context of table")
+
+
+def test_a_checkpoint_that_is_not_a_zip_is_named_as_such(table, tmp_path):
+    from uevavd.policy.checkpoint import load_checkpoint
+
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 200})
+    train(spec, table, out=tmp_path / "run", device="cpu", progress=False)
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes((tmp_path / "run" / "checkpoint.pt").read_bytes()[:1000])  # a write cut short
+    with pytest.raises(CheckpointError, match=r"not a readable zip archive: .*a write cut short"):
+        load_checkpoint(cut)

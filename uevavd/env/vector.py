@@ -66,8 +66,8 @@ def _one_seed(seed: Any, n: int) -> int | None:
         if len(seeds) != n or not all(isinstance(s, int | np.integer) and s >= 0 for s in seeds):
             raise ValueError(f"reset(seed={seeds!r}): expected an int >= 0, or a list of {n} of them")
         return int(np.random.SeedSequence([int(s) for s in seeds]).generate_state(1, np.uint64)[0] >> 1)
-    if not isinstance(seed, int | np.integer) or seed < 0:
-        raise ValueError(f"reset(seed={seed!r}): expected an int >= 0, or a list of {n} of them")
+    if not isinstance(seed, int | np.integer) or not 0 <= seed < 2**64:  # torch's generator takes 64 bits
+        raise ValueError(f"reset(seed={seed!r}): expected an int in 0..2**64 - 1, or a list of {n} of them")
     return int(seed)
 
 

@@ -69,8 +69,9 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
     try:
         with zipfile.ZipFile(path) as zf:
             bad = zf.testzip()
-    except (zipfile.BadZipFile, OSError) as exc:
-        bad = f"({exc})"
+    except (zipfile.BadZipFile, OSError) as exc:  # cut short, or not a checkpoint at all: no record to name
+        raise CheckpointError(f"{path}: damaged checkpoint (not a readable zip archive: {exc}; a write cut short?); "
+                              "delete it to start the run over, or restore it from a copy") from None
     if bad is not None:
         raise CheckpointError(f"{path}: damaged checkpoint (record {bad} fails its CRC); delete it to start the run "
                               "over, or restore it from a copy")

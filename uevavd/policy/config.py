@@ -168,8 +168,9 @@ class TrainConfig:
         for key in ("eps_start", "eps_end", "per_beta"):
             need(0.0 <= getattr(self, key) <= 1.0, key, "a number in [0, 1]")
         need(0.0 < self.eps_fraction <= 1.0, "eps_fraction", "a share of training in (0, 1]")
-        need(self.per_alpha >= 0, "per_alpha", "a number >= 0")
-        need(self.per_eps > 0, "per_eps", "a number > 0")
+        # priorities are float32 and raised to alpha: past these they overflow mid-run, after the files exist
+        need(0 <= self.per_alpha <= 10, "per_alpha", "a prioritisation exponent in [0, 10] (the paper's PER uses 0.6)")
+        need(0 < self.per_eps <= 1, "per_eps", "a small priority floor in (0, 1]")
         need(self.replay_sampling in SAMPLINGS, "replay_sampling", f"one of {SAMPLINGS}")
         need(self.context_sampling in CONTEXT_SAMPLINGS, "context_sampling", f"one of {CONTEXT_SAMPLINGS}")
         need(isinstance(self.plr_temperature, int | float) and 0.0 < self.plr_temperature <= 100.0,
