@@ -96,3 +96,23 @@ def test_a_short_write_on_a_full_disk_is_enospc_naming_the_folder(tmp_path, monk
     with pytest.raises(OSError) as err:  # plenty of space: not taken for a full disk
         atomic_write(tmp_path / "a.npy", short)
     assert err.value.errno is None
+
+
+def test_a_lock_file_that_is_a_symlink_is_one_line_and_its_target_untouched(tmp_path, capsys, monkeypatch):
+    """An [Errno 40] traceback in train, prepare and export-minari."""
+    from uevavd.atomic import folder_lock
+    from uevavd.cli import main
+    from uevavd.testing.policy import toy_table
+
+    target = tmp_path / "target"
+    target.write_text("keep")
+    (tmp_path / ".run.lock").symlink_to(target)
+    with pytest.raises(ValueError, match=r"\.run\.lock: the lock file beside .* is a symbolic link.*rm "):
+        with folder_lock(tmp_path / "run", lambda f: RuntimeError(f)):
+            pass
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    table = toy_table(n_train=2, n_hard=1, feature_dim=8).save(tmp_path / "table")
+    assert main(["train", "--method", "map", "--table", str(table), "--episodes", "100", "--out",
+                 str(tmp_path / "run"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "is a symbolic link" in err and target.read_text() == "keep"

@@ -147,6 +147,9 @@ def folder_lock(folder: str | os.PathLike[str], busy: Callable[[str], Exception]
     out = Path(folder).resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
     lock = FileLock(str(out.parent / f".{out.name}.lock"))
+    if Path(lock.lock_file).is_symlink():  # the lock never follows a link (the OS's ELOOP): say so, in one line
+        raise ValueError(f"{lock.lock_file}: the lock file beside {out} is a symbolic link, which uevavd never "
+                         f"makes; remove it (rm {lock.lock_file}) and run again")
     try:
         lock.acquire(timeout=0)
     except Timeout:
