@@ -4,6 +4,7 @@ shipped policy reproduces its published numbers on a freshly generated context."
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import pytest
@@ -117,3 +118,33 @@ def test_zoo_check_recognizer_trains_the_shipped_recognizer_here(tmp_path, capsy
     (root / MANIFEST).write_text(json.dumps(manifest))
     assert main(["zoo", "check", "--zoo", str(root), "--recognizer", "--workers", "2"]) == 1
     assert "train_605 renders otherwise here than the zoo's recognizer was trained on" in capsys.readouterr().out
+
+
+def test_a_manifest_naming_files_outside_the_zoo_or_without_sizes_is_refused(tmp_path, capsys, monkeypatch):
+    """`zoo check` hashed /etc/hostname and said "match", Zoo.policy returned a path outside the
+    zoo, and `zoo list` on a record without bytes was KeyError: 'bytes'."""
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    shipped = json.loads((Zoo.load("quick").root / MANIFEST).read_text())
+    outside = tmp_path / "hostname"
+    outside.write_text("host")
+    cases = {
+        "absolute": ({str(outside): {"sha256": "0" * 64, "bytes": 4}}, "lies outside the zoo folder"),
+        "up": ({"../hostname": {"sha256": "0" * 64, "bytes": 4}}, "lies outside the zoo folder"),
+        "no size": ({"map.safetensors": {"sha256": "0" * 64}}, "needs a sha256 .64 hex digits. and its size"),
+    }
+    for case, (extra, needle) in cases.items():
+        root = tmp_path / case.replace(" ", "_")
+        shutil.copytree(Zoo.load("quick").root, root)
+        manifest = json.loads(json.dumps(shipped))
+        manifest["files"].update(extra)
+        if case == "absolute":
+            manifest["policies"]["map"]["file"] = str(outside)
+        (root / MANIFEST).write_text(json.dumps(manifest))
+        with pytest.raises(ZooError, match=needle):
+            Zoo.load(root=root)
+        for command in ("check", "list"):
+            assert main(["zoo", command, "--zoo", str(root)]) == 2, (case, command)
+            err = capsys.readouterr().err.strip()
+            assert "\n" not in err and re.search(needle, err), (case, command, err)

@@ -88,8 +88,10 @@ class Zoo:
             raise ZooError(f"{path}: no model zoo for preset {preset!r} (build one with `{REBUILD}`)") from None
         except (OSError, ValueError) as exc:
             raise ZooError(f"{path}: unreadable zoo manifest ({exc}); restore it from git or run `{REBUILD}`") from None
-        if manifest.get("format") != FORMAT:
-            raise ZooError(f"{path}: format {manifest.get('format')!r}, expected {FORMAT!r}; run `{REBUILD}`")
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+            found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+            raise ZooError(f"{path}: format {found!r}, expected {FORMAT!r}; run `{REBUILD}`")
+        _check_manifest(path, root, manifest)
         return cls(root, manifest)
 
     @classmethod
@@ -214,6 +216,29 @@ class Zoo:
         if problems:
             raise ZooError(f"the model zoo in {self.root} is stale ({'; '.join(problems)}): rebuild it with "
                            f"`{REBUILD}`")
+
+
+def _check_manifest(path: Path, root: Path, manifest: dict[str, Any]) -> None:
+    """Every file the manifest lists lies inside the zoo and has its sha256 and size, and every
+    policy names a listed file: a manifest naming ``/etc/hostname`` or ``../x`` was hashed and
+    said "match", and a record without ``bytes`` was a KeyError in ``zoo list``."""
+    def bad(what: str) -> ZooError:
+        return ZooError(f"{path}: {what}; restore the manifest from git or run `{REBUILD}`")
+
+    files, policies = manifest.get("files"), manifest.get("policies", {})
+    if not isinstance(files, dict) or not isinstance(policies, dict):
+        raise bad("'files' and 'policies' must be tables")
+    inside = root.resolve()
+    for name, record in files.items():
+        where = Path(name)
+        if where.is_absolute() or ".." in where.parts or inside not in (root / where).resolve().parents:
+            raise bad(f"file {name!r} lies outside the zoo folder {root}")
+        if not (isinstance(record, dict) and isinstance(record.get("sha256"), str) and len(record["sha256"]) == 64
+                and isinstance(record.get("bytes"), int) and not isinstance(record.get("bytes"), bool)):
+            raise bad(f"file {name!r} needs a sha256 (64 hex digits) and its size in bytes")
+    for method, record in policies.items():
+        if not isinstance(record, dict) or record.get("file") not in files:
+            raise bad(f"policy {method!r} names no file the manifest lists")
 
 
 def recognizer_settings(preset: Mapping[str, Any], seed: int) -> dict[str, Any]:
