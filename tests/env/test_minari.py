@@ -301,3 +301,40 @@ def test_an_export_killed_at_any_point_leaves_no_dataset_and_the_rerun_writes_it
                        timeout=300)
     assert p.returncode == 0 and "wrote uevavd/kill-v0: 3 episodes" in p.stdout, p.stderr
     assert sorted(f.name for f in (tmp_path / "ds" / "uevavd").iterdir()) == [".kill-v0.lock", "kill-v0"]
+
+
+def test_a_dataset_past_the_free_space_or_the_file_size_limit_is_one_line_before_hdf5_writes(table, tmp_path,
+                                                                                             monkeypatch, capsys):
+    """A full disk, or `ulimit -f`, ended in a segmentation fault (exit 139) after HDF5 tracebacks."""
+    import os
+    import resource
+    import subprocess
+    import sys
+    from collections import namedtuple
+
+    from uevavd.cli import main
+    from uevavd.paths import tables_dir
+    from uevavd.policy import minari_export
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    cached = table.save(tables_dir() / table.key)
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(minari_export.shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 10**5, 10**5))
+    assert main(["export-minari", str(cached), "--policy", "passive", "--id", "uevavd/full-v0", "--episodes", "50"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]  # below the finished progress bar, on a line of its own
+    assert err.startswith("uevavd export-minari: error: [Errno 28]") and "the disk has 100,000 bytes free" in err
+    assert not (tmp_path / "datasets" / "uevavd" / "full-v0").exists()
+    monkeypatch.undo()
+    # a real file-size limit, in a process of its own
+    env = {**os.environ, "UEVAVD_CACHE": str(tmp_path / "cache"), "MINARI_DATASETS_PATH": str(tmp_path / "datasets")}
+    env.pop("UEVAVD_DEBUG", None)
+    limit = 20_000  # bytes: the table's files are read, not written
+    run = subprocess.run([sys.executable, "-m", "uevavd.cli", "export-minari", str(cached), "--policy", "passive",
+                          "--id", "uevavd/limit-v0", "--episodes", "50"], env=env, capture_output=True, text=True,
+                         preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)), timeout=300)
+    lines = [line for line in run.stderr.splitlines() if "error" in line]
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert len(lines) == 1 and "past this process's file-size limit of 20,000 bytes" in lines[0]
+    assert not (tmp_path / "datasets" / "uevavd" / "limit-v0").exists()

@@ -22,6 +22,7 @@ install "uevavd[clients]"``).
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import shutil
@@ -35,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import folder_lock, remove_temporaries
+from ..atomic import FULL_DISK_BYTES, folder_lock, remove_temporaries
 from ..config_rules import check_count, did_you_mean, parse_override
 from ..env import ENV_ID
 from ..env.aod_env import AODEnv
@@ -135,6 +136,40 @@ def collect_episodes(table: Any, split: str, policy: Any, *, episodes: int, seed
     return buffers, env
 
 
+def dataset_bytes(buffers: list[Any]) -> int:
+    """The bytes of the episodes' arrays (observations, actions, rewards, flags, infos): at least
+    what Minari's HDF5 file holds of them."""
+    total = 0
+    for b in buffers:
+        for part in (b.observations, b.infos):
+            total += sum(np.asarray(v).nbytes for v in part.values())
+        total += np.asarray(b.actions).nbytes + 8 * len(b.rewards) + 2 * len(b.terminations)
+    return total
+
+
+def check_room(folder: Path, need: int) -> None:
+    """An ``OSError`` (one line; the command adds what to do) where ``need`` bytes cannot be
+    written into ``folder``: its disk holds less free space (with a margin for HDF5's own
+    records), or the process's file-size limit (``ulimit -f``) is below it."""
+    margin = max(1 << 20, need // 10)
+    free = shutil.disk_usage(folder).free
+    if free < need + margin:
+        raise OSError(errno.ENOSPC, f"{folder.parent}: the dataset needs about {_size(need + margin)} and the disk has "
+                                    f"{_size(free)} free (or record fewer --episodes)")
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY and limit < need + margin:
+        raise OSError(errno.EFBIG, f"{folder.parent}: the dataset's file needs about {_size(need + margin)}, past this "
+                                   f"process's file-size limit of {limit:,} bytes (or record fewer --episodes)")
+
+
+def _size(n: int) -> str:
+    return f"{n / 1e6:,.1f} MB" if n >= 10**6 else f"{n:,} bytes"
+
+
 @contextmanager
 def _datasets_path(out: str | os.PathLike[str] | None):
     """Minari writes under ``$MINARI_DATASETS_PATH``: ``out`` there for the call."""
@@ -175,6 +210,7 @@ def export_minari(table: Any, split: str, policy: str, dataset_id: str, *, episo
     with _dataset_folder(dataset_id, out) as (root, tmp):
         buffers, env = collect_episodes(table, split, pol, episodes=episodes, seed=seed, config=config,
                                         progress=progress)
+        check_room(tmp, dataset_bytes(buffers))  # HDF5 crashes (a segfault) on a full disk or past ulimit -f
         spec = gym.spec(ENV_ID)
         portable = gym.envs.registration.EnvSpec(
             id=spec.id, entry_point=spec.entry_point, max_episode_steps=None,
