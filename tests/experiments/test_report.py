@@ -459,10 +459,25 @@ def test_the_report_shows_the_stopping_diagnosis_per_split_and_terrain(tmp_path)
     map_hard = next(line for line in against.splitlines() if line.startswith("| hard | MAP |"))
     assert "| -0.050 [" in map_hard and "| +0.250 [" in map_hard and "| +0.200 [" in map_hard
     assert "| hard, woodland | IBE-MAP | 0.100 | | -0.100 |" in against.replace("|  |", "| |")
-    old = tmp_path / "old"  # results written before the diagnosis: no section, no error
+    old = tmp_path / "old"  # results written before the diagnosis: the section says why it is not there
     old.mkdir()
     make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)
-    assert "## Stopping" not in write_report(old, window=2).read_text(encoding="utf-8")
+    text = write_report(old, window=2).read_text(encoding="utf-8")
+    assert "## Stopping" in text and "Not written: results.csv has no column(s) ['box_start'," in text
+
+
+def test_report_refuses_a_results_table_cut_mid_row(tmp_path, capsys, monkeypatch):
+    """A results.csv cut mid-row reported exit 0 and turned claim (f) from "cannot tell" to "agrees"."""
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    d = _write_ablation(tmp_path, make_results({"map": (0.5, 0.05), "ibe_map": (0.35, 0.3)}))
+    text = (d / "results.csv").read_text()
+    (d / "results.csv").write_text(text[: text.rindex(",", 0, len(text) - 40)])  # the last row loses its end
+    assert main(["report", str(d)]) == 2
+    err = capsys.readouterr().err.strip()
+    lines = len(text[: text.rindex(",", 0, len(text) - 40)].splitlines())
+    assert "\n" not in err and f"results.csv, line {lines}:" in err and "fields where the header has" in err
 
 
 def test_the_room_table_gives_each_policy_its_share_of_the_oracles_gain_by_kind_of_start(tmp_path):

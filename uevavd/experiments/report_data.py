@@ -194,6 +194,20 @@ def _as_bool(col: pd.Series, path: Path) -> pd.Series:
     return out.astype(bool)
 
 
+def _check_rows(path: Path) -> None:
+    """Every row has the header's number of fields: pandas fills a row cut short (a copy or a
+    write that stopped mid-row) with NaN, which changed the claims without a word."""
+    import csv
+
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = csv.reader(fh)
+        header = next(rows, [])
+        for n, row in enumerate(rows, 2):
+            if row and len(row) != len(header):
+                raise ValueError(f"{path}, line {n}: {len(row)} fields where the header has {len(header)} (a row cut "
+                                 "short?); rerun the `uevavd ablate` that wrote it to write the table again")
+
+
 def load_results(path: str | Path) -> pd.DataFrame:
     """Read and check ``results.csv``; returns a DataFrame with typed columns
     (``seed``/``episodes`` int64, ``final`` bool, metrics float64, ``setting``/``method``/
@@ -209,6 +223,7 @@ def load_results(path: str | Path) -> pd.DataFrame:
         df = pd.read_csv(path, dtype={"setting": str, "method": str, "split": str})
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: cannot parse as CSV ({e})") from None
+    _check_rows(path)
     missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
     if missing:
         raise ValueError(f"{path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}")

@@ -76,17 +76,23 @@ def terrain_rows(contexts: pd.DataFrame, setting: str, split: str = "hard") -> p
 
 
 def stopping_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> list[str]:
-    """The report's section on stopping, or nothing for results without the diagnosis."""
-    if not set(STOPPING) <= set(final.columns):
-        return []
+    """The report's section on stopping, or one line saying why it is not there."""
+    title = "## Stopping: does the policy fly away from a view where the target is in view?"
+    missing = [c for c in STOPPING if c not in final.columns]
+    if missing:
+        return [title, "", f"Not written: results.csv has no column(s) {missing} (results of an earlier version; "
+                           "rerun its `uevavd ablate` to evaluate them).", ""]
     runs = final[~is_baseline(final) & (final["setting"] == setting)]
     methods = learned(runs["method"].unique())
-    if not methods or runs["box_start"].isna().all():
+    if not methods:
         return []
+    if runs["box_start"].isna().all():
+        return [title, "", "Not written: the learned runs' box_start is empty in results.csv (results of an earlier "
+                           "version; rerun its `uevavd ablate` to evaluate them).", ""]
     present = set(final.loc[final["setting"] == setting, "split"])
     splits = [s for s in SPLITS if s in present]
     refs = [m for m in REFERENCES if m in set(final["method"])]
-    out = ["## Stopping: does the policy fly away from a view where the target is in view?", "",
+    out = [title, "",
            "From every start view of every context: *box starts*, the share of starts whose observed target box "
            "is non-empty; *moves*, of those, the share where the policy's first decision is a move; *lost*, the "
            "share of all episodes that start with the box in view, move, and end unrecognised; *gated*, the same "
