@@ -693,3 +693,29 @@ def test_a_damaged_feature_or_probability_cache_is_computed_again_not_baked_into
     with caplog.at_level(logging.WARNING, logger="uevavd.perception.prepare"):
         prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
     assert not [r for r in caplog.records if "damaged" in r.getMessage() or "unreadable" in r.getMessage()]
+
+
+def test_another_scenes_cache_copied_in_is_computed_again_not_baked_into_a_table(
+        built, tiny_world, tiny_classifier, tmp_path, caplog):
+    """A scene's sealed cache replaced by another scene's went into the table, exit 0 (MAP's train
+    return 0.4566 -> 0.2574): the seal proved the bytes, not whose they were."""
+    import logging
+
+    method, path = built
+    out = tmp_path / "out"
+    for name in ("features", "probs"):
+        shutil.copytree(path.parent / name, out / name)
+    swapped = []
+    for name in ("features", "probs"):
+        for folder in sorted((out / name).iterdir()):
+            scenes = sorted(folder.glob("*.npz"))
+            if len(scenes) >= 2:
+                shutil.copy(scenes[1], scenes[0])  # the second scene's arrays under the first's name
+                swapped.append(scenes[0])
+    assert swapped
+    with caplog.at_level(logging.WARNING, logger="uevavd.perception.prepare"):
+        rebuilt = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=out, progress=False)
+    a, b = ObservationTable.load(path), ObservationTable.load(rebuilt)
+    for name in ("features", "probs", "boxes", "visible"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert any("copied from another scene" in r.getMessage() for r in caplog.records)

@@ -23,19 +23,30 @@ log = logging.getLogger("uevavd.perception.prepare")
 SHARD_ARRAYS = ("features", "probs", "boxes", "visible")
 
 
-def save_sealed_arrays(path: Path, arrays: Mapping[str, np.ndarray], *, fsync: bool = False) -> None:
-    """Arrays as one ``.npz``, written atomically, with the sha256 of their dtypes, shapes and
-    bytes beside them (under :data:`~uevavd.hashing.SEAL`), so a reader tells a damaged
-    cache from a good one."""
+#: The seal of this version's caches: the arrays' digest bound to the file's place (its folder,
+#: which names the cache's fingerprint or table, and its name, which names the scene).
+SEAL_FORMAT = "v2"
+
+
+def _place_digest(path: Path, arrays: Mapping[str, np.ndarray]) -> str:
     digest = arrays_sha256(*(arrays[k] for k in sorted(arrays)))
+    return f"{SEAL_FORMAT}:{json_digest({'arrays': digest, 'place': f'{path.parent.name}/{path.name}'})}"
+
+
+def save_sealed_arrays(path: Path, arrays: Mapping[str, np.ndarray], *, fsync: bool = False) -> None:
+    """Arrays as one ``.npz``, written atomically, with a digest of their dtypes, shapes and
+    bytes and of the file's place (under :data:`~uevavd.hashing.SEAL`), so a reader tells a
+    damaged cache, or another scene's or fingerprint's copied in, from a good one."""
+    digest = _place_digest(path, arrays)
     atomic_write(path, lambda fh: np.savez(fh, **arrays, **{SEAL: np.array(digest)}), fsync=fsync)
 
 
 def load_sealed_arrays(path: Path | None, expected: Mapping[str, tuple[tuple[int, ...], Any]]
                        ) -> dict[str, np.ndarray] | None:
     """The arrays of a :func:`save_sealed_arrays` file, or None where it is absent, unreadable,
-    of other shapes or dtypes (``expected``: name -> (shape, dtype)), or damaged or edited since
-    it was written (said in a warning naming it): a cache then recomputes."""
+    of other shapes or dtypes (``expected``: name -> (shape, dtype)), written by an earlier
+    version, or damaged, edited or moved since it was written (said in a warning naming it): a
+    cache then recomputes."""
     if path is None or not path.is_file():
         return None
     try:
@@ -47,8 +58,12 @@ def load_sealed_arrays(path: Path | None, expected: Mapping[str, tuple[tuple[int
         return None
     if any(arrays[k].shape != shape or arrays[k].dtype != dtype for k, (shape, dtype) in expected.items()):
         return None
-    if digest != arrays_sha256(*(arrays[k] for k in sorted(arrays))):
-        log.warning("prepare: %s was damaged or edited since it was written; computing it again", path)
+    if not digest.startswith(f"{SEAL_FORMAT}:"):  # an earlier version's seal, unbound to its place
+        log.info("prepare: %s was written by an earlier version; computing it again", path)
+        return None
+    if digest != _place_digest(path, arrays):
+        log.warning("prepare: %s was damaged, edited or copied from another scene or cache since it was written; "
+                    "computing it again", path)
         return None
     return arrays
 
