@@ -119,11 +119,12 @@ def test_final_eval_is_recomputed_when_missing_or_stale(ablation, tmp_path):
     job = ablation["jobs"][0]
     copy = dataclasses.replace(job, out=str(tmp_path / "run"))
     shutil.copytree(job.out, copy.out)
-    from uevavd.policy.rundir import read_settings, write_settings
+    from uevavd.policy.rundir import read_done, read_settings, write_done, write_settings
 
     settings = read_settings(copy.out)
     settings["env"].update(thre=0.6, C=0.0)
-    write_settings(copy.out, settings)  # as a run of that setting records it
+    write_settings(copy.out, settings)  # as a run of that setting records it, with its own mark on done.json
+    write_done(copy.out, settings, read_done(job.out))
     first = final_eval(copy)  # the copied cache holds the default config: stale
     assert first["key"]["env"]["thre"] == 0.6
     want = evaluate_policy(copy.table, "hard", load_policy(copy.out), EnvConfig(thre=0.6, C=0.0)).summary()

@@ -119,3 +119,20 @@ def test_an_edited_method_toml_of_a_run_is_refused(run, tmp_path, capsys, monkey
     assert main(["evaluate", str(copy), "--table", str(run.parent / "table"), "--split", "hard",
                  "--json", str(tmp_path / "e.json")]) == 2
     _one_line_error(capsys, f"{copy / 'method.toml'}: edited since the run wrote it")
+
+
+def test_another_runs_records_copied_in_are_refused(table, tmp_path):
+    """Two seeds' evals.jsonl swapped in an ablation moved 18 cells of results.csv, exit 0; one
+    seed's done.json in the other relabelled its final rows: each record carries its run's mark."""
+    import shutil
+
+    from uevavd.hashing import DamagedFileError
+    from uevavd.policy.rundir import read_done, read_evals
+
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 200})
+    runs = [train(spec, table, out=tmp_path / f"seed{s}", seed=s, device="cpu", progress=False) for s in (0, 1)]
+    assert read_evals(runs[0]) and "run" not in read_evals(runs[0])[0] and "run" not in read_done(runs[0])
+    for name, read in (("evals.jsonl", read_evals), ("done.json", read_done)):
+        shutil.copy(runs[1] / name, runs[0] / name)
+        with pytest.raises(DamagedFileError, match=rf"seed0/{name}(, line 1)?: written by another run"):
+            read(runs[0])

@@ -11,8 +11,8 @@ import torch
 from uevavd.config import load_method
 from uevavd.config_rules import ConfigError
 from uevavd.env import EnvConfig, evaluate_policy
-from uevavd.env.batched import EnvTensors
 from uevavd.env.baselines import build_visibility_oracle
+from uevavd.env.batched import EnvTensors
 from uevavd.env.visibility_oracle import visibility_plans
 from uevavd.policy.acting import load_policy
 from uevavd.policy.imitation import OracleLabels

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import FULL_DISK_BYTES, folder_lock, remove_temporaries
+from ..atomic import folder_lock, remove_temporaries
 from ..config_rules import check_count, did_you_mean, parse_override
 from ..env import ENV_ID
 from ..env.aod_env import AODEnv

@@ -32,7 +32,7 @@ from typing import Any
 from ..atomic import atomic_write, folder_lock, is_temporary, load_sealed_json, write_sealed_json
 from ..config import MethodSpec, load_method
 from ..env.config import LEGACY_ENV
-from ..hashing import DamagedFileError, seal, unseal
+from ..hashing import DamagedFileError, json_digest, seal, unseal
 from .config import LEGACY_TRAIN
 
 
@@ -138,14 +138,40 @@ def write_settings(run_dir: str | Path, settings: dict[str, Any]) -> Path:
     return write_sealed_json(RunDir(run_dir).settings, settings, sort_keys=True)
 
 
+def run_identity(settings: dict[str, Any]) -> str:
+    """The digest of what makes a run this run (:data:`RUN_KEYS` of its settings): its records
+    (``evals.jsonl``'s lines, ``done.json``) carry it under ``run``, so another run's copied in
+    is refused (a seal proves the bytes, not whose they are)."""
+    return json_digest({k: settings.get(k) for k in RUN_KEYS}, 16)
+
+
+def _owned(record: dict[str, Any], run_dir: str | Path, where: str) -> dict[str, Any]:
+    """``record`` without its ``run`` mark, after checking the mark is this run's (records of
+    earlier versions have none)."""
+    record = dict(record)
+    mark = record.pop("run", None)
+    if mark is not None and mark != run_identity(read_settings(run_dir)):
+        raise DamagedFileError(f"{where}: written by another run (another seed, method, table or setting) and copied "
+                               f"here; {RETRAIN}")
+    return record
+
+
 def read_done(run_dir: str | Path) -> dict[str, Any]:
-    """A finished run's ``done.json`` (its counts, wall time and last evaluation), checked."""
-    return load_sealed_json(RunDir(run_dir).done, RETRAIN, legacy=True)
+    """A finished run's ``done.json`` (its counts, wall time and last evaluation), checked,
+    and checked to be this run's."""
+    path = RunDir(run_dir).done
+    return _owned(load_sealed_json(path, RETRAIN, legacy=True), run_dir, str(path))
+
+
+def write_done(run_dir: str | Path, settings: dict[str, Any], record: dict[str, Any]) -> Path:
+    """A finished run's ``done.json``: ``record`` sealed, with the run's mark."""
+    return write_sealed_json(RunDir(run_dir).done, {**record, "run": run_identity(settings)}, sort_keys=True)
 
 
 def write_evals(run_dir: str | Path, rows: list[dict[str, Any]]) -> Path:
-    """A run's ``evals.jsonl``: one sealed JSON object per line."""
-    return atomic_write(RunDir(run_dir).evals, "".join(json.dumps(seal(r)) + "\n" for r in rows))
+    """A run's ``evals.jsonl``: one sealed JSON object per line, each with the run's mark."""
+    mark = run_identity(read_settings(run_dir))
+    return atomic_write(RunDir(run_dir).evals, "".join(json.dumps(seal({**r, "run": mark})) + "\n" for r in rows))
 
 
 def read_evals(run_dir: str | Path) -> list[dict[str, Any]]:
@@ -162,7 +188,7 @@ def read_evals(run_dir: str | Path) -> list[dict[str, Any]]:
             obj = json.loads(line)
         except ValueError as exc:
             raise DamagedFileError(f"{path}, line {n}: damaged ({exc}); {RETRAIN}") from None
-        row = unseal(obj, f"{path}, line {n}", RETRAIN, legacy=True)
+        row = _owned(unseal(obj, f"{path}, line {n}", RETRAIN, legacy=True), run_dir, f"{path}, line {n}")
         if not isinstance(row.get("episodes"), int) or not isinstance(row.get("split"), str):
             raise DamagedFileError(f"{path}, line {n}: not an evaluation row (no episodes or split); {RETRAIN}")
         rows.append(row)

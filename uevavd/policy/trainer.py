@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..atomic import remove_temporaries, write_sealed_json
+from ..atomic import remove_temporaries
 from ..config import MethodSpec, PerceptionSection
 from ..config_rules import ConfigError, dotted_get
 from ..data.grid import N_TYPES
@@ -48,7 +48,7 @@ from .imitation import OracleLabels, check_branches
 from .learner import FeatureDropout, FeatureLookup, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
-from .rundir import RunDir, RunDirError, check_run_dir, run_lock, write_evals, write_settings
+from .rundir import RunDir, RunDirError, check_run_dir, run_lock, write_done, write_evals, write_settings
 from .trainlog import Loop, TrainLog
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
@@ -231,10 +231,9 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
         # the shareable policy (the network alone), then the mark that the run is finished
         save_policy_file(RunDir(run.out).policy, run.net.state_dict(),
                          RunDir(run.out).method.read_text(encoding="utf-8"), run.settings)
-        write_sealed_json(RunDir(run.out).done, {
+        write_done(run.out, run.settings, {
             "episodes": loop.episodes, "env_steps": loop.env_steps, "updates": run.learner.updates,
-            "wall_s": loop.wall, "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else []},
-            sort_keys=True)
+            "wall_s": loop.wall, "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else []})
     return run.out
 
 
