@@ -33,7 +33,7 @@ GROUPS = (
                                            "generalisation-paper64")),
     ("Knowing when not to fly", ("stopping-validation-stop", "stopping-validation-pess",
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
-    ("Where to fly: the pose", ("pose-quick",)),
+    ("Where to fly: the pose", ("pose-quick", "pose-quick-world1")),
 )
 MACHINE = "2 CPU cores (the development VM, an AMD EPYC)"
 V = "--preset benchmarks/generalisation_validation.toml --seeds 3 --recognizers 1"
@@ -77,7 +77,11 @@ COMMANDS = {
     "stopping-paper64": "uevavd ablate --preset paper64 --methods ibe_map ibe_map_gate ibe_map_stop ibe_map_pess "
                         "ibe_map_gate_pess",
     "pose-quick": "uevavd ablate --preset quick --methods map memo_map ibe_map ibe_map_gate ibe_map_pose "
-                  "ibe_map_pose_gate --seeds 5 --recognizers 2 --sweep env.train_per_block=4",
+                  "ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate --seeds 5 --recognizers 2 "
+                  "--sweep env.train_per_block=4",
+    "pose-quick-world1": "uevavd ablate --preset quick --world-seed 1 --methods map memo_map ibe_map ibe_map_gate "
+                         "ibe_map_pose ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate --seeds 5 "
+                         "--recognizers 2 --sweep env.train_per_block=4",
 }
 ORDER = ("map", "memo_map", "ibe_map")
 REFERENCES = ("random", "passive", "box_gate", "pose_seek", "visibility_oracle", "oracle")

@@ -80,6 +80,7 @@ def roles_now() -> dict[str, Any]:
 METHOD_ORDER: tuple[str, ...] = ("random", "passive", "box_gate", "pose_seek", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
                                   "ibe_map_reco", "ibe_map_aug", "ibe_map_aux", "ibe_map_gate", "ibe_map_stop",
                                   "ibe_map_pess", "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate",
+                                  "ibe_map_pose_dagger", "ibe_map_pose_dagger_gate",
                                   "sb3_dqn",
                                   "sb3_ppo",
                                   "visibility_oracle", "oracle")
@@ -99,6 +100,8 @@ LABELS: dict[str, str] = {
     "ibe_map_gate_pess": "IBE-MAP (box gate + pessimistic ensemble)",
     "ibe_map_pose": "IBE-MAP (pose in the state)",
     "ibe_map_pose_gate": "IBE-MAP (pose + box gate in training)",
+    "ibe_map_pose_dagger": "IBE-MAP (pose, DAgger of the visibility oracle)",
+    "ibe_map_pose_dagger_gate": "IBE-MAP (pose, DAgger behind the box gate)",
     "random": "Random",
     "passive": "Passive",
     "box_gate": "Box gate (scripted)",
