@@ -136,3 +136,21 @@ def test_another_runs_records_copied_in_are_refused(table, tmp_path):
         shutil.copy(runs[1] / name, runs[0] / name)
         with pytest.raises(DamagedFileError, match=rf"seed0/{name}(, line 1)?: written by another run"):
             read(runs[0])
+
+
+def test_an_unsealed_settings_json_with_another_reward_is_refused_by_the_checkpoint(table, tmp_path, capsys,
+                                                                                     monkeypatch):
+    """settings.json without its sha256 and with env.thre 0.3: evaluate took it (MAP 0.2669 -> 0.1697)
+    though the checkpoint records thre 0.2; the checkpoint's env is compared now."""
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 200})
+    run = train(spec, table.save(tmp_path / "table"), out=tmp_path / "run", device="cpu", progress=False)
+    assert main(["evaluate", str(run), "--split", "hard"]) == 0
+    capsys.readouterr()
+    settings = json.loads((run / "settings.json").read_text())
+    settings.pop("sha256")
+    settings["env"]["thre"] = 0.3
+    (run / "settings.json").write_text(json.dumps(settings))
+    assert main(["evaluate", str(run), "--split", "hard"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "belongs to another configuration: env: checkpoint has" in err and "'thre': 0.2" in err

@@ -26,7 +26,7 @@ from ..state.base import InputGateCache, estimator_boxes, reads_pose
 from ..table import ObservationTable, load_table
 from . import targets as T
 from .checkpoint import (
-    ARCH_KEYS,
+    EVAL_KEYS,
     check_policy_fits,
     load_checkpoint,
     load_net_state,
@@ -222,7 +222,7 @@ def load_policy(run_dir: str | Path, *, device: str = "cpu", weights: str | None
 
     net = method_network(spec, settings["feature_dim"], settings["env"]["max_range"])
     path = run_dir / weights if weights else RunDir(run_dir).checkpoint
-    state = load_checkpoint(path, expect=settings, keys=ARCH_KEYS)  # the network, not a resume
+    state = load_checkpoint(path, expect=settings, keys=EVAL_KEYS)  # the network and its env, not a resume
     load_net_state(net, state["net"], path)
     if table is not None:
         return GreedyPolicy(net, device=device, features=torch.from_numpy(np.array(table.features)),

@@ -30,6 +30,10 @@ from .rundir import RunDir, with_legacy_settings
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
 ARCH_KEYS = ("method", "spec_hash", "table_key", "feature_dim", "n_types", "n_ranges", "t_max", "state", "head")
+#: What a run's evaluation reads from its settings.json besides the network: checked against the
+#: checkpoint, which records the settings the run trained under (an unsealed settings.json with
+#: another thre was evaluated under it).
+EVAL_KEYS = (*ARCH_KEYS, "env")
 #: What a run must agree on to *resume* from a checkpoint: a checkpoint of another seed,
 #: other training settings, another torch thread count or another uevavd version would
 #: resume into a run that differs from an uninterrupted one.
@@ -82,7 +86,7 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
     if not isinstance(state, dict) or "meta" not in state:
         raise CheckpointError(f"{path}: not a uevavd training checkpoint (no meta)")
     if expect is not None:
-        want, have = checkpoint_meta(expect), with_legacy_settings(state["meta"])
+        want, have = with_legacy_settings(checkpoint_meta(expect)), with_legacy_settings(state["meta"])
         diffs = [f"{k}: checkpoint has {have.get(k)!r}, expected {want[k]!r}"
                  for k in keys if have.get(k) != want[k]]
         if diffs:
