@@ -41,29 +41,43 @@ class DamagedFileError(ValueError):
     or damaged on the disk. Its message names the file and what to do."""
 
 
+#: The key that says an object was written sealed, and the seal's format: an object claiming it
+#: without its digest had the digest removed (earlier versions wrote neither key).
+SEALED, SEAL_FORMAT = "sealed", "2"  # a string: safetensors headers hold strings only
+
+
 def seal(obj: dict[str, Any]) -> dict[str, Any]:
-    """``obj`` as it reads back from JSON, with its digest under :data:`SEAL`."""
+    """``obj`` as it reads back from JSON, marked :data:`SEALED` and with its digest under :data:`SEAL`."""
     plain = json.loads(json.dumps(obj, default=str))
     plain.pop(SEAL, None)
+    plain[SEALED] = SEAL_FORMAT
     return {**plain, SEAL: json_digest(plain)}
+
+
+def is_sealed(obj: Any) -> bool:
+    """Whether a JSON object read from a file carries a seal (this version's or an earlier one's)."""
+    return isinstance(obj, dict) and (SEAL in obj or SEALED in obj)
 
 
 def unseal(obj: Any, where: str, advice: str, *, legacy: bool = False) -> dict[str, Any]:
     """The sealed object ``obj`` read from ``where`` without its seal, after checking it. A
-    digest that does not match, or an object that is not one, is a :class:`DamagedFileError`
-    naming ``where`` and saying ``advice``. ``legacy``: an object without a seal (written
-    before the file kind was sealed) is taken as it is."""
+    digest that does not match, one removed from an object marked :data:`SEALED`, or an object
+    that is not one, is a :class:`DamagedFileError` naming ``where`` and saying ``advice``.
+    ``legacy``: an object with neither (written before the file kind was sealed) is taken as it
+    is; a reader passes False where the file's sealed siblings show it is this version's."""
     if not isinstance(obj, dict):
         raise DamagedFileError(f"{where}: damaged (expected a JSON object, found {type(obj).__name__}); {advice}")
     if SEAL not in obj:
-        if legacy:
+        if legacy and SEALED not in obj:
             return obj
-        raise DamagedFileError(f"{where}: damaged (no {SEAL} digest was found in it); {advice}")
+        raise DamagedFileError(f"{where}: damaged or edited (no {SEAL} digest was found in it, and it was written "
+                               f"sealed); {advice}")
     obj = dict(obj)
     recorded = obj.pop(SEAL)
     if recorded != json_digest(obj):
         raise DamagedFileError(f"{where}: edited or damaged since it was written (its content no longer matches "
                                f"the {SEAL} digest written with it); {advice}")
+    obj.pop(SEALED, None)
     return obj
 
 

@@ -340,6 +340,25 @@ def test_a_damaged_ablation_json_is_one_line_naming_it_for_ablate_and_report(abl
         assert f"{meta}: " in err and "Traceback" not in err, err
 
 
+def test_an_ablation_json_whose_digest_was_removed_is_refused(ablation, tmp_path, capsys, monkeypatch):
+    """ablation.json without its sha256 (and its mark) and with an edit: report printed "0 runs per
+    method", exit 0. Beside sealed runs it must carry its digest."""
+    import shutil
+
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    out = tmp_path / "abl"
+    shutil.copytree(ablation["plan"].out, out)
+    meta = json.loads((out / "ablation.json").read_text())
+    meta = {k: v for k, v in meta.items() if k not in ("sha256", "sealed")}
+    meta["seeds"] = []
+    (out / "ablation.json").write_text(json.dumps(meta))
+    assert main(["report", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "ablation.json: damaged or edited (no sha256 digest" in err
+
+
 def test_an_ablation_killed_in_its_first_write_reruns(tiny, tmp_path):
     """Killed while writing ablation.json for the first time, an ablation left only its temporary
     file, and the rerun called the folder someone else's."""

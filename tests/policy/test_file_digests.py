@@ -69,15 +69,35 @@ def test_an_edited_digit_in_evals_or_done_is_refused_naming_the_file(run, tmp_pa
 def test_rows_of_an_earlier_version_without_digests_still_read(run, tmp_path):
     """Runs written before the files were sealed are read as they are."""
     copy = _copy(run, tmp_path)
+    earlier = ("sha256", "sealed", "run")  # an earlier version wrote none of these
     for name in ("settings.json", "done.json"):
         obj = json.loads((copy / name).read_text())
-        obj.pop("sha256")
-        (copy / name).write_text(json.dumps(obj))
+        (copy / name).write_text(json.dumps({k: v for k, v in obj.items() if k not in earlier}))
     rows = [json.loads(line) for line in (copy / "evals.jsonl").read_text().splitlines()]
-    (copy / "evals.jsonl").write_text("".join(json.dumps({k: v for k, v in r.items() if k != "sha256"}) + "\n"
+    (copy / "evals.jsonl").write_text("".join(json.dumps({k: v for k, v in r.items() if k not in earlier}) + "\n"
                                               for r in rows))
     assert read_settings(copy)["env"] == read_settings(run)["env"]
     assert read_evals(copy) == read_evals(run) and read_done(copy) == read_done(run)
+
+
+@pytest.mark.parametrize("name", ["settings.json", "done.json", "evals.jsonl"])
+def test_a_record_whose_digest_was_removed_is_refused(run, tmp_path, name):
+    """Every reader took a file without its sha256 as one of an earlier version: deleting the key
+    turned the check off. A record marked sealed, or beside sealed ones, must carry its digest."""
+    from uevavd.policy.rundir import read_done, read_evals, read_settings
+
+    read = {"settings.json": read_settings, "done.json": read_done, "evals.jsonl": read_evals}[name]
+    for drop in (("sha256",), ("sha256", "sealed")):  # the digest; the digest and the mark
+        copy = _copy(run, tmp_path / "-".join(drop))
+        if name.endswith(".jsonl"):  # its first line
+            lines = (copy / name).read_text().splitlines()
+            lines[0] = json.dumps({k: v for k, v in json.loads(lines[0]).items() if k not in drop})
+            (copy / name).write_text("\n".join(lines) + "\n")
+        else:
+            obj = json.loads((copy / name).read_text())
+            (copy / name).write_text(json.dumps({k: v for k, v in obj.items() if k not in drop}))
+        with pytest.raises(DamagedFileError, match=rf"{name}(, line 1)?: damaged or edited \(no sha256 digest"):
+            read(copy)
 
 
 @pytest.mark.parametrize("field, old, new", [
@@ -147,10 +167,32 @@ def test_an_unsealed_settings_json_with_another_reward_is_refused_by_the_checkpo
     run = train(spec, table.save(tmp_path / "table"), out=tmp_path / "run", device="cpu", progress=False)
     assert main(["evaluate", str(run), "--split", "hard"]) == 0
     capsys.readouterr()
-    settings = json.loads((run / "settings.json").read_text())
-    settings.pop("sha256")
-    settings["env"]["thre"] = 0.3
-    (run / "settings.json").write_text(json.dumps(settings))
+    earlier = ("sha256", "sealed", "run")  # every record stripped to look like an earlier version's
+    for name in ("done.json", "settings.json"):
+        obj = {k: v for k, v in json.loads((run / name).read_text()).items() if k not in earlier}
+        if name == "settings.json":
+            obj["env"]["thre"] = 0.3
+        (run / name).write_text(json.dumps(obj))
+    rows = [json.loads(line) for line in (run / "evals.jsonl").read_text().splitlines()]
+    (run / "evals.jsonl").write_text("".join(json.dumps({k: v for k, v in r.items() if k not in earlier}) + "\n"
+                                             for r in rows))
     assert main(["evaluate", str(run), "--split", "hard"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "belongs to another configuration: env: checkpoint has" in err and "'thre': 0.2" in err
+
+
+def test_a_policy_header_without_its_digests_is_refused(run, tmp_path):
+    """A policy header with its sha256 and weights_hash removed took other weights."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    src = run / "policy.safetensors"
+    with safe_open(str(src), framework="pt") as fh:
+        meta = dict(fh.metadata())
+    assert meta["format"] == "uevavd-policy/2"
+    weights = {k: v + 1.0 if v.is_floating_point() else v for k, v in load_file(str(src)).items()}
+    for drop in (("sha256",), ("sha256", "sealed", "weights_hash")):  # this format's files always carry both
+        edited = tmp_path / f"{len(drop)}.safetensors"
+        save_file(weights, str(edited), metadata={k: v for k, v in meta.items() if k not in drop})
+        with pytest.raises(DamagedFileError, match=r"\d.safetensors: damaged or edited .no sha256 digest"):
+            read_policy_file(edited)

@@ -4,12 +4,14 @@ disk leaves the previous version intact), and ``ablation.json`` sealed and check
 from __future__ import annotations
 
 import csv
+import json
 import os
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from ..atomic import atomic_write, load_sealed_json
+from ..hashing import is_sealed
 
 #: The ablation's record: its fingerprint (checked on a rerun), stages, status and the rows' roles.
 ABLATION_FILE = "ablation.json"
@@ -20,7 +22,19 @@ def read_ablation_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
     earlier version, without one, is read as it is); damaged, edited or not a JSON object is
     an error naming the file."""
     return load_sealed_json(path, "restore it from a copy, or run the ablation again into a new --out",
-                            legacy=True)
+                            legacy=not _runs_sealed(Path(path).parent))
+
+
+def _runs_sealed(ablation_dir: Path) -> bool:
+    """Whether the ablation's first run on disk has a sealed settings.json: then this version wrote
+    the ablation, and its ablation.json must carry its digest too (one without had it removed)."""
+    first = next(iter(sorted(ablation_dir.glob("runs/*/*/*/*/settings.json"))), None)
+    if first is None:
+        return False
+    try:
+        return is_sealed(json.loads(first.read_text(encoding="utf-8")))
+    except (OSError, ValueError):
+        return False
 
 
 def write_csv(path: str | os.PathLike[str], rows: Iterable[Mapping[str, Any]], columns: Sequence[str]) -> Path:

@@ -96,7 +96,10 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
 
 #: The shareable policy a finished run writes beside its checkpoint.
 POLICY_FILE = RunDir(".").policy.name
-POLICY_FORMAT = "uevavd-policy/1"
+POLICY_FORMAT = "uevavd-policy/2"
+#: The formats a policy file may have: this version's (sealed, always) and the first, whose
+#: files may lack the header's digest (the zoo's are checked against its manifest as whole files).
+POLICY_FORMATS = ("uevavd-policy/1", POLICY_FORMAT)
 #: The run settings a policy file carries (what loading it must check and rebuild).
 POLICY_KEYS = ("method", "spec_hash", "table_key", "table_identity", "feature_dim", "env", "seed")
 
@@ -130,12 +133,13 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any],
         state = load_file(str(path))
     except (SafetensorError, OSError, ValueError) as exc:
         raise CheckpointError(f"{path}: unreadable policy file ({exc})") from None
-    if meta.get("format") != POLICY_FORMAT:
-        raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected "
-                              f"{POLICY_FORMAT!r})")
-    # files of earlier versions lack the header's digest (and the oldest the weights'); the zoo's
-    # are checked against its manifest as whole files
-    meta = unseal(meta, str(path), "copy it again, or evaluate the run's checkpoint", legacy=True)
+    if meta.get("format") not in POLICY_FORMATS:
+        raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected one of "
+                              f"{list(POLICY_FORMATS)})")
+    # files of the first format may lack the header's digest (and the oldest the weights'); this
+    # format's always carry both, so one without them had them removed
+    meta = unseal(meta, str(path), "copy it again, or evaluate the run's checkpoint",
+                  legacy=meta["format"] != POLICY_FORMAT)
     if "weights_hash" in meta and state_dict_hash(state) != meta["weights_hash"]:
         raise CheckpointError(f"{path}: damaged (its weights no longer match the weights_hash written with them); "
                               "copy it again, or evaluate the run's checkpoint")

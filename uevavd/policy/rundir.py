@@ -32,7 +32,7 @@ from typing import Any
 from ..atomic import atomic_write, folder_lock, is_temporary, load_sealed_json, write_sealed_json
 from ..config import MethodSpec, load_method
 from ..env.config import LEGACY_ENV
-from ..hashing import DamagedFileError, json_digest, seal, unseal
+from ..hashing import DamagedFileError, is_sealed, json_digest, seal, unseal
 from .config import LEGACY_TRAIN
 
 
@@ -127,7 +127,7 @@ def read_settings(run_dir: str | Path) -> dict[str, Any]:
     path = RunDir(run_dir).settings
     if not path.is_file():
         raise FileNotFoundError(f"{run_dir} is not a training run: no settings.json (train one with `uevavd train`)")
-    settings = load_sealed_json(path, RETRAIN, legacy=True)
+    settings = load_sealed_json(path, RETRAIN, legacy=not _sealed_beside(run_dir, path))
     if "env" not in settings:
         raise RunDirError(f"{path}: not a uevavd run's settings (no env section); train it again into a new --out")
     return settings
@@ -136,6 +136,23 @@ def read_settings(run_dir: str | Path) -> dict[str, Any]:
 def write_settings(run_dir: str | Path, settings: dict[str, Any]) -> Path:
     """Write a run's ``settings.json``, sealed."""
     return write_sealed_json(RunDir(run_dir).settings, settings, sort_keys=True)
+
+
+def _sealed_beside(run_dir: str | Path, path: Path) -> bool:
+    """Whether another record of the run (``settings.json``, ``done.json``, ``evals.jsonl``'s
+    first line) is sealed: then this version wrote the run, and ``path`` must be sealed too (a
+    record without its digest beside sealed ones had it removed)."""
+    run = RunDir(run_dir)
+    for other in (run.settings, run.done, run.evals):
+        if other == path or not other.is_file():
+            continue
+        try:
+            with other.open(encoding="utf-8") as fh:  # a JSON file whole, a JSON-lines file's first line
+                if is_sealed(json.loads(fh.readline() if other == run.evals else fh.read())):
+                    return True
+        except (OSError, ValueError):
+            continue
+    return False
 
 
 def run_identity(settings: dict[str, Any]) -> str:
@@ -160,7 +177,7 @@ def read_done(run_dir: str | Path) -> dict[str, Any]:
     """A finished run's ``done.json`` (its counts, wall time and last evaluation), checked,
     and checked to be this run's."""
     path = RunDir(run_dir).done
-    return _owned(load_sealed_json(path, RETRAIN, legacy=True), run_dir, str(path))
+    return _owned(load_sealed_json(path, RETRAIN, legacy=not _sealed_beside(run_dir, path)), run_dir, str(path))
 
 
 def write_done(run_dir: str | Path, settings: dict[str, Any], record: dict[str, Any]) -> Path:
@@ -181,6 +198,7 @@ def read_evals(run_dir: str | Path) -> list[dict[str, Any]]:
     if not path.is_file():
         return []
     rows = []
+    legacy = not _sealed_beside(run_dir, path)
     for n, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
         if not line.strip():
             continue
@@ -188,7 +206,7 @@ def read_evals(run_dir: str | Path) -> list[dict[str, Any]]:
             obj = json.loads(line)
         except ValueError as exc:
             raise DamagedFileError(f"{path}, line {n}: damaged ({exc}); {RETRAIN}") from None
-        row = _owned(unseal(obj, f"{path}, line {n}", RETRAIN, legacy=True), run_dir, f"{path}, line {n}")
+        row = _owned(unseal(obj, f"{path}, line {n}", RETRAIN, legacy=legacy), run_dir, f"{path}, line {n}")
         if not isinstance(row.get("episodes"), int) or not isinstance(row.get("split"), str):
             raise DamagedFileError(f"{path}, line {n}: not an evaluation row (no episodes or split); {RETRAIN}")
         rows.append(row)
