@@ -1,7 +1,9 @@
 """A tour of user mistakes and damaged files through the CLI (docs/faults.md): prints, for
 each fault, the exit status and the line the user reads: edited run files and policy headers,
 a run killed in its first write, flipped bits in a checkpoint and a policy file, an edited
-table, values out of range, bad arguments of every command.
+table, a seal removed, files evaluate must not replace, a cut
+results.csv, a lock file that is a link, a zoo manifest pointing outside, values out of range,
+bad arguments of every command.
 
     python examples/fault_tour.py
 """
@@ -106,7 +108,33 @@ killed_first.mkdir()
 (W / "loops").mkdir()
 os.symlink(".", W / "loops" / "a")
 os.symlink("a", W / "loops" / "027")
+# a seal removed, files evaluate must not replace, a cut results.csv (another run's records copied in are
+# refused where ablate reads them: tests/policy/test_file_digests.py)
+unsealed = W / "unsealed"
+shutil.copytree(W / "run", unsealed)
+_settings = __import__("json").loads((unsealed / "settings.json").read_text())
+_settings.pop("sha256")
+_settings["env"]["thre"] = 0.3
+(unsealed / "settings.json").write_text(__import__("json").dumps(_settings))
+cut = W / "cut"
+cut.mkdir()
+_text = "method,seed,setting,thre,C,episodes,final,split,return,accuracy,recognition,path_m,path_steps,stop_rate,steps,wall_s\n"
+(cut / "results.csv").write_text(_text + "map,0,default,0.2,0.02,100,True,hard,0.1,0.5,0.6,10,1,1,1,1\nmap,1,default,0.2")
+(W / ".locked.lock").symlink_to(W / "afile")
+zoo = W / "zoo"
+shutil.copytree(__import__("uevavd.zoo", fromlist=["Zoo"]).Zoo.load("quick").root, zoo)
+_manifest = __import__("json").loads((zoo / "manifest.json").read_text())
+_manifest["files"]["/etc/hostname"] = {"sha256": "0" * 64, "bytes": 1}
+(zoo / "manifest.json").write_text(__import__("json").dumps(_manifest))
 cases = [
+ ("evaluate a run whose settings.json lost its digest and has thre 0.3", ["evaluate", unsealed, "--table", table, "--split", "hard"]),
+ ("evaluate --json over a table's meta.json", ["evaluate", W / "run", "--table", table, "--split", "hard", "--json", table / "meta.json"]),
+ ("report on a results.csv cut mid-row", ["report", cut]),
+ ("train into a folder whose lock file is a symbolic link", ["train", "--method", "map", "--table", table, "--out", W / "locked", "--episodes", 100, *SMALL]),
+ ("zoo check on a manifest naming /etc/hostname", ["zoo", "check", "--zoo", zoo]),
+ ("a finite but huge PER priority floor", ["train", "--method", "map", "--table", table, "--out", W / "r13", "--set", "train.per_eps=1e308"]),
+ ("a stop gate that does not exist", ["train", "--method", "map", "--table", table, "--out", W / "r14", "--set", "train.stop_gate=\"boxx\""]),
+ ("a holdout block that holds out every training context", ["train", "--method", "map", "--table", table, "--out", W / "r15", "--set", "env.holdout_block=1", *SMALL]),
  ("evaluate a run whose settings.json was edited (thre 0.2 -> 0.3)", ["evaluate", run6, "--table", table, "--split", "hard"]),
  ("evaluate a run whose method.toml was edited", ["evaluate", run7, "--table", table, "--split", "hard"]),
  ("evaluate a policy file whose header was edited", ["evaluate", header_policy, "--table", table, "--split", "hard"]),
