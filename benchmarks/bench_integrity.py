@@ -11,6 +11,10 @@ trained on it with the preset's training settings for ``--episodes``:
   ``torch.load`` alone;
 * the policy file: ``read_policy_file`` (the weights hash) against safetensors' ``load_file``;
 * ``final_eval.json``: ``read_sealed_json`` against ``json.load``;
+* ``evals.jsonl`` and ``done.json``: ``read_evals`` / ``read_done`` (each record's seal, its run's
+  mark against the run's settings, the seal of the records beside it) against ``json.loads``;
+* a per-scene cache: ``load_sealed_arrays`` (the arrays' digest bound to the file's place)
+  against ``np.load``;
 
 and, for scale, the run's training time and one exhaustive evaluation of its policy on the
 hard split (what ``uevavd evaluate`` and an ablation's final evaluation run after the reads):
@@ -52,9 +56,10 @@ def main() -> int:
     from uevavd.atomic import read_sealed_json, write_sealed_json
     from uevavd.config import load_method
     from uevavd.env.evaluate import evaluate_policy
+    from uevavd.perception.shards import load_sealed_arrays, save_sealed_arrays
     from uevavd.policy.acting import load_policy
     from uevavd.policy.checkpoint import load_checkpoint, read_policy_file
-    from uevavd.policy.rundir import RunDir
+    from uevavd.policy.rundir import RunDir, read_done, read_evals
     from uevavd.policy.trainer import train
     from uevavd.presets import load_preset
     from uevavd.table import ARRAYS, ObservationTable
@@ -80,6 +85,10 @@ def main() -> int:
         result = evaluate_policy(table, "hard", policy)
         eval_s = time.perf_counter() - t0
         write_sealed_json(Path(tmp) / "final_eval.json", {"hard": result.summary()})
+        cache = Path(tmp) / "probs" / "0123456789abcdef" / "001-scene.npz"  # a scene's probabilities
+        cache.parent.mkdir(parents=True)
+        save_sealed_arrays(cache, {"array": np.asarray(table.probs[0])})
+        shape = {"array": (np.asarray(table.probs[0]).shape, np.dtype(np.float32))}
         rows = [
             ("table load", lambda: ObservationTable.load(folder),
              lambda: [np.load(folder / f"{n}.npy", mmap_mode="r") for n in ARRAYS], folder),
@@ -88,6 +97,11 @@ def main() -> int:
             ("policy file read", lambda: read_policy_file(rd.policy), lambda: load_file(str(rd.policy)), rd.policy),
             ("final_eval.json read", lambda: read_sealed_json(Path(tmp) / "final_eval.json"),
              lambda: json.loads((Path(tmp) / "final_eval.json").read_text()), Path(tmp) / "final_eval.json"),
+            ("evals.jsonl read", lambda: read_evals(run),
+             lambda: [json.loads(line) for line in rd.evals.read_text().splitlines()], rd.evals),
+            ("done.json read", lambda: read_done(run), lambda: json.loads(rd.done.read_text()), rd.done),
+            ("scene cache read", lambda: load_sealed_arrays(cache, shape),
+             lambda: np.load(cache)["array"], cache),
         ]
         print(f"{preset} sizes: {n_train}/{n_test}/{n_test} contexts, {dim}-d features; MAP trained "
               f"{args.episodes} episodes in {train_s:.1f} s; one exhaustive evaluation on hard {eval_s:.2f} s")
