@@ -123,8 +123,11 @@ def test_final_eval_is_recomputed_when_missing_or_stale(ablation, tmp_path):
 
     settings = read_settings(copy.out)
     settings["env"].update(thre=0.6, C=0.0)
-    write_settings(copy.out, settings)  # as a run of that setting records it, with its own mark on done.json
-    write_done(copy.out, settings, read_done(job.out))
+    write_settings(copy.out, settings)  # as a run of that setting records it: its mark on done.json, its
+    write_done(copy.out, settings, read_done(job.out))  # env in the checkpoint
+    ck = torch.load(RunDir(copy.out).checkpoint, weights_only=True)
+    ck["meta"]["env"].update(thre=0.6, C=0.0)
+    torch.save(ck, RunDir(copy.out).checkpoint)
     first = final_eval(copy)  # the copied cache holds the default config: stale
     assert first["key"]["env"]["thre"] == 0.6
     want = evaluate_policy(copy.table, "hard", load_policy(copy.out), EnvConfig(thre=0.6, C=0.0)).summary()

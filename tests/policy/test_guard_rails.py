@@ -309,7 +309,11 @@ def test_the_replays_sampling_is_a_recorded_setting_checked_on_resume(table, tmp
     legacy = train(old, table, out=tmp_path / "legacy", device="cpu", progress=False, max_epochs=1)
     settings = json.loads((legacy / "settings.json").read_text())
     del settings["train"]["replay_sampling"], settings["env"]["train_per_block"], settings["sha256"]  # unsealed then
+    del settings["sealed"]
     (legacy / "settings.json").write_text(json.dumps(settings))
+    rows = [json.loads(line) for line in (legacy / "evals.jsonl").read_text().splitlines()]  # unsealed too
+    (legacy / "evals.jsonl").write_text("".join(json.dumps({k: v for k, v in r.items() if k not in (
+        "sha256", "sealed", "run")}) + "\n" for r in rows))
     ck = torch.load(legacy / "checkpoint.pt", weights_only=True)
     del ck["meta"]["train"]["replay_sampling"], ck["meta"]["env"]["train_per_block"]
     torch.save(ck, legacy / "checkpoint.pt")
