@@ -128,7 +128,7 @@ def test_unknown_key_lists_accepted_and_suggests(base):
 @pytest.mark.parametrize(
     "key, value, expected",
     [("state.hidden", "big", "expected int"), ("state.hidden", 2.5, "expected int"),
-     ("state.kind", "c", "Literal"), ("head.dueling", 1, "expected bool"), ("state.dropout", "x", "expected float")],
+     ("state.kind", "c", "expected one of 'a', 'b'"), ("head.dueling", 1, "expected bool"), ("state.dropout", "x", "expected float")],
 )
 def test_wrong_types(base, key, value, expected):
     with pytest.raises(ConfigError, match=expected):

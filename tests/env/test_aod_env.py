@@ -336,7 +336,7 @@ def test_a_held_out_block_leaves_the_train_split_whole_and_is_the_validation_spl
     alone = ObservationTable.from_arrays(
         np.zeros((1, N_VIEWS, 4)), np.full((1, N_VIEWS, 5), 0.2), np.zeros((1, N_VIEWS, 4)), scenes=["001"],
         contexts=[1], targets=[0], splits=["train"])
-    with pytest.raises(TableError, match="no scenes in split 'train'"):
+    with pytest.raises(TableError, match="env.holdout_block = 1 holds out every training context"):
         AODEnv(alone, "train", EnvConfig(holdout_block=1))
     with pytest.raises(EnvConfigError, match="holdout_block"):
         EnvConfig(holdout_block=6)
