@@ -33,7 +33,7 @@ GROUPS = (
                                            "generalisation-paper64")),
     ("Knowing when not to fly", ("stopping-validation-stop", "stopping-validation-pess",
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
-    ("Where to fly: the pose", ("pose-quick", "pose-quick-world1")),
+    ("Where to fly: the pose", ("pose-quick", "pose-quick-world1", "pose-paper64")),
 )
 MACHINE = "2 CPU cores (the development VM, an AMD EPYC)"
 V = "--preset benchmarks/generalisation_validation.toml --seeds 3 --recognizers 1"
@@ -79,6 +79,7 @@ COMMANDS = {
     "pose-quick": "uevavd ablate --preset quick --methods map memo_map ibe_map ibe_map_gate ibe_map_pose "
                   "ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate --seeds 5 --recognizers 2 "
                   "--sweep env.train_per_block=4",
+    "pose-paper64": "uevavd ablate --preset paper64 --methods ibe_map ibe_map_pose_gate ibe_map_pose_dagger_gate",
     "pose-quick-world1": "uevavd ablate --preset quick --world-seed 1 --methods map memo_map ibe_map ibe_map_gate "
                          "ibe_map_pose ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate --seeds 5 "
                          "--recognizers 2 --sweep env.train_per_block=4",
