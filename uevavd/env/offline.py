@@ -16,7 +16,7 @@ The flat observation is ``[features (D), box (4), t (1), action_mask (7 * A)]`` 
 (:func:`flat_observation`), with the pose (3, metres) after the box where the data has it
 (``EnvConfig.pose``): the mask rides in the observation, so a learner sees which moves
 would be clamped, and :attr:`FlatTransitions.masks` holds it apart (bool) for a learner that
-masks its own outputs. The flat action is ``type * A + range``, as the env's ``actions="flat"``
+masks its own outputs; :class:`FlatPolicy` keeps to it when it acts (by default). The flat action is ``type * A + range``, as the env's ``actions="flat"``
 form and :class:`~uevavd.env.wrappers.DiscreteActions`.
 """
 
@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..data.grid import N_TYPES
+from ..data.grid import N_TYPES, STOP
 from .aod_env import integral_actions
 
 #: The parts of the flat observation, in order ("pose" only where the observation has it).
@@ -105,18 +105,25 @@ def flat_dataset(episodes: Iterable[Any]) -> FlatTransitions:
 
 
 class FlatPolicy:
-    """A policy over flat observations (``act(flat_obs (n, F)) -> flat actions (n,)``, e.g. a
-    d3rlpy algorithm's ``predict``) as a policy the evaluation and the exporter run
-    (:func:`~uevavd.env.evaluate.evaluate_policy`)."""
+    """A policy over flat observations as a policy the evaluation and the exporter run
+    (:func:`~uevavd.env.evaluate.evaluate_policy`). ``act(flat_obs (n, F))`` returns flat action
+    indices (n,) (a d3rlpy algorithm's ``predict``) or scores (n, 7 * A) (logits, Q-values).
+
+    With ``masked`` (the default) it keeps to the observation's action mask, as the env's own
+    agents do: from scores, the best allowed action; an index of a move the mask forbids (one
+    the grid's edge would clamp) becomes the longest allowed range of its type, or stop where
+    none is allowed (the scripted box gate's edge rule). ``masked=False`` takes the indices as
+    they are (clamped moves are legal, and cost their requested range)."""
 
     needs_features = True
 
-    def __init__(self, act: Callable[[np.ndarray], Any], *, max_range: int) -> None:
+    def __init__(self, act: Callable[[np.ndarray], Any], *, max_range: int, masked: bool = True) -> None:
         if isinstance(max_range, bool) or not isinstance(max_range, int | np.integer) or max_range < 1:
             raise ValueError(f"FlatPolicy(max_range={max_range!r}): expected the dataset's number of ranges, an "
                              "integer >= 1 (flat_dataset(...).max_range)")
         self._act = act
         self.max_range = int(max_range)
+        self.masked = bool(masked)
 
     def reset(self, n: int) -> None:
         pass
@@ -127,16 +134,31 @@ class FlatPolicy:
             raise ValueError(f"FlatPolicy(max_range={self.max_range}) on an env whose actions have "
                              f"{mask.shape[-1]} ranges: use the max_range of the dataset it learned from, on a table "
                              "and env config of the same action space")
+        n, k = len(obs["t"]), N_TYPES * self.max_range
+        allowed = torch.as_tensor(mask).cpu().numpy().astype(bool).reshape(n, N_TYPES, self.max_range)
         raw = self._act(flat_observation(obs))
-        flat = integral_actions(raw)  # the env's rule: integers, or floats equal to them
-        if flat is None or flat.reshape(-1).shape != (len(obs["t"]),):
-            raise ValueError(f"the flat policy returned {np.asarray(raw).reshape(-1)[:8].tolist()} (shape "
-                             f"{np.shape(raw)}): expected ({len(obs['t'])},) integer indices of "
-                             f"Discrete({N_TYPES * self.max_range})")
-        flat = flat.reshape(-1)
-        if bool(((flat < 0) | (flat >= N_TYPES * self.max_range)).any()):
-            raise ValueError(f"the flat policy returned {flat[:8].tolist()} (shape {flat.shape}): expected "
-                             f"({len(obs['t'])},) indices of Discrete({N_TYPES * self.max_range})")
+        if np.ndim(raw) == 2 and np.shape(raw) == (n, k):  # scores: the best (allowed) action
+            scores = np.array(raw, dtype=np.float64)
+            if self.masked:
+                scores[~allowed.reshape(n, k)] = -np.inf
+            flat = scores.argmax(1)
+        else:
+            flat = integral_actions(raw)  # the env's rule: integers, or floats equal to them
+            if flat is None or flat.reshape(-1).shape != (n,):
+                raise ValueError(f"the flat policy returned {np.asarray(raw).reshape(-1)[:8].tolist()} (shape "
+                                 f"{np.shape(raw)}): expected ({n},) integer indices of Discrete({k}), or ({n}, {k}) "
+                                 "scores")
+            flat = flat.reshape(-1)
+            if bool(((flat < 0) | (flat >= k)).any()):
+                raise ValueError(f"the flat policy returned {flat[:8].tolist()} (shape {flat.shape}): expected "
+                                 f"({n},) indices of Discrete({k})")
         a_type, a_range = np.divmod(flat, self.max_range)
+        if self.masked:
+            rows = np.arange(n)
+            clamped = ~allowed[rows, a_type, a_range] & (a_type != STOP)
+            longest = allowed[rows, a_type].sum(-1) - 1  # the allowed ranges of a type are a prefix
+            a_range = np.where(clamped, np.maximum(longest, 0), a_range)
+            a_type = np.where(clamped & (longest < 0), STOP, a_type)
+            a_range = np.where(a_type == STOP, 0, a_range)
         device = obs["t"].device
         return torch.as_tensor(a_type, device=device), torch.as_tensor(a_range, device=device)
