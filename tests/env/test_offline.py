@@ -139,3 +139,11 @@ def test_a_flat_policy_keeps_to_the_action_mask_by_default(table):
     assert a_type.tolist() == [2, 2, 3] and a_range.tolist() == [0, 0, 3]  # the best allowed
     tr = transitions(4)
     assert not any(tr.clamped[v, t, r] for v, t, r in zip(views, a_type.tolist(), a_range.tolist(), strict=True))
+
+
+def test_several_datasets_flatten_in_one_call(oracle_dataset):
+    from uevavd.env.offline import flat_dataset
+
+    one, two = flat_dataset(oracle_dataset), flat_dataset(oracle_dataset, oracle_dataset)
+    assert len(two.actions) == 2 * len(one.actions) and two.max_range == one.max_range
+    np.testing.assert_array_equal(two.observations[len(one.actions):], one.observations)

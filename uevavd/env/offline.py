@@ -5,10 +5,11 @@ observation is a ``Dict`` and its action ``MultiDiscrete([7, A])``. One call tur
 exported dataset (:mod:`uevavd.policy.minari_export`) into flat arrays, and one class turns a
 flat policy back into one the evaluation runs::
 
-    flat = flat_dataset(minari.load_dataset("uevavd/quick-hard-oracle-v0"))
-    data = d3rlpy.dataset.MDPDataset(flat.observations, flat.actions, flat.rewards,
-                                     flat.terminals, timeouts=flat.timeouts)
-    bc = d3rlpy.algos.DiscreteBCConfig().create()
+    flat = flat_dataset(minari.load_dataset("uevavd/quick-train-oracle-v0"))
+    data = d3rlpy.dataset.MDPDataset(flat.observations, flat.actions[:, None], flat.rewards, flat.terminals,
+                                     timeouts=flat.timeouts, action_space=d3rlpy.constants.ActionSpace.DISCRETE,
+                                     action_size=flat.n_actions)
+    bc = d3rlpy.algos.DiscreteBCConfig().create(device="cpu:0")
     bc.fit(data, n_steps=2000)
     evaluate_policy(table, "hard", FlatPolicy(bc.predict, max_range=flat.max_range))
 
@@ -74,15 +75,15 @@ class FlatTransitions:
         return N_TYPES * self.max_range
 
 
-def flat_dataset(episodes: Iterable[Any]) -> FlatTransitions:
-    """Flatten a Minari dataset (or any iterable of its ``EpisodeData``) written by
-    ``uevavd export-minari``: each episode's decisions, the observation each was taken on
-    (not the last one, which no action follows)."""
-    name = getattr(getattr(episodes, "spec", None), "dataset_id", None) or type(episodes).__name__
-    episodes = getattr(episodes, "iterate_episodes", lambda: episodes)()
+def flat_dataset(*datasets: Iterable[Any]) -> FlatTransitions:
+    """Flatten Minari datasets (or iterables of their ``EpisodeData``) written by ``uevavd
+    export-minari``, one after another: each episode's decisions, the observation each was
+    taken on (not the last one, which no action follows). Datasets of different action spaces
+    (``max_range``) are refused."""
     obs, actions, rewards, terminals, timeouts = [], [], [], [], []
     max_range = None
-    for ep in episodes:
+    for ep, name in ((ep, name) for d in datasets for name in [_name(d)]
+                     for ep in getattr(d, "iterate_episodes", lambda d=d: d)()):
         n = len(ep.rewards)
         if not isinstance(ep.observations, dict) or not set(FLAT_PARTS) - {"pose"} <= set(ep.observations):
             have = sorted(ep.observations) if isinstance(ep.observations, dict) else type(ep.observations).__name__
@@ -90,7 +91,10 @@ def flat_dataset(episodes: Iterable[Any]) -> FlatTransitions:
                              f"not the env's {sorted(set(FLAT_PARTS) - {'pose'})}")
         o = {k: np.asarray(v)[:n] for k, v in ep.observations.items()}
         a = np.asarray(ep.actions).reshape(n, 2)
-        max_range = o["action_mask"].shape[-1] if max_range is None else max_range
+        if max_range is not None and o["action_mask"].shape[-1] != max_range:
+            raise ValueError(f"dataset {name} has {o['action_mask'].shape[-1]} ranges where the datasets before it "
+                             f"have {max_range}: flatten datasets of one action space together")
+        max_range = o["action_mask"].shape[-1]
         obs.append(flat_observation(o))
         actions.append(a[:, 0].astype(np.int64) * max_range + a[:, 1].astype(np.int64))
         rewards.append(np.asarray(ep.rewards, np.float32))
@@ -102,6 +106,10 @@ def flat_dataset(episodes: Iterable[Any]) -> FlatTransitions:
     masks = observations[:, -N_TYPES * max_range:] > 0
     return FlatTransitions(observations, np.concatenate(actions), np.concatenate(rewards), np.concatenate(terminals),
                            np.concatenate(timeouts), masks, int(max_range))
+
+
+def _name(dataset: Any) -> str:
+    return getattr(getattr(dataset, "spec", None), "dataset_id", None) or type(dataset).__name__
 
 
 class FlatPolicy:
