@@ -7,6 +7,7 @@ features (``needs_features = False``).
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
 import torch
@@ -17,7 +18,7 @@ from ..table import TableError
 from ..toy import toy_table
 from .config import make_config
 from .evaluate import evaluate_gated, evaluate_policy, stopping_summary
-from .gate import box_visible
+from .gate import box_visible, fit_to_mask
 from .oracle import OraclePolicy
 from .visibility_oracle import VisibilityOraclePolicy
 
@@ -87,33 +88,41 @@ class BoxGatePolicy:
         pass
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        allowed = obs["mask"][:, self.a_type, :].sum(-1)  # ranges allowed: a prefix 0..k-1
-        fly = ~box_visible(obs["box"]) & (allowed > 0)
-        rng = torch.clamp(allowed - 1, max=self.a_range).clamp_min(0)
-        return torch.where(fly, self.a_type, STOP), torch.where(fly, rng, 0)
+        mask = obs["mask"]
+        n = mask.shape[0]
+        a_type, a_range = fit_to_mask(mask, torch.full((n,), self.a_type, device=mask.device),
+                                      torch.full((n,), self.a_range, device=mask.device))
+        hidden = ~box_visible(obs["box"])
+        return torch.where(hidden, a_type, STOP), torch.where(hidden, a_range, 0)
+
+
+def chosen_on_train(kind: str, table, config, candidates: list, build) -> tuple[Any, dict[Any, float]]:
+    """A scripted baseline's one choice, made on the table's training contexts alone (the
+    ``train`` split under ``config``, so ``env.train_per_block`` and a held-out validation split
+    are respected; never a test split): each candidate's policy (``build(candidate)``) evaluated
+    from every start view, the highest mean return wins, ties (equal to 12 decimals) to the
+    earliest candidate. Once per baseline ``kind``, table and config. Returns ``(best,
+    {candidate: return})``; a table without training contexts raises
+    :class:`uevavd.table.TableError`."""
+    cfg = make_config(config)
+    key = (kind, table.key, json.dumps(cfg.to_dict(), sort_keys=True))
+    if key not in _CHOSEN:
+        returns = {c: float(evaluate_policy(table, "train", build(c), cfg).ret.mean()) for c in candidates}
+        order = {c: i for i, c in enumerate(candidates)}
+        _CHOSEN[key] = (max(returns, key=lambda c: (round(returns[c], 12), -order[c])), returns)
+    return _CHOSEN[key]
+
+
+_CHOSEN: dict[tuple[str, str, str], tuple[Any, dict[Any, float]]] = {}
 
 
 def box_gate_move(table, config) -> tuple[int, int, dict[tuple[int, int], float]]:
-    """The box gate's fixed move, chosen on the table's training contexts alone (the
-    ``train`` split under ``config``, so ``env.train_per_block`` and a held-out validation split
-    are respected; never a test split): every move type x range is evaluated from every start
-    view, and the move with the highest mean return wins; ties (equal to 12 decimals) go to
-    the lowest type index, then the lowest range. Returns ``(type, range, {move: return})``.
-    Raises :class:`uevavd.table.TableError` for a table without training contexts."""
-    cfg = make_config(config)
-    key = (table.key, json.dumps(cfg.to_dict(), sort_keys=True))
-    if key not in _BOX_GATE_MOVES:  # 6 x A evaluations of the training split: once per table and config
-        returns = {}
-        for a_type in range(STOP):
-            for a_range in range(cfg.max_range):
-                res = evaluate_policy(table, "train", BoxGatePolicy(a_type, a_range), cfg)
-                returns[(a_type, a_range)] = float(res.ret.mean())
-        best = max(returns, key=lambda m: (round(returns[m], 12), -m[0], -m[1]))
-        _BOX_GATE_MOVES[key] = (best[0], best[1], returns)
-    return _BOX_GATE_MOVES[key]
-
-
-_BOX_GATE_MOVES: dict[tuple[str, str], tuple[int, int, dict[tuple[int, int], float]]] = {}
+    """The box gate's fixed move (:func:`chosen_on_train`): every move type x range; ties go to
+    the lowest type index, then the lowest range. Returns ``(type, range, {move: return})``."""
+    a = make_config(config).max_range
+    moves = [(t, r) for t in range(STOP) for r in range(a)]  # 6 x A evaluations, once per table and config
+    (a_type, a_range), returns = chosen_on_train("box_gate", table, config, moves, lambda m: BoxGatePolicy(*m))
+    return a_type, a_range, returns
 
 
 _LEFT, _RIGHT = ACTION_TYPES.index("left"), ACTION_TYPES.index("right")  # -x, +x
@@ -161,22 +170,11 @@ class PoseSeekPolicy:
 
 
 def pose_seek_moves(table, config) -> tuple[int, dict[int, float]]:
-    """``pose_seek``'s number of moves, chosen on the table's training contexts alone (the
-    ``train`` split under ``config``, as :func:`box_gate_move`): each of 1..T_max evaluated from
-    every start view, the highest mean return wins, ties (to 12 decimals) to the fewest moves.
-    Returns ``(moves, {moves: return})``; a table without training contexts raises
-    :class:`uevavd.table.TableError`."""
+    """``pose_seek``'s number of moves (:func:`chosen_on_train`): each of 1..T_max; ties go to
+    the fewest. Returns ``(moves, {moves: return})``."""
     cfg = make_config(config)
-    key = (table.key, json.dumps(cfg.to_dict(), sort_keys=True))
-    if key not in _POSE_SEEK_MOVES:
-        returns = {k: float(evaluate_policy(table, "train", PoseSeekPolicy(k, cfg.max_range), cfg).ret.mean())
-                   for k in range(1, cfg.t_max + 1)}
-        best = max(returns, key=lambda k: (round(returns[k], 12), -k))
-        _POSE_SEEK_MOVES[key] = (best, returns)
-    return _POSE_SEEK_MOVES[key]
-
-
-_POSE_SEEK_MOVES: dict[tuple[str, str], tuple[int, dict[int, float]]] = {}
+    return chosen_on_train("pose_seek", table, cfg, list(range(1, cfg.t_max + 1)),
+                           lambda k: PoseSeekPolicy(k, cfg.max_range))
 
 
 def build_random(*, table=None, config=None, seed: int = 0) -> RandomPolicy:

@@ -37,6 +37,16 @@ def gate_mask(mask: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
     return gated
 
 
+def fit_to_mask(mask: torch.Tensor, a_type: torch.Tensor, a_range: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Actions kept to the (n, 7, A) action mask, (n,) int64 each: a move the mask forbids (the
+    grid's edge would clamp it) becomes the longest allowed range of its type, or stop where no
+    range of it is allowed; stop's range is 0. The scripted box gate and the offline flat policy
+    keep to the mask by this one rule."""
+    allowed = mask[torch.arange(len(a_type), device=mask.device), a_type].sum(-1)  # a prefix 0..k-1 of ranges
+    fly = (a_type != STOP) & (allowed > 0)
+    return torch.where(fly, a_type, STOP), torch.where(fly, torch.minimum(a_range, allowed - 1), 0)
+
+
 class StopGate:
     """``policy`` behind the stop gate: its action wherever the observed box is empty,
     stop (range 0) wherever it is not. The wrapped policy still sees every observation, so a

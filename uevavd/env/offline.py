@@ -30,8 +30,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..data.grid import N_TYPES, STOP
+from ..data.grid import N_TYPES
 from .aod_env import integral_actions
+from .gate import fit_to_mask
 
 #: The parts of the flat observation, in order ("pose" only where the observation has it).
 FLAT_PARTS = ("features", "box", "pose", "t", "action_mask")
@@ -160,13 +161,8 @@ class FlatPolicy:
             if bool(((flat < 0) | (flat >= k)).any()):
                 raise ValueError(f"the flat policy returned {flat[:8].tolist()} (shape {flat.shape}): expected "
                                  f"({n},) indices of Discrete({k})")
-        a_type, a_range = np.divmod(flat, self.max_range)
+        a_type, a_range = (torch.as_tensor(a) for a in np.divmod(flat, self.max_range))
         if self.masked:
-            rows = np.arange(n)
-            clamped = ~allowed[rows, a_type, a_range] & (a_type != STOP)
-            longest = allowed[rows, a_type].sum(-1) - 1  # the allowed ranges of a type are a prefix
-            a_range = np.where(clamped, np.maximum(longest, 0), a_range)
-            a_type = np.where(clamped & (longest < 0), STOP, a_type)
-            a_range = np.where(a_type == STOP, 0, a_range)
+            a_type, a_range = fit_to_mask(torch.as_tensor(allowed), a_type, a_range)
         device = obs["t"].device
-        return torch.as_tensor(a_type, device=device), torch.as_tensor(a_range, device=device)
+        return a_type.to(device), a_range.to(device)
