@@ -17,6 +17,7 @@ from uevavd.env import (
     PassivePolicy,
     RandomPolicy,
     evaluate_policy,
+    flight_pays,
     oracle_values,
 )
 from uevavd.env.batched import EnvTensors
@@ -137,6 +138,21 @@ def test_oracle_equals_brute_force(n_scenes, cfg):
     # the oracle policy run through the harness achieves exactly V(start, T_max)
     res = evaluate_policy(table, "train", OraclePolicy(table, cfg), cfg)
     np.testing.assert_allclose(res.ret, ora.value[:, cfg.t_max].ravel(), atol=1e-12)
+
+
+def test_a_flight_pays_exactly_where_the_oracle_flies():
+    """flight_pays: the best reachable return beats stopping, with k + 1 decisions left, wherever
+    the oracle's action with k + 1 left is a move, and never where the recognizer already
+    recognises the view (stopping there is the best reward)."""
+    table = make_table(2, splits=("train",) * 2, seed=5)
+    cfg = EnvConfig(t_max=3)
+    reco = cfg.recognized(table.true_class_probs())
+    pays = flight_pays(reco, cfg)
+    ora = oracle_values(table, cfg)
+    assert pays.shape == (3, 2, 605) and pays.any() and not pays.all()
+    for k in range(cfg.t_max):
+        np.testing.assert_array_equal(pays[k], ora.best_type[:, k + 1] != STOP)
+    assert not pays[:, reco].any()
 
 
 def test_oracle_bounds_every_policy(table):

@@ -44,7 +44,7 @@ from .test_cli import _sets
     ("train.per_alpha", 1e4, "train.per_alpha = 10000.0: expected a prioritisation exponent in [0, 10]"),
     ("train.per_alpha", 1e308, "train.per_alpha = 1e+308: expected a prioritisation exponent in [0, 10]"),
     ("train.stop_gate", "boxx", "train.stop_gate = 'boxx' has the wrong type: expected one of 'none', 'box', "
-                                "'learned'"),
+                                "'learned', 'pays'"),
 ])
 def test_out_of_range_training_values_are_refused_before_the_run_starts(table, tmp_path, capsys, monkeypatch,
                                                                         key, value, needle):

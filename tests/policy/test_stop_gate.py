@@ -1,5 +1,6 @@
-"""The stop gates a method takes (``train.stop_gate``): "box" inside training and acting, and
-"learned", a stop probe on the state that gates greedy acting only."""
+"""The stop gates a method takes (``train.stop_gate``): "box" inside training and acting,
+"learned", a stop probe on the state that gates greedy acting only, and "pays", the box gate
+opened where a flight pays (the oracle's answer in training, a probe's in acting)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from uevavd.env.gate import box_visible
 from uevavd.policy.acting import load_policy
 from uevavd.policy.collector import EpisodeCollector
 from uevavd.policy.config import TrainConfig
+from uevavd.policy.learner import FlightPays
 from uevavd.policy.network import build_network
 from uevavd.policy.trainer import train
 from uevavd.table import ObservationTable
@@ -61,6 +63,46 @@ def test_the_box_gate_shapes_exploration_in_training():
         assert visible.any() and (~visible).any()
         assert (taken[visible] == 6).all()
         assert (taken[~visible] != 6).any()
+
+
+def test_the_pays_gate_opens_in_training_exactly_where_a_flight_pays():
+    table = hidden_table()
+    spec = _spec("ibe_map_pose_pays")
+    net = build_network(spec.state, spec.head, table.feature_dim).set_stop_gate("pays")
+    env = BatchedAODEnv(table, "train", 256, spec.env, seed=0)
+    pays = FlightPays(env.tensors)
+    col = EpisodeCollector(env, net, seed=0, device=torch.device("cpu"), pays=pays)
+    col.reset()
+    opened = closed = 0
+    for _ in range(6):
+        obs = col.obs
+        visible = box_visible(obs["box"])
+        flight = pays.at(obs["scene"], obs["view"], obs["t"])
+        t = obs["t"].clone()
+        col.step(epsilon=1.0)  # random actions: the gate still holds
+        taken = col.ep_type[torch.arange(len(t)), t]
+        assert (taken[visible & ~flight] == 6).all()  # the box gate, where no flight pays
+        assert (taken[visible & flight] != 6).any()  # opened where one does
+        assert (taken[~visible] != 6).any()
+        opened, closed = opened + int((visible & flight).sum()), closed + int((visible & ~flight).sum())
+    assert opened > 20 and closed > 20
+
+
+@pytest.mark.parametrize("threshold", [0.0, 1.0])
+def test_a_pays_gated_run_trains_its_probe_resumes_and_acts_at_its_thresholds_ends(tmp_path, threshold):
+    """The probe learns beside the Q network and its optimizer resumes with the run; in greedy
+    acting, threshold 1 keeps the box gate closed (never a flight from a visible box) and
+    threshold 0 leaves it open (the Q network's own choice there)."""
+    table = hidden_table()
+    spec = _spec("ibe_map_pose_pays", **{"train.stop_threshold": threshold})
+    for d, epochs in (("whole", None), ("paused", 1), ("paused", None)):
+        train(spec, table, out=tmp_path / d, seed=3, device="cpu", progress=False, max_epochs=epochs)
+    a, b = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused"))
+    assert {"stop_probe.weight", "stop_probe.bias"} <= set(a["net"]) and "stop_probe" in a
+    assert all(torch.equal(a["net"][k], b["net"][k]) for k in a["net"])
+    res = evaluate_policy(table, "hard", load_policy(tmp_path / "whole"), spec.env).summary()
+    assert res["box_start"] > 0.2
+    assert (res["moved_if_box"] == 0.0) == (threshold == 1.0)
 
 
 def test_a_box_gated_run_never_flies_from_a_visible_target_and_resumes_bit_for_bit(tmp_path):

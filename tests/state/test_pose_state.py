@@ -42,6 +42,21 @@ def test_a_pose_estimator_reads_seven_columns_and_keeps_the_protocol(build):
         build(feature_dim=8, pose="yes")
 
 
+@pytest.mark.parametrize("build", [build_gru, build_single_view])
+def test_an_estimator_without_the_image_reads_the_box_and_the_pose_alone(build):
+    est = build(feature_dim=8, input_dim=24, box_dim=8, state_dim=16, pose=True, image=False)
+    check_estimator_rules(est, feature_dim=8)  # a memory still reads o_{t-1}: its box and pose
+    f, box = torch.randn(2, 3, 8), torch.rand(2, 3, 4)
+    inputs = estimator_boxes(est, box, torch.tensor([[-50.0, 20.0, 60.0]]).expand(2, 3, 3))
+    s = est(f, inputs)
+    assert torch.equal(s, est(f * 7 + 3, inputs))  # whatever the image features
+    assert not torch.allclose(s, est(f, inputs.flip(-1)))
+    seeing = build(feature_dim=8, input_dim=24, box_dim=8, state_dim=16, pose=True)
+    assert set(seeing.state_dict()) == set(est.state_dict())  # one file layout
+    with pytest.raises(ConfigError, match="state.image"):
+        build(feature_dim=8, image="false")
+
+
 def test_the_state_reads_the_pose_only_where_the_observation_has_it():
     with pytest.raises(ConfigError, match="env.pose = true"):
         load_method("ibe_map", overrides={"state.pose": True})

@@ -43,6 +43,7 @@ _LAZY = {
     "flat_observation": "offline",
     "FlatPolicy": "offline",
     "oracle_values": "oracle",
+    "flight_pays": "oracle",
 }
 
 __all__ = ["ENV_ID", "EnvConfig", "EnvConfigError", "register", *_LAZY]

@@ -43,8 +43,15 @@ def oracle_values(
 ) -> OracleSolution:
     """Solve the DP for every scene of ``table`` (vectorised over scenes and views)."""
     cfg = make_config(config)
+    return solve_oracle(cfg.recognized(table.true_class_probs()), cfg, with_q=with_q)
+
+
+def solve_oracle(reco: np.ndarray, config: EnvConfig, *, with_q: bool = False) -> OracleSolution:
+    """The DP of :func:`oracle_values` on ``reco`` (S, 605) bool, whether the recognizer
+    recognises each view of each scene."""
+    cfg = config
     tr = transitions(cfg.max_range)
-    reco = cfg.recognized(table.true_class_probs())  # (S, V)
+    reco = np.asarray(reco, bool)
     s, v = reco.shape
     a = cfg.max_range
     term = cfg.terminal_reward(reco).astype(np.float64)  # (S, V)
@@ -70,6 +77,15 @@ def oracle_values(
         best_type[:, k] = np.where(stop_better, STOP, i // a)
         best_range[:, k] = np.where(stop_better, 0, i % a)
     return OracleSolution(value, q, best_type, best_range)
+
+
+def flight_pays(reco: np.ndarray, config: EnvConfig) -> np.ndarray:
+    """(T_max, S, 605) bool: whether, with k + 1 decisions left (index k), the best return
+    reachable from each view beats stopping there (the oracle's value above the stop
+    reward; ``reco`` (S, 605) as in :func:`solve_oracle`)."""
+    sol = solve_oracle(reco, config)
+    term = config.terminal_reward(np.asarray(reco, bool)).astype(np.float64)
+    return np.moveaxis(sol.value[:, 1:], 1, 0) > term[None]
 
 
 class OraclePolicy:

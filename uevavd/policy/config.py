@@ -118,16 +118,20 @@ class TrainConfig:
     aux_recognition: float = 0.0
     """An auxiliary objective: the weight of a linear probe's loss predicting, from the state,
     whether the recognizer recognises the current view (0 = none)."""
-    stop_gate: Literal["none", "box", "learned"] = "none"
+    stop_gate: Literal["none", "box", "learned", "pays"] = "none"
     """Where the agent may only stop (:data:`uevavd.policy.network.STOP_GATES`): "none"; "box",
     wherever the observed target box is non-empty, in training (its actions and its TD targets)
     and in acting, so its values are learned on the decisions where the target is hidden;
     "learned", wherever a stop probe on the state, trained beside the Q network on whether the
     recognizer recognises the current view (its own loss and optimizer; the Q network's updates
     are those of the method without it), predicts recognition above ``stop_threshold``, in
-    greedy acting only."""
+    greedy acting only; "pays", the box gate opened where a flight pays: in training (its
+    actions and TD targets) where the oracle's best return reachable from the view, with the
+    decisions left, beats stopping there; in greedy acting where a probe on the state, trained
+    on that answer over the views whose box is visible (its own loss and optimizer), predicts
+    it above ``stop_threshold``."""
     stop_threshold: float = 0.5
-    """The learned stop gate's threshold on the stop probe's probability."""
+    """The learned and "pays" gates' threshold on their probe's probability."""
     imitation: Literal["none", "visibility_oracle"] = "none"
     """"visibility_oracle": DAgger (Ross et al. 2011) with the visibility oracle as the expert. The
     student acts (epsilon-greedy, as in every run), and every decision it takes is labelled with

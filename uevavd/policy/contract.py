@@ -136,10 +136,11 @@ def check_estimator_rules(est: Any, *, feature_dim: int | None = None, batch: in
         if hasattr(est, "step_encoded"):
             _check_fast_path(est, f, b, h0, what)
         if est.recurrent:  # it reads earlier views: at least the one before (a memory, or a window of k >= 2)
-            f3 = f.clone()
+            f3, b3 = f.clone(), b.clone()  # o_{t-1} whole: its features and its box (and pose)
             f3[:, -2] += 5.0
+            b3[:, -2] = 1.0 - b3[:, -2]
             with _calling(what, call):
-                s3 = est(f3, b)
+                s3 = est(f3, b3)
             _rule(not torch.allclose(s3[:, -1], s[:, -1]), what,
                   "recurrent = True but s_t reads no earlier view than o_t (it did not change with o_{t-1}): set "
                   "recurrent = False for an estimator of the current view alone (training then reads each view by "

@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from ..env.gate import box_visible
+from ..env.oracle import flight_pays
 from ..state.base import estimator_boxes, reads_pose
 from . import targets as T
 from .imitation import OracleLabels, imitation_loss
@@ -57,6 +58,27 @@ class FeatureLookup:
     def pose_rows(self, views: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """(N, 3) the pose in metres of the views where ``seen``, in ``seen.nonzero()`` order."""
         return self.pose.index_select(0, views[seen])
+
+
+class FlightPays:
+    """Where a flight pays (``train.stop_gate = "pays"``): ``pays`` (T_max, S', 605) bool, at
+    index k whether, with k + 1 decisions left, the oracle's best reachable return from a view
+    of a local scene beats stopping there (:func:`uevavd.env.oracle.flight_pays`). It depends
+    on the table and the env config alone, so it is computed once per run."""
+
+    def __init__(self, tensors: Any) -> None:
+        cfg = tensors.config
+        self.pays = torch.as_tensor(flight_pays(tensors.reco.cpu().numpy(), cfg), device=tensors.device)
+        self.local, self.t_max = tensors.local, cfg.t_max
+
+    def at(self, scene: torch.Tensor, view: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """(N,) table scene indices, views and step indices t (0..T_max - 1) -> (N,) bool."""
+        return self.pays[(self.t_max - 1 - t).clamp_min(0), self.local[scene], view]
+
+    def episodes(self, scene: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
+        """scene (B,), views (B, L) of decisions t = 0..L-1 -> (B, L) bool (False where t >= T_max)."""
+        t = torch.arange(views.shape[1], device=views.device)[None].expand_as(views)
+        return self.at(scene[:, None].expand_as(views), views, t) & (t < self.t_max)
 
 
 class FeatureDropout:
@@ -128,8 +150,11 @@ class Learner:
 
     def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber",
                  feature_dropout: FeatureDropout | None = None, aux_recognition: RecognitionProbe | None = None,
-                 imitation: OracleLabels | None = None) -> None:
+                 imitation: OracleLabels | None = None, pays: FlightPays | None = None) -> None:
         self.net = net
+        if net.stop_gate == "pays" and pays is None:
+            raise ValueError('stop_gate "pays" trains on where a flight pays: pass pays=FlightPays(env.tensors)')
+        self.pays = pays  # where a flight pays (train.stop_gate "pays"): opens the gate, trains its probe
         self.imitation = imitation  # the expert's labels (train.imitation), read where update(imitate=True)
         self.feature_dropout, self.aux_recognition = feature_dropout, aux_recognition
         self.stop_probe = StopProbeLearner(net, lr=lr) if net.stop_probe is not None else None
@@ -177,20 +202,24 @@ class Learner:
         if imitate:
             assert self.imitation is not None, "imitate=True on a learner without the expert's labels"
             decides = batch.valid
-            if self.net.stop_gate == "box":  # where the gate closes it decides (stop), not the student
+            if self.net.stop_gate in ("box", "pays"):  # where the gate closes it decides (stop), not the student
                 seen_boxes = boxes.new_zeros(*seen.shape, 4)
                 seen_boxes[seen] = boxes
-                decides = decides & ~box_visible(seen_boxes[:, :-1])
+                open_ = ~box_visible(seen_boxes[:, :-1])
+                if self.pays is not None:
+                    open_ = open_ | self.pays.episodes(batch.scene, batch.views[:, :-1])
+                decides = decides & open_
             loss, td = imitation_loss(q_all, *self.imitation.labels(batch.scene, batch.views), decides,
                                       batch.weight)
-            return self._finish(loss, s, seen, batch, lookup, td, None, None)
+            return self._finish(loss, s, seen, batch, lookup, td, None, None, boxes)
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
             q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, inputs, seen, skip_first=True))
-            if self.net.stop_gate == "box":  # the next decision's allowed actions, as acting saw them
+            if self.net.stop_gate in ("box", "pays"):  # the next decision's allowed actions, as acting saw them
                 seen_boxes = boxes.new_zeros(*seen.shape, 4)
                 seen_boxes[seen] = boxes
-                mask = self.net.allowed(mask, seen_boxes, training=True)
+                pays = self.pays.episodes(batch.scene, batch.views) if self.pays is not None else None
+                mask = self.net.allowed(mask, seen_boxes, training=True, pays=pays)
             boot = head.bootstrap(q_next_online, q_next_target, mask[:, 1:])  # (B, T, K)
             y = T.td_target(batch.reward, batch.done, boot, self.gamma)
         q_taken = head.taken(tuple(q[:, :-1] for q in q_all), batch.a_type, batch.a_range)  # (B, T, K)
@@ -201,18 +230,22 @@ class Learner:
             per = 0.5 * (q_taken - y) ** 2
         loss = (per * w * batch.weight[:, None, None]).sum() / w.sum().clamp_min(1.0)
         td = ((q_taken.detach() - y).abs() * w).sum((1, 2)) / w.sum((1, 2)).clamp_min(1.0)
-        return self._finish(loss, s, seen, batch, lookup, td, q_taken.detach(), w)
+        return self._finish(loss, s, seen, batch, lookup, td, q_taken.detach(), w, boxes)
 
     def _finish(self, loss: torch.Tensor, s: torch.Tensor, seen: torch.Tensor, batch: EpisodeBatch,
-                lookup: FeatureLookup, td: torch.Tensor, q_taken: torch.Tensor | None, w: torch.Tensor | None
-                ) -> tuple[float, torch.Tensor]:
-        """The auxiliary losses on the state, the optimizer step and the diagnostics, after either loss."""
+                lookup: FeatureLookup, td: torch.Tensor, q_taken: torch.Tensor | None, w: torch.Tensor | None,
+                boxes: torch.Tensor) -> tuple[float, torch.Tensor]:
+        """The auxiliary losses on the state, the optimizer step and the diagnostics, after either
+        loss. ``s`` and ``boxes`` hold the seen rows in ``seen.nonzero()`` order, as the lookup's rows."""
         if self.aux_recognition is not None or self.stop_probe is not None:
-            # s holds the seen rows in seen.nonzero() order, as the lookup's rows
             recognized = lookup.recognized_rows(batch.scene, batch.views, seen)
             if self.aux_recognition is not None:
                 loss = loss + self.aux_recognition.weight * self.aux_recognition.loss(s, recognized)
-            if self.stop_probe is not None:
+            if self.stop_probe is not None and self.pays is not None:  # "pays": where the gate would close
+                vis = box_visible(boxes)
+                if bool(vis.any()):
+                    self.stop_probe.update(s[vis], self.pays.episodes(batch.scene, batch.views)[seen][vis])
+            elif self.stop_probe is not None:
                 self.stop_probe.update(s, recognized)
         norm = self.step(loss)
         self.updates += 1

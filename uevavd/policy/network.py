@@ -14,8 +14,11 @@ from ..env.gate import gate_mask
 #: ``train.stop_gate``: where the policy may only stop. "none"; "box", wherever the observed
 #: target box is non-empty, in training (acting and TD targets) and in acting; "learned",
 #: wherever a stop probe on s_t predicts that the recognizer recognises the current view with
-#: probability above ``train.stop_threshold``, in greedy acting only.
-STOP_GATES = ("none", "box", "learned")
+#: probability above ``train.stop_threshold``, in greedy acting only; "pays", the box gate
+#: opened where a flight pays: in training where the oracle's best reachable return from the
+#: view beats stopping there, in greedy acting where a probe on s_t, trained on that answer
+#: over the box-visible views, predicts it with probability above ``train.stop_threshold``.
+STOP_GATES = ("none", "box", "learned", "pays")
 
 
 class QNetwork(nn.Module):
@@ -37,13 +40,14 @@ class QNetwork(nn.Module):
         self.stop_probe: nn.Linear | None = None
 
     def set_stop_gate(self, kind: str, threshold: float = 0.5) -> QNetwork:
-        """Give the network its stop gate (:data:`STOP_GATES`); "learned" adds the stop probe,
-        a linear layer on s_t (its weights are part of the network and of its policy file).
+        """Give the network its stop gate (:data:`STOP_GATES`); "learned" and "pays" add the
+        gate's probe, a linear layer on s_t (its weights are part of the network and of its
+        policy file).
         Call it where the network is built, before its weights are loaded. Returns self."""
         if kind not in STOP_GATES:
             raise ValueError(f"stop gate {kind!r}: expected one of {STOP_GATES}")
         self.stop_gate, self.stop_threshold = kind, float(threshold)
-        self.stop_probe = nn.Linear(self.estimator.state_dim, 1) if kind == "learned" else None
+        self.stop_probe = nn.Linear(self.estimator.state_dim, 1) if kind in ("learned", "pays") else None
         return self
 
     def q_parameters(self) -> list[nn.Parameter]:
@@ -51,18 +55,26 @@ class QNetwork(nn.Module):
         return [p for n, p in self.named_parameters() if not n.startswith("stop_probe.")]
 
     def stop_probability(self, s: torch.Tensor) -> torch.Tensor:
-        """(N, state_dim) -> (N,) the stop probe's probability that the recognizer recognises
-        the current view (the network must have the learned gate)."""
-        assert self.stop_probe is not None, "the network has no stop probe (train.stop_gate != 'learned')"
+        """(N, state_dim) -> (N,) the gate's probe's probability: that the recognizer recognises
+        the current view ("learned"), that a flight pays from it ("pays")."""
+        assert self.stop_probe is not None, "the network has no probe (train.stop_gate is not 'learned' or 'pays')"
         return torch.sigmoid(self.stop_probe(s)[..., 0])
 
     def allowed(self, mask: torch.Tensor, box: torch.Tensor, s: torch.Tensor | None = None, *,
-                training: bool = False) -> torch.Tensor:
+                training: bool = False, pays: torch.Tensor | None = None) -> torch.Tensor:
         """The (..., 7, A) action mask narrowed by the stop gate: where it closes, only stop is
         allowed. ``box`` (..., 4) the observed boxes; ``s`` (..., state_dim) the states, read
-        by the learned gate when acting greedily (``training`` False)."""
+        by the learned and the "pays" gates when acting greedily (``training`` False);
+        ``pays`` (...) bool, where a flight pays, which opens the "pays" gate in training."""
         if self.stop_gate == "box":
             return gate_mask(mask, box)
+        if self.stop_gate == "pays":
+            if training:
+                opened = pays
+            else:
+                opened = None if s is None else self.stop_probability(s) > self.stop_threshold
+            gated = gate_mask(mask, box)
+            return gated if opened is None else torch.where(opened[..., None, None], mask, gated)
         if self.stop_gate == "learned" and not training and s is not None:
             gated = mask.clone()
             gated[..., :STOP, :][self.stop_probability(s) > self.stop_threshold] = False

@@ -45,7 +45,7 @@ from .collector import EpisodeCollector, RunSeeds
 from .config import TrainConfig
 from .contract import build_checked_network
 from .imitation import OracleLabels, check_branches
-from .learner import FeatureDropout, FeatureLookup, Learner, RecognitionProbe
+from .learner import FeatureDropout, FeatureLookup, FlightPays, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
 from .rundir import RunDir, RunDirError, check_run_dir, run_lock, write_done, write_evals, write_settings
@@ -286,8 +286,10 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
         with torch.no_grad():
             check_branches(net.head(torch.zeros(1, net.estimator.state_dim, device=dev)), env_cfg.max_range)
         imitation = OracleLabels(env.tensors)
+    pays = FlightPays(env.tensors) if cfg.stop_gate == "pays" else None
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
-                      feature_dropout=feature_dropout, aux_recognition=aux_recognition, imitation=imitation)
+                      feature_dropout=feature_dropout, aux_recognition=aux_recognition, imitation=imitation,
+                      pays=pays)
     lookup = FeatureLookup(env.tensors)
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
@@ -295,7 +297,7 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     # writes leaves a run that resumes (method.toml is rewritten on every call)
     write_settings(out, settings)
     spec.save(RunDir(out).method)
-    collector = EpisodeCollector(env, net, seed=seeds.acting, device=dev, contexts=level_replay(cfg, env))
+    collector = EpisodeCollector(env, net, seed=seeds.acting, device=dev, contexts=level_replay(cfg, env), pays=pays)
     return _Run(out, spec, cfg, settings, net, learner, replay, collector, lookup, evaluator)
 
 

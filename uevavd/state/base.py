@@ -52,9 +52,13 @@ class ObservationEncoder(nn.Module):
 
     With ``pose_dim`` > 0 the boxes carry the pose too, (..., 7) = [box, pose metres], and g_t
     gains its own embedding, ReLU(W_pose p + e) of the pose scaled to [-1, 1] per axis
-    (:data:`POSE_CENTRE`, :data:`POSE_SPAN`): (..., image_dim + box_dim + pose_dim)."""
+    (:data:`POSE_CENTRE`, :data:`POSE_SPAN`): (..., image_dim + box_dim + pose_dim).
 
-    def __init__(self, feature_dim: int, image_dim: int = 512, box_dim: int = 32, pose_dim: int = 0) -> None:
+    With ``image`` False the encoder reads no image: its image part is that of an all-zero
+    feature vector, ReLU(b), whatever the view (g_t keeps its width and its weights' names)."""
+
+    def __init__(self, feature_dim: int, image_dim: int = 512, box_dim: int = 32, pose_dim: int = 0,
+                 image: bool = True) -> None:
         super().__init__()
         if feature_dim < 1 or image_dim < 1 or box_dim < 1 or pose_dim < 0:
             raise ValueError(
@@ -62,6 +66,7 @@ class ObservationEncoder(nn.Module):
                 f"image_dim={image_dim}, box_dim={box_dim} (pose_dim={pose_dim} >= 0)"
             )
         self.feature_dim, self.image_dim, self.box_dim, self.pose_dim = feature_dim, image_dim, box_dim, pose_dim
+        self.reads_image = bool(image)
         self.image = nn.Linear(feature_dim, image_dim)
         self.box = nn.Linear(BOX_COLUMNS, box_dim)
         if pose_dim:  # not in the paper's estimators' state dicts: their files load as before
@@ -89,6 +94,8 @@ class ObservationEncoder(nn.Module):
                 f"features have {features.shape[-1]} channels but the encoder was built for "
                 f"{self.feature_dim}; build the state estimator with feature_dim={features.shape[-1]}"
             )
+        if not self.reads_image:
+            return torch.relu(self.image.bias).expand(*features.shape[:-1], self.image_dim)
         return torch.relu(self.image(features))
 
     def combine(self, image: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
