@@ -33,7 +33,8 @@ GROUPS = (
                                            "generalisation-paper64")),
     ("Knowing when not to fly", ("stopping-validation-stop", "stopping-validation-pess",
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
-    ("Where to fly: the pose", ("pose-quick", "pose-quick-world1", "pose-paper64")),
+    ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
+                                "pose-paper64")),
 )
 MACHINE = "2 CPU cores (the development VM, an AMD EPYC)"
 V = "--preset benchmarks/generalisation_validation.toml --seeds 3 --recognizers 1"
@@ -76,6 +77,10 @@ COMMANDS = {
                       "ibe_map_pess ibe_map_gate_pess --seeds 5 --recognizers 2",
     "stopping-paper64": "uevavd ablate --preset paper64 --methods ibe_map ibe_map_gate ibe_map_stop ibe_map_pess "
                         "ibe_map_gate_pess",
+    "pose-validation-image": f"uevavd ablate {S} --methods ibe_map_pose_gate ibe_map_pose_dagger_gate "
+                             "--sweep-methods ibe_map_pose_dagger_gate ibe_map_pose_gate --sweep state.image=false",
+    "pose-validation": f"uevavd ablate {S} --methods ibe_map_pose_gate ibe_map_boxpose_gate ibe_map_boxpose_dagger_gate "
+                       "ibe_map_pose_pays ibe_map_boxpose_pays",
     "pose-quick": "uevavd ablate --preset quick --methods map memo_map ibe_map ibe_map_gate ibe_map_pose "
                   "ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate --seeds 5 --recognizers 2 "
                   "--sweep env.train_per_block=4",
