@@ -191,6 +191,7 @@ class MethodSpec:
         return json_digest(self.to_dict(), 16, compact=True)
 
     def to_dict(self) -> dict[str, Any]:
+        """The spec as plain nested dicts and lists (a copy: editing it changes nothing here)."""
         return thaw(self.data)
 
     def with_overrides(self, overrides: Mapping[str, Any] | None) -> MethodSpec:
@@ -203,6 +204,7 @@ class MethodSpec:
         return MethodSpec(name=data["name"], data=freeze(data), source=self.source)
 
     def get(self, dotted: str, default: Any = None) -> Any:
+        """The value of a dotted key (``"train.lr"``), or ``default`` where the spec has none."""
         value = dotted_get(self.data, dotted)
         return default if value is None else value
 
@@ -263,6 +265,7 @@ class MethodSpec:
         return manager.registry.build(COMPONENT_SECTIONS[section], name, **{**kwargs, **runtime})
 
     def to_toml(self) -> str:
+        """The spec as a method TOML (what ``uevavd train`` writes to a run's method.toml)."""
         import tomli_w
 
         return f"# uevavd method spec, hash {self.hash}\n" + tomli_w.dumps(self.to_dict())

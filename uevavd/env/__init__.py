@@ -25,6 +25,7 @@ import gymnasium as gym
 from .config import EnvConfig, EnvConfigError
 
 ENV_ID = "uevavd/AOD-v0"
+"""The Gymnasium id :func:`register` registers (``gym.make(ENV_ID, table=...)``)."""
 
 _LAZY = {
     "AODEnv": "aod_env",

@@ -214,6 +214,8 @@ class AODEnv(gym.Env):
 
     # -- gymnasium API ----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode at a random (context, view) of the split, or at the ones ``options``
+        names (``{"context": 26, "view": 302}``); returns (observation, info)."""
         super().reset(seed=seed)
         if options is not None and not isinstance(options, dict):
             raise ValueError(f"reset options {options!r}: expected a dict such as {{'context': 26, 'view': 302}}")
@@ -239,6 +241,8 @@ class AODEnv(gym.Env):
         return self._obs(), self._info()
 
     def step(self, action: Any):
+        """Take one (type, range) action; returns Gymnasium's (observation, reward, terminated,
+        truncated, info). Stop, or the T_max-th decision, ends the episode with the terminal reward."""
         if self._done:
             raise RuntimeError("step() called on a finished episode: call reset() first")
         a = integral_actions(action)

@@ -39,12 +39,13 @@ class RandomPolicy:
         self._gen: torch.Generator | None = None
 
     def reset(self, n: int) -> None:
+        """Nothing to clear: the random stream runs on across episodes."""
         # the stream is seeded once, on the first act (on the observations' device), and runs on
         # across episodes: a caller resetting it per episode (a dataset's collector) gets other
         # actions in each, not the first episode's again
-        pass
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """A uniformly random allowed action per episode (stop counted once, whatever its range)."""
         mask = obs["mask"]  # (n, 7, A) bool
         if self._gen is None or self._gen.device != mask.device:
             self._gen = torch.Generator(device=mask.device)
@@ -63,9 +64,10 @@ class PassivePolicy:
     needs_features = False
 
     def reset(self, n: int) -> None:
-        pass
+        """Nothing to clear."""
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Stop, everywhere."""
         n = obs["view"].shape[0]
         dev = obs["view"].device
         return torch.full((n,), STOP, dtype=torch.int64, device=dev), torch.zeros(n, dtype=torch.int64, device=dev)

@@ -175,6 +175,7 @@ class EnvConfig:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
+        """Every field by name (what runs and exports record)."""
         return dataclasses.asdict(self)
 
 

@@ -34,9 +34,16 @@ from .gate import StopGate, box_visible
 
 
 class Policy(Protocol):
-    def reset(self, n: int) -> None: ...
+    """What :func:`evaluate_policy` and the baselines' registry (``register_baselines``) take:
+    a policy that acts on batches of observations. An optional ``needs_features = False``
+    attribute lets the harness skip the features (scripted rules and oracles)."""
 
-    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]: ...
+    def reset(self, n: int) -> None:
+        """Start ``n`` new episodes (clear any memory); called before the first ``act``."""
+
+    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Batched observations (the env's keys, each (n, ...) on one device) -> the actions'
+        (type, range) indices, each (n,) int64 on that device."""
 
 
 @dataclass
@@ -133,6 +140,7 @@ class EvalResult:
         return self.class_names[k] if k < len(self.class_names) else str(k)
 
     def to_dict(self) -> dict[str, Any]:
+        """The split, the env config, the summary and the per-episode arrays as lists (JSON-ready)."""
         return {
             "split": self.split,
             "config": self.config,

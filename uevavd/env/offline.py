@@ -135,9 +135,11 @@ class FlatPolicy:
         self.masked = bool(masked)
 
     def reset(self, n: int) -> None:
-        pass
+        """Nothing to clear: the flat policy has no memory."""
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Flatten the observations, call the wrapped ``act``, and return its (masked) actions
+        as (type, range) indices."""
         mask = obs["mask"] if "mask" in obs else obs["action_mask"]
         if mask.shape[-1] != self.max_range:  # every index would be split by the wrong A
             raise ValueError(f"FlatPolicy(max_range={self.max_range}) on an env whose actions have "

@@ -107,9 +107,10 @@ class OraclePolicy:
             self._dev = dev
 
     def reset(self, n: int) -> None:
-        pass
+        """Nothing to clear: the oracle reads the step index from the observation."""
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The DP's optimal action for each episode's (scene, view, steps left)."""
         view = obs["view"]
         self._on(view.device)
         k = (self.config.t_max - obs["t"]).clamp(1, self.config.t_max)

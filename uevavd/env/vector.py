@@ -137,6 +137,9 @@ class AODVectorEnv(gym.vector.VectorEnv):
         return self._numpy(self._obs), {}
 
     def step(self, actions: Any):
+        """One (type, range) action per env, (num_envs, 2) int; returns the batched (observations,
+        rewards, terminations, truncations, infos), ended episodes restarting by the env's
+        ``autoreset_mode`` (next-step by default, as Gymnasium's own vector envs)."""
         self._check_open("step")
         a_type, a_range = self._split_actions(actions)
         held = self._held.copy()

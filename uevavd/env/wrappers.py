@@ -39,6 +39,7 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return {**obs, "action_mask": obs["action_mask"].reshape(-1)}
 
     def reset(self, **kwargs: Any):
+        """The wrapped env's reset, its mask flattened to the joint actions."""
         obs, info = self.env.reset(**kwargs)
         return self._flat_obs(obs), info
 
@@ -48,6 +49,7 @@ class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return action_masks(env._tr.mask[env._view][None], "flat")[0]
 
     def step(self, action: Any):
+        """Take joint action ``type * A + range`` (an int in 0..7A-1)."""
         if not self.action_space.contains(action) and not (
             np.ndim(action) == 0 and float(action) == int(action) and 0 <= int(action) < N_TYPES * self._a
         ):
@@ -78,5 +80,6 @@ class MaskedFlatObservation(gym.ObservationWrapper, gym.utils.RecordConstructorA
         })
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
+        """The env's dict observation -> ``{"obs": float32 vector, "mask": bool action mask}``."""
         return {"obs": spaces.flatten(self._inner, observation).astype(np.float32),
                 "mask": np.asarray(observation["action_mask"], dtype=bool)}

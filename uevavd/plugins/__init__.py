@@ -21,5 +21,6 @@ ENTRY_POINT_GROUP = "uevavd"
 
 hookspec = pluggy.HookspecMarker(PROJECT)
 hookimpl = pluggy.HookimplMarker(PROJECT)
+"""The decorator a plugin puts on its implementations of :mod:`uevavd.plugins.hookspecs`."""
 
 __all__ = ["PROJECT", "ENTRY_POINT_GROUP", "hookspec", "hookimpl"]

@@ -105,6 +105,7 @@ class Registry:
     failed: list[str] = field(default_factory=list)
 
     def add_entry(self, entry: Entry) -> None:
+        """Add one component; a name its kind already has, or an unknown kind, is refused."""
         if entry.kind not in KINDS:
             raise PluginError(f"unknown component kind {entry.kind!r}: expected one of {list(KINDS)}")
         if not isinstance(entry.name, str) or not entry.name.strip():
@@ -124,6 +125,7 @@ class Registry:
         self.entries[entry.kind][entry.name] = entry
 
     def names(self, kind: str) -> list[str]:
+        """The sorted names of every registered component of ``kind``."""
         self._check_kind(kind)
         return sorted(self.entries[kind])
 
@@ -133,6 +135,8 @@ class Registry:
         return list(self.entries[kind].values())
 
     def get(self, kind: str, name: str) -> Entry:
+        """The :class:`Entry` of component ``name`` of ``kind`` (UnknownComponentError, with the
+        names there are, if none)."""
         self._check_kind(kind)
         try:
             return self.entries[kind][name]
@@ -149,6 +153,7 @@ class Registry:
             ) from None
 
     def builder(self, kind: str, name: str) -> Callable[..., Any]:
+        """The component's builder, imported now from its "module:attr" target."""
         return self.get(kind, name).load()
 
     def build(self, kind: str, name: str, /, **kwargs: Any) -> Any:
@@ -157,6 +162,7 @@ class Registry:
         return builder(**kwargs)
 
     def signature(self, kind: str, name: str) -> inspect.Signature:
+        """The builder's signature: the keyword arguments a method config section may set."""
         return inspect.signature(self.builder(kind, name))
 
     def _check_kind(self, kind: str) -> None:

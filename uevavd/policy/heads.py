@@ -8,13 +8,47 @@ float32; masks: (..., 7, A) bool from the environment.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, Protocol, runtime_checkable
 
 import torch
 from torch import nn
 
 from ..config_rules import ConfigError, check_widths
 from . import targets as T
+
+
+@runtime_checkable
+class QHead(Protocol):
+    """What a head (``head`` plugin) provides; ``policy/contract.py`` checks it before a run.
+
+    ``forward(s)`` maps states (..., state_dim) to a tuple of ``n_branches`` Q tensors (the
+    branches, e.g. Q_type (..., 7) and Q_range (..., A)); ``greedy(q, mask)`` returns the
+    greedy (type, range) indices, each (...) int64, among the actions ``mask`` (..., 7, A)
+    allows (None: all); ``taken(q, a_type, a_range)`` the Q of the taken actions (..., K), one
+    column per TD target the head learns; ``bootstrap(q_online, q_target, mask)`` the double-DQN
+    bootstrap values (..., K) at the next states (the online net's greedy actions evaluated by
+    the target net); ``weights(a_type)`` (..., K) the weight of each column in the loss (a
+    branch the taken action does not use, such as stop's range, weighs 0).
+    """
+
+    state_dim: int
+    n_branches: int
+
+    def __call__(self, s: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """States (..., state_dim) -> the branches' Q tensors (``forward``, as an nn.Module)."""
+
+    def greedy(self, q: tuple[torch.Tensor, ...], mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The greedy (type, range) indices among the allowed actions."""
+
+    def taken(self, q: tuple[torch.Tensor, ...], a_type: torch.Tensor, a_range: torch.Tensor) -> torch.Tensor:
+        """The Q of the taken actions, (..., K)."""
+
+    def bootstrap(self, q_online: tuple[torch.Tensor, ...], q_target: tuple[torch.Tensor, ...],
+                  mask: torch.Tensor | None) -> torch.Tensor:
+        """The double-DQN bootstrap values at the next states, (..., K)."""
+
+    def weights(self, a_type: torch.Tensor) -> torch.Tensor:
+        """Each TD column's weight in the loss for the taken action types, (..., K)."""
 
 
 def _mlp(inp: int, hidden: int, out: int) -> nn.Sequential:
@@ -37,10 +71,13 @@ class BranchingDuelingHead(nn.Module):
         self.adv_range = _mlp(state_dim, hidden, n_ranges)
 
     def forward(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """s (..., state_dim) -> (Q_type (..., 7), Q_range (..., A))."""
         v = self.value(s)
         return T.dueling(v, self.adv_type(s)), T.dueling(v, self.adv_range(s))
 
     def greedy(self, q: tuple[torch.Tensor, ...], mask: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The allowed type with the highest Q_type, then that type's allowed range with the
+        highest Q_range (stop's range is 0)."""
         return T.branch_greedy(q[0], q[1], mask)
 
     def taken(self, q: tuple[torch.Tensor, ...], a_type: torch.Tensor, a_range: torch.Tensor) -> torch.Tensor:
@@ -52,10 +89,13 @@ class BranchingDuelingHead(nn.Module):
     def bootstrap(
         self, q_online: tuple[torch.Tensor, ...], q_target: tuple[torch.Tensor, ...], mask: torch.Tensor | None
     ) -> torch.Tensor:
+        """Both branches' targets at the online net's greedy action, evaluated by the target
+        net: their mean (``td_target = "mean"``) or each its own (``"indep"``)."""
         a_type, a_range = self.greedy(q_online, mask)
         return T.branch_bootstrap(q_target[0], q_target[1], a_type, a_range, self.td_target)
 
     def weights(self, a_type: torch.Tensor) -> torch.Tensor:
+        """(..., 2): the type branch always counts; the range branch only where a move was taken."""
         return T.branch_weights(a_type)
 
 

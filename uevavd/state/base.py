@@ -84,6 +84,7 @@ class ObservationEncoder(nn.Module):
         return BOX_COLUMNS + (POSE_COLUMNS if self.pose_dim else 0)
 
     def forward(self, features: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+        """g_t = :meth:`combine` (:meth:`project` (features), boxes)."""
         return self.combine(self.project(features), boxes)
 
     def project(self, features: torch.Tensor) -> torch.Tensor:
