@@ -51,7 +51,7 @@ def baseline_colour(method: str, others: list[str] | None = None) -> str:
 PNG_DPI = 160
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
     """``path`` (PNG, for the Markdown report) and the same figure as a PDF beside it (for papers)."""
     try:
         atomic_save(path.with_suffix(".pdf"), lambda tmp: fig.savefig(tmp, format="pdf", bbox_inches="tight"))
@@ -159,7 +159,7 @@ def plot_curves(curves: pd.DataFrame, baselines: pd.DataFrame, path: Path, *, wi
     fig.suptitle(f"Mean over runs and 95% interval ({how}) after a {window}-point trailing sliding-window mean",
                  fontsize=11)
     fig.tight_layout(rect=(0, 0.03, 1, 0.97))
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 #: Panels of the training-contexts figure: (column of ``context_table``, y-axis label).
@@ -208,7 +208,7 @@ def plot_context_axis(table: pd.DataFrame, path: Path) -> Path:
     fig.suptitle("Against the number of training contexts: mean over runs and 95% interval; dashed: baselines",
                  fontsize=11)
     fig.tight_layout(rect=(0, 0.04, 1, 0.97))
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _move_text(a: int, b: int, last: bool, stopped: bool) -> str:
@@ -318,4 +318,4 @@ def plot_strips(trajectories: Sequence[dict], image_for: Callable[[dict, int], n
         bar = fig.colorbar(sc, cax=cax, orientation="horizontal")
         bar.set_label("altitude z (m): marker colour and size", fontsize=7)
         bar.ax.tick_params(labelsize=6)
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -53,8 +53,9 @@ from .report_data import (
     sweep_methods,
     sweep_rows,
 )
+from .report_rliable import rliable_section
 from .report_room import room_section
-from .report_stopping import stopping_section
+from .report_stopping import read_contexts, stopping_section
 from .stats import Estimate
 from .strips import load_trajectories, strip_images
 
@@ -390,6 +391,7 @@ def _write_report(ablation_dir: Path, results: pd.DataFrame, meta: dict | None, 
     lines += contexts_section(final, out_dir)
     lines += stopping_section(final, setting, ablation_dir)
     lines += room_section(final, setting, ablation_dir)
+    lines += rliable_section(read_contexts(ablation_dir / "contexts.csv"), setting, out_dir)
     lines += _strips_section(ablation_dir, meta, out_dir)
     lines += _claims_section(claims, diagnose(results, claims))
     path = out_dir / "report.md"
