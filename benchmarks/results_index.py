@@ -82,12 +82,16 @@ COMMANDS = {
     "pose-validation": f"uevavd ablate {S} --methods ibe_map_pose_gate ibe_map_boxpose_gate ibe_map_boxpose_dagger_gate "
                        "ibe_map_pose_pays ibe_map_boxpose_pays",
     "pose-quick": "uevavd ablate --preset quick --methods map memo_map ibe_map ibe_map_gate ibe_map_pose "
-                  "ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate --seeds 5 --recognizers 2 "
+                  "ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate ibe_map_boxpose_gate "
+                  "ibe_map_boxpose_dagger_gate ibe_map_pose_pays ibe_map_boxpose_pays --seeds 5 --recognizers 2 "
                   "--sweep env.train_per_block=4",
-    "pose-paper64": "uevavd ablate --preset paper64 --methods ibe_map ibe_map_pose_gate ibe_map_pose_dagger_gate",
+    "pose-paper64": "uevavd ablate --preset paper64 --methods ibe_map ibe_map_pose_gate ibe_map_pose_dagger_gate "
+                    "ibe_map_boxpose_pays ibe_map_boxpose_gate ibe_map_boxpose_dagger_gate ibe_map_pose_pays "
+                    "ibe_map_pose ibe_map_pose_dagger",
     "pose-quick-world1": "uevavd ablate --preset quick --world-seed 1 --methods map memo_map ibe_map ibe_map_gate "
-                         "ibe_map_pose ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate --seeds 5 "
-                         "--recognizers 2 --sweep env.train_per_block=4",
+                         "ibe_map_pose ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate "
+                         "ibe_map_boxpose_gate ibe_map_boxpose_dagger_gate ibe_map_pose_pays ibe_map_boxpose_pays "
+                         "--seeds 5 --recognizers 2 --sweep env.train_per_block=4",
 }
 ORDER = ("map", "memo_map", "ibe_map")
 REFERENCES = ("random", "passive", "box_gate", "pose_seek", "visibility_oracle", "oracle")
