@@ -26,6 +26,9 @@ from .config import EnvConfig, EnvConfigError
 
 ENV_ID = "uevavd/AOD-v0"
 """The Gymnasium id :func:`register` registers (``gym.make(ENV_ID, table=...)``)."""
+IMPORTABLE_ID = f"uevavd.env:{ENV_ID}"
+"""The id with its module, which Gymnasium imports before it makes the env: what a process that
+never imported uevavd takes (RLlib's env runners, Ray tasks, subprocess vector envs)."""
 
 _LAZY = {
     "AODEnv": "aod_env",
@@ -47,7 +50,7 @@ _LAZY = {
     "flight_pays": "oracle",
 }
 
-__all__ = ["ENV_ID", "EnvConfig", "EnvConfigError", "register", *_LAZY]
+__all__ = ["ENV_ID", "IMPORTABLE_ID", "EnvConfig", "EnvConfigError", "register", *_LAZY]
 
 
 def register() -> None:

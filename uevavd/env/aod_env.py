@@ -46,7 +46,14 @@ from ..table import ObservationTable, load_table
 from . import ENV_ID  # noqa: F401  (defined once, in uevavd.env; importable from here as before)
 from .config import EnvConfig, make_config
 from .render import render_frame
-from .spaces import F16_MAX, action_masks, action_space, observation_space  # noqa: F401 (F16_MAX: importable from here as before)
+from .spaces import (  # noqa: F401 (F16_MAX: importable from here as before)
+    F16_MAX,
+    action_masks,
+    action_space,
+    check_forms,
+    form_space,
+    in_form,
+)
 
 #: ``info["visible"]`` where the data has no visible fraction (the real release).
 NO_VISIBLE = -1.0
@@ -122,6 +129,8 @@ class AODEnv(gym.Env):
         *,
         contexts: Any = None,
         render_mode: str | None = None,
+        actions: str = "multi",
+        observation: str = "dict",
         **overrides: Any,
     ) -> None:
         fields = {f.name for f in dataclasses.fields(EnvConfig)}
@@ -130,7 +139,9 @@ class AODEnv(gym.Env):
             near = difflib.get_close_matches(unexpected[0], sorted(fields), n=1)
             raise TypeError(f"AODEnv() got an unexpected keyword argument {unexpected[0]!r}"
                             + (f" (did you mean {near[0]!r}?)" if near else "") + "; its keywords are table, split, "
-                            f"config, contexts, render_mode and the EnvConfig fields {sorted(fields)}")
+                            f"config, contexts, render_mode, actions, observation and the EnvConfig fields {sorted(fields)}")
+        check_forms(actions, observation)
+        self.actions, self.observation = actions, observation
         self.table = load_table(table)
         self.config = cfg = make_config(config, **overrides)
         self.split = split
@@ -141,8 +152,8 @@ class AODEnv(gym.Env):
         self._coords = view_coords(np.arange(N_VIEWS))  # (605, 3) float64 metres
         self._reco = cfg.recognized(self.table.true_class_probs())  # (S, 605) bool
         self._acc = self.table.argmax_correct()
-        self.observation_space = observation_space(self.table.feature_dim, cfg)
-        self.action_space = action_space(cfg)
+        self.observation_space = form_space(self.table.feature_dim, cfg, actions=actions, observation=observation)
+        self.action_space = action_space(cfg, actions=actions)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode={render_mode!r}: expected None or one of {self.metadata['render_modes']}")
         self.render_mode = render_mode
@@ -153,17 +164,20 @@ class AODEnv(gym.Env):
         self._done = True
 
     # -- helpers ----------------------------------------------------------------------------
-    def _obs(self) -> dict[str, Any]:
+    def _obs(self) -> dict[str, Any] | np.ndarray:
+        """The observation in the env's form (:data:`~uevavd.env.spaces.OBSERVATION_FORMS`):
+        the Dict, its mask joint for ``actions="flat"``, or the flat vector (alone, or beside
+        the mask)."""
         s, v = self._scene, self._view
         obs = {
             "features": np.array(self.table.features[s, v], dtype=np.float32),
             "box": np.array(self.table.boxes[s, v], dtype=np.float32),
-            "action_mask": self._mask_i8[v].copy(),
+            "action_mask": self._mask_i8[v].copy() if self.actions == "multi" else self._mask_i8[v].reshape(-1),
             "t": np.int64(self._t),  # as Discrete(t_max + 1).sample() gives it
         }
         if self.config.pose:
             obs["pose"] = self._coords[v].astype(np.float32)
-        return obs
+        return in_form(obs, self.observation)
 
     def _info(self, stopped: bool = False) -> dict[str, Any]:
         """The same keys with the same types at every step (Minari's ``record_infos`` and
@@ -292,10 +306,10 @@ class AODEnv(gym.Env):
         return render_frame(self.table, self._scene, self._path, self._t)
 
     def action_masks(self) -> np.ndarray:
-        """Allowed actions at the current view for sb3-contrib's MaskablePPO, in its
-        MultiDiscrete form: (7 + A,) bool, a type where any of its ranges is allowed, then
-        every range (the joint (type, range) rule cannot be split per dimension; wrap the env
-        in :class:`~uevavd.env.wrappers.DiscreteActions` for the exact joint mask)."""
+        """Allowed actions at the current view for sb3-contrib's MaskablePPO, in the form of the
+        action space: with ``actions="flat"`` the joint mask (7 x A,); in the MultiDiscrete form
+        (7 + A,) bool, a type where any of its ranges is allowed, then every range (the joint
+        (type, range) rule cannot be split per dimension; ``actions="flat"`` gives it exactly)."""
         if self._done:
             raise RuntimeError("action_masks() on a finished episode: call reset() first")
-        return action_masks(self._tr.mask[self._view][None], "multi")[0]
+        return action_masks(self._tr.mask[self._view][None], self.actions)[0]

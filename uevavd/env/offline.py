@@ -33,27 +33,14 @@ import torch
 from ..data.grid import N_TYPES
 from .aod_env import integral_actions
 from .gate import fit_to_mask
-
-#: The parts of the flat observation, in order ("pose" only where the observation has it).
-FLAT_PARTS = ("features", "box", "pose", "t", "action_mask")
+from .spaces import FLAT_PARTS, flatten_observation
 
 
 def flat_observation(obs: dict[str, Any]) -> np.ndarray:
     """The flat observation of one observation or a batch of them (the env's keys, or the
     batched interface's, whose mask is ``mask``; numpy or torch): ``[features, box, (pose,)
     t, action_mask]`` as float32, one row each; the pose where the observation has one."""
-    parts = []
-    for key in FLAT_PARTS:
-        if key == "pose" and key not in obs:
-            continue
-        value = obs[key] if key in obs or key != "action_mask" else obs["mask"]
-        value = value.cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
-        if key == "t":
-            value = value[..., None]
-        elif key == "action_mask":
-            value = value.reshape(*value.shape[:-2], -1) if value.ndim >= 2 and value.shape[-2] == N_TYPES else value
-        parts.append(value.astype(np.float32))
-    return np.concatenate(parts, axis=-1)
+    return flatten_observation({k: v.cpu().numpy() if isinstance(v, torch.Tensor) else v for k, v in obs.items()})
 
 
 @dataclass(frozen=True)

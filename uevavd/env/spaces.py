@@ -3,11 +3,16 @@
 Observations: ``features`` (D,) float32 (stored as float16, whose finite range bounds them),
 ``box`` (4,) in [0, 1], ``action_mask`` (7, A) int8 and ``t`` (decisions so far, 0..T_max); with
 ``EnvConfig.pose``, ``pose`` (3,) float32, the viewpoint's (x, y, z) in metres, target at the origin.
-Actions: MultiDiscrete (type 7, range A), or, in the vector env's ``"flat"`` form, one
-Discrete(7 x A) index with the joint mask.
+Actions: MultiDiscrete (type 7, range A), or, in the ``actions="flat"`` form, one
+Discrete(7 x A) index with the joint mask. With ``observation="flat"`` the observation is one
+float32 vector, ``[features, box, (pose,) t, action_mask (7 x A)]`` (:data:`FLAT_PARTS`), the
+layout of :func:`uevavd.env.offline.flat_observation` and :class:`~uevavd.env.offline.FlatPolicy`;
+``observation="masked"`` gives ``{"observations": that vector, "action_mask": (7 x A,) float32}``.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
@@ -16,6 +21,31 @@ from ..data.grid import N_TYPES, STOP, XS, YS, ZS
 from .config import EnvConfig
 
 F16_MAX = float(np.finfo(np.float16).max)
+#: The parts of the flat observation, in order ("pose" only where the observation has it).
+FLAT_PARTS = ("features", "box", "pose", "t", "action_mask")
+#: The observation forms: the Dict of the paper's parts; one flat float32 vector; or that
+#: vector as ``"observations"`` beside the joint mask as ``"action_mask"`` (float32), the
+#: convention of RLlib's action-masking modules.
+OBSERVATION_FORMS = ("dict", "flat", "masked")
+#: The action forms: MultiDiscrete (type, range), or one Discrete(7 x A) index.
+ACTION_FORMS = ("multi", "flat")
+
+
+def flatten_observation(obs: dict[str, Any]) -> np.ndarray:
+    """``[features, box, (pose,) t, action_mask]`` as float32 from numpy parts, one observation
+    or a batch (the mask (..., 7, A) or already joint (..., 7 x A); ``mask`` is taken for
+    ``action_mask`` as the batched interface names it)."""
+    parts = []
+    for key in FLAT_PARTS:
+        if key == "pose" and key not in obs:
+            continue
+        value = np.asarray(obs[key] if key in obs or key != "action_mask" else obs["mask"])
+        if key == "t":
+            value = value[..., None]
+        elif key == "action_mask" and value.ndim >= 2 and value.shape[-2] == N_TYPES:
+            value = value.reshape(*value.shape[:-2], -1)
+        parts.append(value.astype(np.float32))
+    return np.concatenate(parts, axis=-1)
 
 
 def observation_space(feature_dim: int, config: EnvConfig, *, actions: str = "multi") -> spaces.Dict:
@@ -33,6 +63,52 @@ def observation_space(feature_dim: int, config: EnvConfig, *, actions: str = "mu
         entries["pose"] = spaces.Box(np.array([XS[0], YS[0], ZS[0]], np.float32),
                                      np.array([XS[-1], YS[-1], ZS[-1]], np.float32), dtype=np.float32)
     return spaces.Dict(entries)
+
+
+def flat_observation_space(feature_dim: int, config: EnvConfig) -> spaces.Box:
+    """The ``observation="flat"`` form's space: float32 ``[features, box, (pose,) t, mask]``,
+    each part's bounds as in the Dict form (t in 0..T_max, the joint mask in {0, 1})."""
+    parts = observation_space(feature_dim, config, actions="flat").spaces
+    low, high = [], []
+    for key in FLAT_PARTS:
+        if key not in parts:
+            continue
+        space = parts[key]
+        if isinstance(space, spaces.Discrete):  # t
+            low.append(np.zeros(1)), high.append(np.full(1, space.n - 1))
+        else:
+            low.append(np.asarray(space.low, np.float64).ravel()), high.append(np.asarray(space.high, np.float64).ravel())
+    return spaces.Box(np.concatenate(low).astype(np.float32), np.concatenate(high).astype(np.float32), dtype=np.float32)
+
+
+def form_space(feature_dim: int, config: EnvConfig, *, actions: str, observation: str) -> spaces.Space:
+    """One env's observation space in the given forms (:data:`OBSERVATION_FORMS`)."""
+    if observation == "dict":
+        return observation_space(feature_dim, config, actions=actions)
+    flat = flat_observation_space(feature_dim, config)
+    if observation == "flat":
+        return flat
+    return spaces.Dict({"observations": flat,
+                        "action_mask": spaces.Box(0.0, 1.0, (N_TYPES * config.max_range,), np.float32)})
+
+
+def in_form(obs: dict[str, Any], observation: str) -> dict[str, Any] | np.ndarray:
+    """An observation (or a batch) of the Dict form in the given form."""
+    if observation == "dict":
+        return obs
+    flat = flatten_observation(obs)
+    if observation == "flat":
+        return flat
+    mask = np.asarray(obs["action_mask"], np.float32)
+    return {"observations": flat, "action_mask": mask.reshape(*flat.shape[:-1], -1)}
+
+
+def check_forms(actions: str, observation: str) -> None:
+    """Refuse an unknown action or observation form, naming the accepted ones."""
+    if actions not in ACTION_FORMS:
+        raise ValueError(f"actions={actions!r}: expected one of {ACTION_FORMS}")
+    if observation not in OBSERVATION_FORMS:
+        raise ValueError(f"observation={observation!r}: expected one of {OBSERVATION_FORMS}")
 
 
 def action_space(config: EnvConfig, *, actions: str = "multi") -> spaces.Space:

@@ -38,9 +38,14 @@ from .aod_env import integral_actions
 from .batched import BatchedAODEnv
 from .config import EnvConfig, make_config
 from .render import render_frame
-from .spaces import action_masks, action_space, observation_space
+from .spaces import (
+    action_masks,
+    action_space,
+    check_forms,
+    form_space,
+    in_form,
+)
 
-ACTION_FORMS = ("multi", "flat")
 #: ``next_step`` (the default): where an episode ends, the step returns its last observation, and
 #: the env's next step starts the next episode (reward 0, its action ignored), as Gymnasium's own
 #: vector envs and its vector wrappers expect; ``same_step`` (SB3's convention): the step returns
@@ -86,11 +91,10 @@ class AODVectorEnv(gym.vector.VectorEnv):
     metadata = {"render_modes": ["rgb_array"]}
 
     def __init__(self, table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
-                 num_envs: int = 1, actions: str = "multi", device: str | torch.device = "cpu",
-                 contexts: Any = None, render_mode: str | None = None, autoreset_mode: Any = "next_step",
-                 **overrides: Any) -> None:
-        if actions not in ACTION_FORMS:
-            raise ValueError(f"actions={actions!r}: expected one of {ACTION_FORMS}")
+                 num_envs: int = 1, actions: str = "multi", observation: str = "dict",
+                 device: str | torch.device = "cpu", contexts: Any = None, render_mode: str | None = None,
+                 autoreset_mode: Any = "next_step", **overrides: Any) -> None:
+        check_forms(actions, observation)
         self.metadata = dict(type(self).metadata)
         self._obs = None
         self.use_autoreset_mode(autoreset_mode)
@@ -100,10 +104,11 @@ class AODVectorEnv(gym.vector.VectorEnv):
         cfg = make_config(config, **overrides)
         self._batched = BatchedAODEnv(table, split, num_envs, cfg, device=device, contexts=contexts)
         self.num_envs = num_envs
-        self.actions = actions
+        self.actions, self.observation = actions, observation
         self._a = cfg.max_range
         self.single_action_space = action_space(cfg, actions=actions)
-        self.single_observation_space = observation_space(self._batched.table.feature_dim, cfg, actions=actions)
+        self.single_observation_space = form_space(self._batched.table.feature_dim, cfg, actions=actions,
+                                                   observation=observation)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.config = cfg
@@ -171,8 +176,10 @@ class AODVectorEnv(gym.vector.VectorEnv):
                 infos["_" + key] = terminated
             last = self._last_obs(info)
             if self._next_step:  # the episode's last observation, in place; its reset comes next step
-                for key, value in numpy_obs.items():
-                    value[terminated] = last[key][terminated]
+                if isinstance(numpy_obs, np.ndarray):  # observation="flat"
+                    numpy_obs[terminated] = last[terminated]
+                for key, value in (numpy_obs.items() if isinstance(numpy_obs, dict) else ()):
+                    value[terminated] = last[key][terminated]  # the Dict and the "masked" forms
                 self._held = terminated.copy()  # not the array returned
             else:
                 infos["final_obs"] = self._final_obs(last, terminated)
@@ -255,7 +262,7 @@ class AODVectorEnv(gym.vector.VectorEnv):
                "action_mask": mask, "t": obs["t"].cpu().numpy()}
         if "pose" in obs:  # EnvConfig.pose
             out["pose"] = obs["pose"].cpu().numpy()
-        return out
+        return in_form(out, self.observation)
 
     def _last_obs(self, info: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
         """Every env's observation at the end of its step (before any autoreset)."""
@@ -263,16 +270,17 @@ class AODVectorEnv(gym.vector.VectorEnv):
         scene = tb.local.index_select(0, info["final_scene"])
         return self._numpy(tb.observe(scene, info["final_view"], info["final_decisions"]))
 
-    def _final_obs(self, last: dict[str, np.ndarray], done: np.ndarray) -> np.ndarray:
+    def _final_obs(self, last: dict[str, np.ndarray] | np.ndarray, done: np.ndarray) -> np.ndarray:
         out = np.empty(self.num_envs, dtype=object)
         for i in np.flatnonzero(done):
-            out[i] = {k: v[i] for k, v in last.items()}
+            out[i] = last[i] if isinstance(last, np.ndarray) else {k: v[i] for k, v in last.items()}
         return out
 
 
 def make_vector_env(table: Any, split: str = "train", config: EnvConfig | dict[str, Any] | None = None, *,
-                    num_envs: int = 64, actions: str = "multi", device: str | torch.device = "cpu",
-                    autoreset_mode: Any = "next_step", **overrides: Any) -> AODVectorEnv:
+                    num_envs: int = 64, actions: str = "multi", observation: str = "dict",
+                    device: str | torch.device = "cpu", autoreset_mode: Any = "next_step",
+                    **overrides: Any) -> AODVectorEnv:
     """The vector entry point of ``uevavd/AOD-v0`` (``gymnasium.make_vec``)."""
-    return AODVectorEnv(table, split, config, num_envs=num_envs, actions=actions, device=device,
-                        autoreset_mode=autoreset_mode, **overrides)
+    return AODVectorEnv(table, split, config, num_envs=num_envs, actions=actions, observation=observation,
+                        device=device, autoreset_mode=autoreset_mode, **overrides)
