@@ -3,13 +3,12 @@ selections the report and the claims share (final evaluation point, default sett
 sweeps, per-seed GenGap).
 
 ``results.csv`` is tidy: one row per method x seed x setting x evaluation point x split
-(columns in :data:`REQUIRED_COLUMNS`). Baselines (random, passive, oracle) have
-``episodes == -1`` and are constant reference values. A learned run has its per-epoch
-learning-curve rows (``final`` False; evaluated on ``train.eval_contexts`` contexts) and,
-once finished, one ``final`` row per split from the exhaustive evaluation of its final
-policy (every context, like the baselines; the optional ``eval_contexts`` column says how
-many contexts a row covers). Files of older versions flag the last curve point ``final``
-instead; both read the same way here.
+(columns in :data:`REQUIRED_COLUMNS`). Baselines (random, passive, oracle) have ``episodes == -1``
+and are constant reference values. A learned run has its per-epoch learning-curve rows (``final``
+False; evaluated on ``train.eval_contexts`` contexts) and, once finished, one ``final`` row per
+split from the exhaustive evaluation of its final policy (every context, like the baselines; the
+optional ``eval_contexts`` column says how many contexts a row covers). Files of older versions
+flag the last curve point ``final`` instead; both read the same way here.
 """
 
 from __future__ import annotations
@@ -77,14 +76,12 @@ def roles_now() -> dict[str, Any]:
 
 
 #: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = ("random", "passive", "box_gate", "pose_seek", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens", "ibe_map_plr",
-                                  "ibe_map_reco", "ibe_map_aug", "ibe_map_aux", "ibe_map_gate", "ibe_map_stop",
-                                  "ibe_map_pess", "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate",
-                                  "ibe_map_pose_dagger", "ibe_map_pose_dagger_gate", "ibe_map_boxpose_gate",
-                                  "ibe_map_boxpose_dagger_gate", "ibe_map_pose_pays", "ibe_map_boxpose_pays",
-                                  "sb3_dqn",
-                                  "sb3_ppo",
-                                  "visibility_oracle", "oracle")
+METHOD_ORDER: tuple[str, ...] = (
+    "random", "passive", "box_gate", "pose_seek", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens",
+    "ibe_map_plr", "ibe_map_reco", "ibe_map_aug", "ibe_map_aux", "ibe_map_gate", "ibe_map_stop", "ibe_map_pess",
+    "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate", "ibe_map_pose_dagger", "ibe_map_pose_dagger_gate",
+    "ibe_map_boxpose_gate", "ibe_map_boxpose_dagger_gate", "ibe_map_pose_pays", "ibe_map_boxpose_pays", "sb3_dqn",
+    "sb3_ppo", "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
     "memo_map": "Memo-MAP",

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from .figures import save_figure  # sets matplotlib's non-interactive backend first
 from .report_data import SPLITS, label, learned, md_table
 
 #: The two references a context's return is normalised between: 0 and 1.
@@ -144,8 +145,6 @@ def profiles_figure(by_split: dict[str, dict[str, np.ndarray]], path: Path, *, r
     its 95 % band, per method (rliable's performance profiles)."""
     import matplotlib.pyplot as plt
     from rliable import library as rly
-
-    from .figures import save_figure  # sets matplotlib's non-interactive backend first
 
     fig, axes = plt.subplots(1, len(by_split), figsize=(4.2 * len(by_split), 3.4), squeeze=False)
     for ax, (split, scores) in zip(axes[0], by_split.items(), strict=True):
