@@ -378,7 +378,7 @@ def test_an_ablation_killed_in_its_first_write_reruns(tiny, tmp_path):
 
 
 def test_ray_backend_gives_the_local_results(ablation, tiny):
-    """Same jobs as Ray tasks on a local 2-CPU instance: identical evaluations."""
+    """Same jobs as Ray tasks on a local 1-CPU instance: identical evaluations."""
     ray = pytest.importorskip("ray")
     import dataclasses
 
@@ -386,7 +386,7 @@ def test_ray_backend_gives_the_local_results(ablation, tiny):
 
     local = [j for j in ablation["jobs"] if j.method == "map"]
     moved = [dataclasses.replace(j, out=str(tiny["root"] / "ray" / Path(j.out).name)) for j in local]
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)  # one task process: less startup
     try:
         run_jobs(moved, backend="ray", workers=1, log=lambda *_: None)
     finally:
