@@ -147,3 +147,30 @@ def test_several_datasets_flatten_in_one_call(oracle_dataset):
     one, two = flat_dataset(oracle_dataset), flat_dataset(oracle_dataset, oracle_dataset)
     assert len(two.actions) == 2 * len(one.actions) and two.max_range == one.max_range
     np.testing.assert_array_equal(two.observations[len(one.actions):], one.observations)
+
+
+def test_the_flat_view_read_from_the_file_is_minaris_episodes_in_any_number_of_processes(oracle_dataset):
+    """flat_dataset read every episode through Minari's reader, which decodes each one's infos
+    and spaces: 15 s for 2,000 episodes, slower than the 1,000-step fit it fed. It now reads the
+    HDF5 file itself (benchmarks/bench_offline.py); the arrays are Minari's, in its order, for
+    a filtered dataset too, however many processes read them."""
+    from uevavd.env.offline import flat_dataset
+
+    fields = ("observations", "actions", "rewards", "terminals", "timeouts", "masks")
+    some = oracle_dataset.filter_episodes(lambda ep: ep.id % 3 != 1)
+    for data in (oracle_dataset, some):
+        episodes = list(data.iterate_episodes())
+        minaris = flat_dataset(episodes)
+        for flat in (flat_dataset(data), flat_dataset(data, workers=2)):
+            for field in fields:
+                np.testing.assert_array_equal(getattr(flat, field), getattr(minaris, field), err_msg=field)
+        assert len(minaris.actions) == sum(len(e.rewards) for e in episodes)
+    assert len(flat_dataset(some).actions) < len(flat_dataset(oracle_dataset).actions)
+    from types import SimpleNamespace
+
+    posed = [SimpleNamespace(observations={**e.observations, "pose": np.zeros((len(e.rewards) + 1, 3), np.float32)},
+                             actions=e.actions, rewards=e.rewards, terminations=e.terminations,
+                             truncations=e.truncations) for e in list(oracle_dataset.iterate_episodes())[:3]]
+    assert flat_dataset(posed).observations.shape[1] == flat_dataset(oracle_dataset).observations.shape[1] + 3
+    with pytest.raises(ValueError, match=r"holds the observation parts .*'pose'.* one env config together"):
+        flat_dataset(oracle_dataset, posed)

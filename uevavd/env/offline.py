@@ -25,11 +25,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from gymnasium import spaces
 
+from ..data.episodes import STEP_KEYS, read_hdf5_episodes
 from ..data.grid import N_TYPES
 from .aod_env import integral_actions
 from .gate import fit_to_mask
@@ -63,37 +66,71 @@ class FlatTransitions:
         return N_TYPES * self.max_range
 
 
-def flat_dataset(*datasets: Iterable[Any]) -> FlatTransitions:
+def flat_dataset(*datasets: Iterable[Any], workers: int | None = None) -> FlatTransitions:
     """Flatten Minari datasets (or iterables of their ``EpisodeData``) written by ``uevavd
     export-minari``, one after another: each episode's decisions, the observation each was
     taken on (not the last one, which no action follows). Datasets of different action spaces
-    (``max_range``) are refused."""
-    obs, actions, rewards, terminals, timeouts = [], [], [], [], []
-    max_range = None
-    for ep, name in ((ep, name) for d in datasets for name in [_name(d)]
-                     for ep in getattr(d, "iterate_episodes", lambda d=d: d)()):
-        n = len(ep.rewards)
-        if not isinstance(ep.observations, dict) or not set(FLAT_PARTS) - {"pose"} <= set(ep.observations):
-            have = sorted(ep.observations) if isinstance(ep.observations, dict) else type(ep.observations).__name__
-            raise ValueError(f"dataset {name} is not one `uevavd export-minari` wrote: its observations hold {have}, "
-                             f"not the env's {sorted(set(FLAT_PARTS) - {'pose'})}")
-        o = {k: np.asarray(v)[:n] for k, v in ep.observations.items()}
-        a = np.asarray(ep.actions).reshape(n, 2)
-        if max_range is not None and o["action_mask"].shape[-1] != max_range:
-            raise ValueError(f"dataset {name} has {o['action_mask'].shape[-1]} ranges where the datasets before it "
-                             f"have {max_range}: flatten datasets of one action space together")
-        max_range = o["action_mask"].shape[-1]
-        obs.append(flat_observation(o))
-        actions.append(a[:, 0].astype(np.int64) * max_range + a[:, 1].astype(np.int64))
-        rewards.append(np.asarray(ep.rewards, np.float32))
-        terminals.append(np.asarray(ep.terminations, bool))
-        timeouts.append(np.asarray(ep.truncations, bool))
-    if max_range is None:
+    (``max_range``) or observation parts are refused. A Minari dataset stored in HDF5 (the
+    exporter's format) is read straight from its file, only the arrays the flat view needs,
+    by ``workers`` processes (default: one per 1,000 episodes, at most the cores and 4)."""
+    chunks = [(_name(d), _arrays(d, _name(d), workers)) for d in datasets]
+    chunks = [(name, c) for name, c in chunks if c is not None]
+    if not chunks:
         raise ValueError("the dataset holds no episodes")
-    observations = np.concatenate(obs)
-    masks = observations[:, -N_TYPES * max_range:] > 0
-    return FlatTransitions(observations, np.concatenate(actions), np.concatenate(rewards), np.concatenate(terminals),
-                           np.concatenate(timeouts), masks, int(max_range))
+    first, ref = chunks[0]
+    max_range = ref["action_mask"].shape[-1]
+    for name, c in chunks[1:]:
+        if c["action_mask"].shape[-1] != max_range:
+            raise ValueError(f"dataset {name} has {c['action_mask'].shape[-1]} ranges where dataset {first} has "
+                             f"{max_range}: flatten datasets of one action space together")
+        if set(c) != set(ref):
+            raise ValueError(f"dataset {name} holds the observation parts {sorted(set(c) & set(FLAT_PARTS))} where "
+                             f"dataset {first} holds {sorted(set(ref) & set(FLAT_PARTS))}: flatten datasets of one "
+                             "env config together")
+    data = {k: np.concatenate([c[k] for _, c in chunks]) for k in ref}
+    observations = flat_observation({k: data[k] for k in FLAT_PARTS if k in data})
+    a = data["actions"].reshape(-1, 2).astype(np.int64)
+    return FlatTransitions(observations, a[:, 0] * max_range + a[:, 1], data["rewards"].astype(np.float32),
+                           data["terminations"].astype(bool), data["truncations"].astype(bool),
+                           observations[:, -N_TYPES * max_range:] > 0, int(max_range))
+
+
+def _arrays(dataset: Any, name: str, workers: int | None) -> dict[str, np.ndarray] | None:
+    """One dataset's observation parts (without each episode's last observation) and step
+    arrays, concatenated over its episodes; None where it holds none. From its HDF5 file
+    where it is a Minari dataset of a Dict observation stored so (:mod:`uevavd.data.episodes`),
+    else episode by episode (``iterate_episodes``, or the iterable itself)."""
+    storage = getattr(dataset, "storage", None)
+    indices = getattr(dataset, "episode_indices", None)
+    space = getattr(storage, "observation_space", None)
+    keys = tuple(space.spaces) if isinstance(space, spaces.Dict) else ()
+    path = Path(storage.data_path) / "main_data.hdf5" if storage is not None else None
+    if path is not None and path.is_file() and indices is not None and storage.metadata.get("data_format") == "hdf5":
+        _check_parts(keys, name)
+        if len(indices) == 0:
+            return None
+        return read_hdf5_episodes(path, indices, tuple(k for k in FLAT_PARTS if k in keys), workers=workers)
+    out: dict[str, list[np.ndarray]] = {}
+    for ep in getattr(dataset, "iterate_episodes", lambda: dataset)():
+        n = len(ep.rewards)
+        _check_parts(tuple(ep.observations) if isinstance(ep.observations, dict) else type(ep.observations).__name__,
+                     name)
+        for key in FLAT_PARTS:
+            if key in ep.observations:
+                out.setdefault(key, []).append(np.asarray(ep.observations[key])[:n])
+        for key in STEP_KEYS:
+            out.setdefault(key, []).append(np.asarray(getattr(ep, key)).reshape(n, -1) if key == "actions"
+                                           else np.asarray(getattr(ep, key)))
+    if not out:
+        return None
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def _check_parts(keys: Any, name: str) -> None:
+    need = set(FLAT_PARTS) - {"pose"}
+    if isinstance(keys, str) or not need <= set(keys):
+        raise ValueError(f"dataset {name} is not one `uevavd export-minari` wrote: its observations hold "
+                         f"{keys if isinstance(keys, str) else sorted(keys)}, not the env's {sorted(need)}")
 
 
 def _name(dataset: Any) -> str:
