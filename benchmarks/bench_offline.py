@@ -42,6 +42,7 @@ def main() -> None:
           f"{'fit':>8} {'fit / flat':>10}")
     for n in args.episodes:
         data = export_minari(folder, "train", "oracle", f"uevavd/bench{n}-oracle-v0", episodes=n, progress=False)
+        os.sync()  # a dataset on disk, as one loaded later is, not one still being written back
         t0 = time.perf_counter()
         flat = flat_dataset(data)
         t1 = time.perf_counter()

@@ -174,3 +174,9 @@ def test_the_flat_view_read_from_the_file_is_minaris_episodes_in_any_number_of_p
     assert flat_dataset(posed).observations.shape[1] == flat_dataset(oracle_dataset).observations.shape[1] + 3
     with pytest.raises(ValueError, match=r"holds the observation parts .*'pose'.* one env config together"):
         flat_dataset(oracle_dataset, posed)
+    narrow = [SimpleNamespace(**{**vars(e), "observations": {**e.observations,
+                                                              "action_mask": e.observations["action_mask"][..., :3]}})
+              for e in posed]
+    with pytest.raises(ValueError, match=r"dataset list has 3 ranges where dataset .* has 4: flatten datasets of one "
+                                         "action space together"):
+        flat_dataset(oracle_dataset, narrow)
