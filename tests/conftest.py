@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+from pathlib import Path
 
 import pytest
 
@@ -28,3 +30,40 @@ def _threads():
     except ImportError:  # pragma: no cover
         pass
     yield
+
+
+class SharedBuilds:
+    """Things a test only reads, built once per test session for all xdist workers: in a folder
+    beside the workers' own temporary folders, under a file lock, written to a temporary name
+    and renamed (a worker that waits on the lock finds it whole). Without xdist, in the
+    session's temporary folder."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        root.mkdir(parents=True, exist_ok=True)
+
+    def once(self, name: str, build) -> Path:
+        """``self.root / name``, made by ``build(path)`` where no worker made it before."""
+        from filelock import FileLock
+
+        path = self.root / name
+        with FileLock(str(self.root / f"{name}.lock")):
+            if not path.exists():
+                tmp = self.root / f".{name}.tmp"
+                shutil.rmtree(tmp, ignore_errors=True)
+                build(tmp)
+                tmp.rename(path)
+        return path
+
+    def tiny_world(self, contexts: tuple[int, ...], train605: bool) -> Path:
+        """:func:`uevavd.testing.worlds.write_tiny_world` of these contexts (read it only)."""
+        from uevavd.testing.worlds import write_tiny_world
+
+        name = "world-" + "-".join(map(str, contexts)) + ("-605" if train605 else "")
+        return self.once(name, lambda tmp: write_tiny_world(tmp, contexts=contexts, train605=train605))
+
+
+@pytest.fixture(scope="session")
+def shared(tmp_path_factory) -> SharedBuilds:
+    base = tmp_path_factory.getbasetemp()
+    return SharedBuilds((base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-builds")

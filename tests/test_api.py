@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uevavd.testing.worlds import tiny_preset, write_tiny_world
+from uevavd.testing.worlds import tiny_preset
 
 TINY_PRESET = tiny_preset(overrides="""\
 "state.input_dim" = 40
@@ -25,10 +25,10 @@ def _readme_script() -> str:
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
-def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatch, capsys):
+def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatch, capsys, shared):
     import uevavd
 
-    world = write_tiny_world(tmp_path / "world", contexts=(1, 26, 31, 56), train605=True)
+    world = shared.tiny_world((1, 26, 31, 56), train605=True)
     (tmp_path / "tiny.toml").write_text(TINY_PRESET)
     script = _readme_script()
     assert 'root = "data/quick"' in script and 'uevavd.load_preset("quick")' in script

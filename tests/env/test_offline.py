@@ -11,16 +11,22 @@ import torch
 minari = pytest.importorskip("minari", reason="the clients extra: pip install -e '.[clients]'")
 
 
-@pytest.fixture
-def oracle_dataset(table, tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def oracle_dataset(tmp_path_factory):
+    """The oracle's 200 episodes on the env tests' table, exported once for the module (the
+    tests only read it)."""
+    from uevavd.paths import tables_dir
     from uevavd.policy.minari_export import export_minari
 
-    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
-    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
-    from uevavd.paths import tables_dir
+    from .conftest import make_table
 
-    folder = table.save(tables_dir() / table.key)
-    return export_minari(folder, "train", "oracle", "uevavd/flat-oracle-v0", episodes=200, progress=False)
+    table = make_table(6, splits=("train", "train", "train", "simple", "hard", "hard"))
+    tmp = tmp_path_factory.mktemp("offline")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("UEVAVD_CACHE", str(tmp / "cache"))
+        mp.setenv("MINARI_DATASETS_PATH", str(tmp / "datasets"))
+        folder = table.save(tables_dir() / table.key)
+        yield export_minari(folder, "train", "oracle", "uevavd/flat-oracle-v0", episodes=200, progress=False)
 
 
 def test_the_flat_view_holds_every_decision_its_action_and_mask(table, oracle_dataset):

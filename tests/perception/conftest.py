@@ -22,27 +22,29 @@ def _one_thread():
 
 
 @pytest.fixture(scope="session")
-def tiny_world(tmp_path_factory) -> Path:
+def tiny_world(shared) -> Path:
     """Two context scenes (1: hatchback, 31: pickup), 605 views each, with segmentation."""
-    return write_tiny_world(tmp_path_factory.mktemp("tiny-world"), contexts=(1, 31), train605=False)
+    return shared.tiny_world((1, 31), train605=False)
 
 
 @pytest.fixture(scope="session")
-def world_605(tmp_path_factory) -> Path:
+def world_605(shared) -> Path:
     """One context scene plus ``train_605`` (the five classes, unoccluded)."""
-    return write_tiny_world(tmp_path_factory.mktemp("world-605"), contexts=(1,), train605=True)
+    return shared.tiny_world((1,), train605=True)
 
 
 @pytest.fixture(scope="session")
-def tiny_classifier(world_605, tmp_path_factory) -> Path:
+def tiny_classifier(world_605, shared) -> Path:
     """A classifier trained by the CLI on 40 viewpoints of ``world_605`` (a few seconds)."""
     from uevavd.cli import main
 
-    out = tmp_path_factory.mktemp("clf") / "tiny.safetensors"
-    rc = main(["train-classifier", str(world_605), "--out", str(out), "--epochs", "3", "--max-views", "40",
-               "--batch-size", "32", "--lr", "3e-3", "--threads", "1"])
-    assert rc == 0
-    return out
+    def build(folder: Path) -> None:
+        folder.mkdir()
+        rc = main(["train-classifier", str(world_605), "--out", str(folder / "tiny.safetensors"), "--epochs", "3",
+                   "--max-views", "40", "--batch-size", "32", "--lr", "3e-3", "--threads", "1"])
+        assert rc == 0
+
+    return shared.once("tiny-classifier", build) / "tiny.safetensors"
 
 
 METHOD_TOML = """
