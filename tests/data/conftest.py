@@ -9,6 +9,7 @@ build their own small datasets.
 from __future__ import annotations
 
 import json
+import pickle
 import random
 from pathlib import Path
 
@@ -128,9 +129,14 @@ def write_scene_fn():
 
 
 @pytest.fixture(scope="session")
-def variant_root(tmp_path_factory) -> tuple[Path, dict]:
+def variant_root(shared) -> tuple[Path, dict]:
     """(root, expected) with expected[(scene, target, view)] = (file name, box)."""
-    root = tmp_path_factory.mktemp("variants")
+    built = shared.once("variants", _write_variants)
+    return built / "root", pickle.loads((built / "expected.pkl").read_bytes())
+
+
+def _write_variants(folder: Path) -> None:
+    root = folder / "root"
     expected = {}
     for rel, target, name, ext, ann in VARIANTS:
         scene = Path(rel).name
@@ -154,7 +160,7 @@ def variant_root(tmp_path_factory) -> tuple[Path, dict]:
             visible[Path(fname).stem] = round(v / N_VIEWS, 4)
     (seg_dir / "categories.json").write_text(json.dumps({"0": "none", "1": "target", "2": "building"}))
     (root / "urban/001/scene.json").write_text(json.dumps({"target": "sedan", "visible": visible}))
-    return root, expected
+    (folder / "expected.pkl").write_bytes(pickle.dumps(expected))
 
 
 @pytest.fixture(scope="session")
@@ -212,12 +218,11 @@ def broken_root(tmp_path_factory) -> tuple[Path, dict]:
 
 
 @pytest.fixture(scope="session")
-def synthetic_root(tmp_path_factory) -> Path:
+def synthetic_root(shared) -> Path:
     """One hard-test context (26) of the synthetic world at 16 px, written by its writer."""
     synthetic = pytest.importorskip("uevavd.data.synthetic")
-    out = tmp_path_factory.mktemp("synthetic")
-    synthetic.write_world(out, contexts=[26], size=16, seed=1, include_unoccluded=False, progress=False)
-    return out
+    return shared.once("synthetic-26", lambda out: synthetic.write_world(out, contexts=[26], size=16, seed=1,
+                                                                          include_unoccluded=False, progress=False))
 
 
 @pytest.fixture(name="encoded")
