@@ -670,14 +670,17 @@ def test_a_context_count_sweep_enlarges_the_world_and_keeps_the_presets_default(
                       sweeps=parse_sweeps([f"env.train_per_block={bad}"]))
 
 
-def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_report(tmp_path):
+def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_report(tiny, tmp_path):
     """On data with two training contexts per block, sweeping ``env.train_per_block=1``: the
     runs and the baselines of that setting train and are evaluated on the first training
     context of each block, the hard contexts are the same for both settings, and the report
     gains the table and figure of the axis."""
+    import shutil
+
     preset = tmp_path / "tiny.toml"
     preset.write_text(tiny_preset(ablation='methods = ["map"]\nseeds = 1\n'))
-    world = write_tiny_world(tmp_path / "world", contexts=(1, 2, 26, 31, 32, 56), train605=True)
+    world = Path(shutil.copytree(tiny["world"], tmp_path / "world"))  # contexts 1, 26, 31, 56 and train_605
+    write_tiny_world(world, contexts=(2, 32), train605=False)  # a second training context per block
     plan = make_plan(preset=str(preset), out=tmp_path / "out", data=world, workers=1,
                      sweeps=parse_sweeps(["env.train_per_block=1"]))
     assert plan.preset["overrides"]["env.train_per_block"] == 0  # on --data the default is all of it
