@@ -168,20 +168,19 @@ def _allowed_everywhere(episodes) -> int:
     return bad
 
 
-def test_rllibs_ppo_trains_with_the_action_mask_in_a_remote_env_runner(table, tmp_path):
-    _rllib()
+def _train_in_a_remote_env_runner(config, table, tmp_path, module_class, samples: int):
+    """``config`` on the table's masked flat env with ``module_class``, trained 2 iterations
+    with one remote env runner, then ``samples`` steps sampled there: none may take an action
+    the mask forbade. Returns the trained module."""
     import ray
-    from ray.rllib.algorithms.ppo import PPOConfig
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec
-    from ray.rllib.examples.rl_modules.classes.action_masking_rlm import ActionMaskingTorchRLModule
 
     path = table.save(tmp_path / "table")
-    config = (PPOConfig()
+    config = (config
               .environment(IMPORTABLE_ID, env_config={"table": str(path), "actions": "flat", "observation": "masked"})
               .env_runners(num_env_runners=1, num_envs_per_env_runner=2)
-              .rl_module(rl_module_spec=RLModuleSpec(module_class=ActionMaskingTorchRLModule,
+              .rl_module(rl_module_spec=RLModuleSpec(module_class=module_class,
                                                      model_config={"fcnet_hiddens": [32], "head_fcnet_hiddens": [32]}))
-              .training(train_batch_size_per_learner=128, minibatch_size=64, num_epochs=1, gamma=0.9)
               .debugging(seed=0))
     ray.init(num_cpus=2, include_dashboard=False, ignore_reinit_error=True, log_to_driver=False)
     try:
@@ -189,19 +188,32 @@ def test_rllibs_ppo_trains_with_the_action_mask_in_a_remote_env_runner(table, tm
         for _ in range(2):
             result = algo.train()
         assert result["env_runners"]["num_episodes"] > 0
-        episodes = [ep for eps in algo.env_runner_group.foreach_env_runner(lambda r: r.sample(num_timesteps=200),
-                                                                           local_env_runner=False) for ep in eps]
+        episodes = [ep for eps in algo.env_runner_group.foreach_env_runner(
+            lambda r: r.sample(num_timesteps=samples), local_env_runner=False) for ep in eps]
         assert episodes and _allowed_everywhere(episodes) == 0
         module = algo.get_module()
         algo.stop()
     finally:
         ray.shutdown()
+    return module
+
+
+def _masked_batch(x):
+    """FlatPolicy's observations as the masked form's batch: the vector and its mask (its last K)."""
+    return {"obs": {"observations": torch.as_tensor(x), "action_mask": torch.as_tensor(x[:, -K:])}}
+
+
+def test_rllibs_ppo_trains_with_the_action_mask_in_a_remote_env_runner(table, tmp_path):
+    _rllib()
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.examples.rl_modules.classes.action_masking_rlm import ActionMaskingTorchRLModule
+
+    config = PPOConfig().training(train_batch_size_per_learner=128, minibatch_size=64, num_epochs=1, gamma=0.9)
+    module = _train_in_a_remote_env_runner(config, table, tmp_path, ActionMaskingTorchRLModule, samples=200)
 
     def scores(x):  # the trained module's masked logits over FlatPolicy's observation
         with torch.no_grad():
-            out = module.forward_inference({"obs": {"observations": torch.as_tensor(x),
-                                                    "action_mask": torch.as_tensor(x[:, -K:])}})
-        return out["action_dist_inputs"].numpy()
+            return module.forward_inference(_masked_batch(x))["action_dist_inputs"].numpy()
 
     res = evaluate_policy(table, "hard", FlatPolicy(scores, max_range=A, masked=False))
     assert np.isfinite(res.ret).all()
@@ -209,41 +221,19 @@ def test_rllibs_ppo_trains_with_the_action_mask_in_a_remote_env_runner(table, tm
 
 def test_rllibs_dqn_with_the_librarys_masked_module_never_takes_a_forbidden_action(table, tmp_path):
     _rllib()
-    import ray
     from ray.rllib.algorithms.dqn import DQNConfig
-    from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
     from uevavd.env.rllib import MaskedDQNTorchRLModule
 
-    path = table.save(tmp_path / "table")
     config = (DQNConfig()
-              .environment(IMPORTABLE_ID, env_config={"table": str(path), "actions": "flat", "observation": "masked"})
-              .env_runners(num_env_runners=1, num_envs_per_env_runner=2)
-              .rl_module(rl_module_spec=RLModuleSpec(module_class=MaskedDQNTorchRLModule,
-                                                     model_config={"fcnet_hiddens": [32], "head_fcnet_hiddens": [32]}))
               .training(train_batch_size_per_learner=32, num_steps_sampled_before_learning_starts=32, gamma=0.9,
                         epsilon=[(0, 1.0), (10_000, 0.05)])  # mostly random actions: they must keep to the mask
-              .reporting(min_sample_timesteps_per_iteration=100)
-              .debugging(seed=0))
-    ray.init(num_cpus=2, include_dashboard=False, ignore_reinit_error=True, log_to_driver=False)
-    try:
-        algo = config.build_algo()
-        for _ in range(2):
-            result = algo.train()
-        assert result["env_runners"]["num_episodes"] > 0
-        episodes = [ep for eps in algo.env_runner_group.foreach_env_runner(lambda r: r.sample(num_timesteps=300),
-                                                                           local_env_runner=False) for ep in eps]
-        assert episodes and _allowed_everywhere(episodes) == 0
-        module = algo.get_module()
-        algo.stop()
-    finally:
-        ray.shutdown()
+              .reporting(min_sample_timesteps_per_iteration=100))
+    module = _train_in_a_remote_env_runner(config, table, tmp_path, MaskedDQNTorchRLModule, samples=300)
 
     def q_values(x):
         with torch.no_grad():
-            out = module.compute_q_values({"obs": {"observations": torch.as_tensor(x),
-                                                   "action_mask": torch.as_tensor(x[:, -K:])}})
-        return out["qf_preds"].numpy()
+            return module.compute_q_values(_masked_batch(x))["qf_preds"].numpy()
 
     res = evaluate_policy(table, "hard", FlatPolicy(q_values, max_range=A, masked=False))
     assert np.isfinite(res.ret).all()

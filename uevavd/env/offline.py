@@ -73,8 +73,7 @@ def flat_dataset(*datasets: Iterable[Any], workers: int | None = None) -> FlatTr
     (``max_range``) or observation parts are refused. A Minari dataset stored in HDF5 (the
     exporter's format) is read straight from its file, only the arrays the flat view needs,
     by ``workers`` processes (default: one per 1,000 episodes, at most the cores and 4)."""
-    chunks = [(_name(d), _arrays(d, _name(d), workers)) for d in datasets]
-    chunks = [(name, c) for name, c in chunks if c is not None]
+    chunks = [(name, c) for d in datasets for name in [_name(d)] if (c := _arrays(d, name, workers)) is not None]
     if not chunks:
         raise ValueError("the dataset holds no episodes")
     first, ref = chunks[0]
