@@ -12,9 +12,20 @@ import pytest
 os.environ.setdefault("UEVAVD_DISABLE_PLUGIN_AUTOLOAD", "1")
 
 
+def _shared_root(tmp_path_factory) -> Path:
+    """The folder the xdist workers of one session share (beside their own temporary folders)."""
+    base = tmp_path_factory.getbasetemp()
+    return (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-builds"
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _isolated_cache(tmp_path_factory):
-    os.environ["UEVAVD_CACHE"] = str(tmp_path_factory.mktemp("uevavd-cache"))
+    """One uevavd cache for the session's workers: a recognizer or table one worker built is
+    found by the other (the cache is keyed by content and safe to share between processes);
+    tests that change a cache use their own."""
+    cache = _shared_root(tmp_path_factory) / "uevavd-cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    os.environ["UEVAVD_CACHE"] = str(cache)
     yield
 
 
@@ -65,5 +76,4 @@ class SharedBuilds:
 
 @pytest.fixture(scope="session")
 def shared(tmp_path_factory) -> SharedBuilds:
-    base = tmp_path_factory.getbasetemp()
-    return SharedBuilds((base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-builds")
+    return SharedBuilds(_shared_root(tmp_path_factory))

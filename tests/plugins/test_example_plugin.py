@@ -115,7 +115,7 @@ def test_a_tiny_ablation_with_the_example_from_the_command_line(installed, tmp_p
     preset.write_text(tiny_preset(ablation='methods = ["map", "memo_map_lstm"]\nseeds = 1\nrecognizers = 1\n'))
     world = shared.tiny_world((1, 26, 31, 56), train605=True)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(installed), os.environ.get("PYTHONPATH", "")]),
-           "UEVAVD_DISABLE_PLUGIN_AUTOLOAD": "0", "UEVAVD_CACHE": str(tmp_path / "cache")}
+           "UEVAVD_DISABLE_PLUGIN_AUTOLOAD": "0"}  # the session's cache: the recognizer of this world and preset
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "-m", "uevavd.cli", "ablate", "--preset", str(preset), "--data", str(world),
                            "--out", str(out), "--workers", "1"], capture_output=True, text=True, env=env)
