@@ -481,6 +481,25 @@ def test_threads_follow_the_workers_asked_for_not_the_runs_left(monkeypatch):
     assert seen[0].threads == 2
 
 
+def test_a_run_in_the_callers_process_leaves_its_torch_thread_count(monkeypatch):
+    """With one local worker the runs train in the caller's process: each on its job's thread
+    count, and the caller's count is back after it (the count stayed at the runs', so an
+    ablation called from Python left every later torch call of the process on it)."""
+    import uevavd.experiments.jobs as jobs
+
+    seen = []
+    monkeypatch.setattr(jobs, "load_method", lambda path: None)
+    monkeypatch.setattr(jobs, "train", lambda *a, **k: seen.append(torch.get_num_threads()))
+    monkeypatch.setattr(jobs, "final_eval", lambda job: seen.append(torch.get_num_threads()))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        jobs.run_job(jobs.Job("map", "default", 0, "spec.toml", "table", "out", threads=2))
+        assert seen == [2, 2] and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_a_dead_worker_names_its_run_in_one_line(capsys, monkeypatch):
     """A killed ablation worker surfaced as BrokenProcessPool naming no run."""
     from concurrent.futures import Future

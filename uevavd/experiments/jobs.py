@@ -7,7 +7,7 @@ from pathlib import Path
 
 from ..config import MethodSpec, load_method
 from ..policy.trainer import train
-from ..runtime import tune_malloc
+from ..runtime import torch_threads, tune_malloc
 from .plan import Job, Plan
 from .results import final_eval
 
@@ -42,12 +42,11 @@ def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
 
 def run_job(job: Job) -> str:
     """Train (or resume, or skip a finished) run, then evaluate its final policy on every
-    context (:func:`final_eval`). Runs in a worker process or Ray task."""
-    import torch
-
+    context (:func:`final_eval`), on ``job.threads`` torch threads. Runs in a worker process, a
+    Ray task, or in the caller's process (one local worker), whose thread count it restores."""
     tune_malloc()  # a spawned worker: reuse freed memory as the CLI's process does
-    torch.set_num_threads(max(1, job.threads))
-    spec = load_method(job.spec_path)
-    train(spec, Path(job.table), out=Path(job.out), seed=job.seed, device=job.device, progress=False)
-    final_eval(job)
+    with torch_threads(job.threads):  # run here (one worker), the caller's count comes back after
+        spec = load_method(job.spec_path)
+        train(spec, Path(job.table), out=Path(job.out), seed=job.seed, device=job.device, progress=False)
+        final_eval(job)
     return job.key
