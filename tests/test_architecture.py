@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import uevavd
@@ -24,9 +25,11 @@ MUTUAL = {  # a module and the one it uses lazily: the two use each other
 OPTIONAL = {("experiments/references.py", "env.sb3")}  # Stable-Baselines3, only for --sb3
 
 
+@functools.cache
 def _modules(root: Path = ROOT) -> dict[str, tuple[Path, ast.Module]]:
     """Each module of the package at ``root`` (benchmarks/architecture_figures.py reads
-    another checkout's) by dotted name, with its path and syntax tree."""
+    another checkout's) by dotted name, with its path and syntax tree; parsed once per root
+    (the checks only read them)."""
     out = {}
     for p in sorted(root.rglob("*.py")):
         rel = p.relative_to(root.parent).with_suffix("")

@@ -164,10 +164,17 @@ def _write_variants(folder: Path) -> None:
 
 
 @pytest.fixture(scope="session")
-def broken_root(tmp_path_factory) -> tuple[Path, dict]:
+def broken_root(shared) -> tuple[Path, dict]:
     """(root, defects): scene 001 holds one of most defects (each on its own view), 002 a
     second target, 003 images of another size; defects[kind] = what the message must name."""
-    root = tmp_path_factory.mktemp("broken")
+    built = shared.once("broken", _write_broken)
+    root = built / "root"
+    defects = pickle.loads((built / "defects.pkl").read_bytes())  # paths relative to root
+    return root, {k: root / v if isinstance(v, Path) else v for k, v in defects.items()}
+
+
+def _write_broken(folder: Path) -> None:
+    root = folder / "root"
     d = root / "001"
     files = write_scene(d, target="sedan", token="001")
     defects: dict[str, Path | str] = {}
@@ -214,7 +221,8 @@ def broken_root(tmp_path_factory) -> tuple[Path, dict]:
     # images of another size (16x16, boxes still valid)
     write_scene(root / "003", target="sedan", token="003", size=16)
     defects["mixed_sizes"] = root / "003"
-    return root, defects
+    relative = {k: v.relative_to(root) if isinstance(v, Path) else v for k, v in defects.items()}
+    (folder / "defects.pkl").write_bytes(pickle.dumps(relative))
 
 
 @pytest.fixture(scope="session")
