@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import pickle
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -12,19 +14,13 @@ import pytest
 os.environ.setdefault("UEVAVD_DISABLE_PLUGIN_AUTOLOAD", "1")
 
 
-def _shared_root(tmp_path_factory) -> Path:
-    """The folder the xdist workers of one session share (beside their own temporary folders)."""
-    base = tmp_path_factory.getbasetemp()
-    return (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-builds"
-
-
 @pytest.fixture(autouse=True, scope="session")
-def _isolated_cache(tmp_path_factory):
-    """One uevavd cache for the session's workers: a recognizer or table one worker built is
-    found by the other (the cache is keyed by content and safe to share between processes);
-    tests that change a cache use their own."""
-    cache = _shared_root(tmp_path_factory) / "uevavd-cache"
-    cache.mkdir(parents=True, exist_ok=True)
+def _isolated_cache(shared):
+    """One uevavd cache for the session's workers, in the folder they share: a recognizer or
+    table one worker built is found by the other (the cache is keyed by content and safe to
+    share between processes); tests that change a cache use their own."""
+    cache = shared.root / "uevavd-cache"
+    cache.mkdir(exist_ok=True)
     os.environ["UEVAVD_CACHE"] = str(cache)
     yield
 
@@ -66,6 +62,18 @@ class SharedBuilds:
                 tmp.rename(path)
         return path
 
+    def once_with(self, name: str, build) -> tuple[Path, Any]:
+        """``(folder, value)``: ``build(folder)`` writes the folder and returns a value the
+        tests need beside it (pickled, so a worker that did not build it reads it back)."""
+
+        def build_and_keep(tmp: Path) -> None:
+            value = build(tmp / "root")
+            tmp.mkdir(exist_ok=True)
+            (tmp / "value.pkl").write_bytes(pickle.dumps(value))
+
+        path = self.once(name, build_and_keep)
+        return path / "root", pickle.loads((path / "value.pkl").read_bytes())
+
     def tiny_world(self, contexts: tuple[int, ...], train605: bool) -> Path:
         """:func:`uevavd.testing.worlds.write_tiny_world` of these contexts (read it only)."""
         from uevavd.testing.worlds import write_tiny_world
@@ -76,4 +84,13 @@ class SharedBuilds:
 
 @pytest.fixture(scope="session")
 def shared(tmp_path_factory) -> SharedBuilds:
-    return SharedBuilds(_shared_root(tmp_path_factory))
+    """The session's :class:`SharedBuilds`, in a folder beside the xdist workers' own."""
+    base = tmp_path_factory.getbasetemp()
+    return SharedBuilds((base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-builds")
+
+
+@pytest.fixture(scope="session")
+def ablation_world(shared) -> Path:
+    """The tiny world the ablation tests run on: contexts 1 (train) and 26 (hard) of the
+    hatchback block, 31 / 56 of the pickup block, and train_605 (read it only)."""
+    return shared.tiny_world((1, 26, 31, 56), train605=True)

@@ -25,10 +25,10 @@ def _readme_script() -> str:
     return re.search(r"```python\n(.*?)```", section, re.S).group(1)
 
 
-def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatch, capsys, shared):
+def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatch, capsys, ablation_world):
     import uevavd
 
-    world = shared.tiny_world((1, 26, 31, 56), train605=True)
+    world = ablation_world
     (tmp_path / "tiny.toml").write_text(TINY_PRESET)
     script = _readme_script()
     assert 'root = "data/quick"' in script and 'uevavd.load_preset("quick")' in script

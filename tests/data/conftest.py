@@ -9,7 +9,6 @@ build their own small datasets.
 from __future__ import annotations
 
 import json
-import pickle
 import random
 from pathlib import Path
 
@@ -131,12 +130,10 @@ def write_scene_fn():
 @pytest.fixture(scope="session")
 def variant_root(shared) -> tuple[Path, dict]:
     """(root, expected) with expected[(scene, target, view)] = (file name, box)."""
-    built = shared.once("variants", _write_variants)
-    return built / "root", pickle.loads((built / "expected.pkl").read_bytes())
+    return shared.once_with("variants", _write_variants)
 
 
-def _write_variants(folder: Path) -> None:
-    root = folder / "root"
+def _write_variants(root: Path) -> dict:
     expected = {}
     for rel, target, name, ext, ann in VARIANTS:
         scene = Path(rel).name
@@ -160,21 +157,18 @@ def _write_variants(folder: Path) -> None:
             visible[Path(fname).stem] = round(v / N_VIEWS, 4)
     (seg_dir / "categories.json").write_text(json.dumps({"0": "none", "1": "target", "2": "building"}))
     (root / "urban/001/scene.json").write_text(json.dumps({"target": "sedan", "visible": visible}))
-    (folder / "expected.pkl").write_bytes(pickle.dumps(expected))
+    return expected
 
 
 @pytest.fixture(scope="session")
 def broken_root(shared) -> tuple[Path, dict]:
     """(root, defects): scene 001 holds one of most defects (each on its own view), 002 a
     second target, 003 images of another size; defects[kind] = what the message must name."""
-    built = shared.once("broken", _write_broken)
-    root = built / "root"
-    defects = pickle.loads((built / "defects.pkl").read_bytes())  # paths relative to root
+    root, defects = shared.once_with("broken", _write_broken)  # paths relative to root
     return root, {k: root / v if isinstance(v, Path) else v for k, v in defects.items()}
 
 
-def _write_broken(folder: Path) -> None:
-    root = folder / "root"
+def _write_broken(root: Path) -> dict:
     d = root / "001"
     files = write_scene(d, target="sedan", token="001")
     defects: dict[str, Path | str] = {}
@@ -221,8 +215,7 @@ def _write_broken(folder: Path) -> None:
     # images of another size (16x16, boxes still valid)
     write_scene(root / "003", target="sedan", token="003", size=16)
     defects["mixed_sizes"] = root / "003"
-    relative = {k: v.relative_to(root) if isinstance(v, Path) else v for k, v in defects.items()}
-    (folder / "defects.pkl").write_bytes(pickle.dumps(relative))
+    return {k: v.relative_to(root) if isinstance(v, Path) else v for k, v in defects.items()}
 
 
 @pytest.fixture(scope="session")

@@ -29,13 +29,11 @@ TINY_PRESET = tiny_preset(ablation='methods = ["map", "ibe_map"]\nseeds = 1\n')
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory, shared) -> dict[str, Path]:
+def tiny(tmp_path_factory, ablation_world) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("ablation")
     preset = root / "tiny.toml"
     preset.write_text(TINY_PRESET)
-    # contexts 1 (train) and 26 (hard) of the hatchback block, 31 / 56 of the pickup block
-    world = shared.tiny_world((1, 26, 31, 56), train605=True)
-    return {"root": root, "preset": preset, "world": world}
+    return {"root": root, "preset": preset, "world": ablation_world}
 
 
 def _plan(tiny, out: str, **kw):

@@ -101,7 +101,7 @@ def test_the_example_passes_check_plugin(example_loaded):
     assert "example" in {p.name for p in example_loaded.plugins}
 
 
-def test_a_tiny_ablation_with_the_example_from_the_command_line(installed, tmp_path, shared):
+def test_a_tiny_ablation_with_the_example_from_the_command_line(installed, tmp_path, ablation_world):
     """As a user who pip-installed the plugin runs it: its method trains beside MAP, its
     baseline joins every evaluation, both under their registered labels."""
     import json
@@ -113,7 +113,7 @@ def test_a_tiny_ablation_with_the_example_from_the_command_line(installed, tmp_p
 
     preset = tmp_path / "tiny.toml"
     preset.write_text(tiny_preset(ablation='methods = ["map", "memo_map_lstm"]\nseeds = 1\nrecognizers = 1\n'))
-    world = shared.tiny_world((1, 26, 31, 56), train605=True)
+    world = ablation_world
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(installed), os.environ.get("PYTHONPATH", "")]),
            "UEVAVD_DISABLE_PLUGIN_AUTOLOAD": "0"}  # the session's cache: the recognizer of this world and preset
     out = tmp_path / "out"
