@@ -37,9 +37,14 @@ from .data.reader import read_dataset
 from .data.synthetic import write_world
 from .data.synthetic.writer import VERSION
 from .hashing import file_sha256, json_digest
-from .perception.classifier import classifier_cache_path, data_hash, read_classifier_file, train_records
+from .perception.classifier import (
+    classifier_cache_path,
+    data_hash,
+    file_weights_hash,
+    read_classifier_file,
+    train_records,
+)
 from .perception.training.classifier import ClassifierRecipe, train_classifier
-from .perception.weights import state_dict_hash
 from .presets import ZOO, load_preset, preset_overrides
 
 FORMAT = "uevavd-zoo/1"
@@ -193,7 +198,7 @@ class Zoo:
         ``train_605`` itself renders otherwise here (then training compares nothing). Equal
         hashes: this machine's torch trains the zoo's recognizer weight for weight."""
         rec = self.manifest["recognizer"]
-        shipped = state_dict_hash(read_classifier_file(self.recognizer())[0])
+        shipped = file_weights_hash(*read_classifier_file(self.recognizer()))
         recipe = ClassifierRecipe.from_preset({}, **rec["settings"])
         with tempfile.TemporaryDirectory(prefix="uevavd-zoo-recognizer-") as tmp:
             root = self._write_world(Path(tmp) / "world", [], include_unoccluded=True, workers=workers,
@@ -202,7 +207,7 @@ class Zoo:
                 return None, shipped  # other train_605 bytes (or another recipe) than the shipped file's
             out = train_classifier(root, Path(tmp) / RECOGNIZER, settings=recipe, workers=workers, progress=progress,
                                    device="cpu")
-            return state_dict_hash(read_classifier_file(out)[0]), shipped
+            return file_weights_hash(*read_classifier_file(out)), shipped
 
     def _write_world(self, root: Path, contexts: Sequence[int], *, include_unoccluded: bool, workers: int,
                      progress: bool) -> Path:

@@ -44,8 +44,12 @@ def test_table_contents(built, tiny_world):
 
 
 def test_rerun_reuses_the_table(built, tiny_world, tiny_classifier, monkeypatch):
+    import uevavd.perception.nets as nets
+
     method, path = built
     monkeypatch.setattr(prep, "_compute_scene", lambda *a, **k: pytest.fail("recomputed a finished table"))
+    # the encoder and recognizer are built for their identities only: no network is made ready to run
+    monkeypatch.setattr(nets, "fold_batchnorm", lambda *a, **k: pytest.fail("folded a network it never runs"))
     again = prep.prepare_table(tiny_world, method, classifier_path=tiny_classifier, out_dir=path.parent,
                                progress=False)
     assert again == path

@@ -110,11 +110,22 @@ def read_classifier_file(path: str | os.PathLike[str]) -> tuple[dict[str, torch.
         )
     # the weights against the hash written with them: a cached recognizer with one flipped
     # exponent bit was reused (train accuracy 0.78 -> 0.92)
-    written = (meta.get("train") or {}).get("weights_hash") if isinstance(meta.get("train"), dict) else None
+    written = _written_hash(meta)
     if written is not None and state_dict_hash(sd) != written:
         raise WeightsError(f"{path}: damaged (its weights no longer match the weights_hash written with them); "
                            "delete it: the pipeline trains it again (or `uevavd zoo check` restores the zoo's)")
     return sd, meta
+
+
+def _written_hash(meta: dict[str, Any]) -> str | None:
+    return (meta.get("train") or {}).get("weights_hash") if isinstance(meta.get("train"), dict) else None
+
+
+def file_weights_hash(sd: dict[str, torch.Tensor], meta: dict[str, Any]) -> str:
+    """The weights hash of a classifier file read by :func:`read_classifier_file`: the one
+    written with it (which that read checked against the weights), or computed for a file
+    written without one."""
+    return _written_hash(meta) or state_dict_hash(sd)
 
 
 class ResNetClassifier:
@@ -190,7 +201,7 @@ def load_classifier(path: str | os.PathLike[str], *, device: str = "auto", batch
     else:
         load_strict(model, sd, arch=arch, source=str(path))
     return ResNetClassifier(model, arch=arch, classes=tuple(meta["classes"]), mean=meta["mean"], std=meta["std"],
-                            weights_hash=state_dict_hash(sd), device=device, batch_size=batch_size, meta=meta)
+                            weights_hash=file_weights_hash(sd, meta), device=device, batch_size=batch_size, meta=meta)
 
 
 def build_resnet18_classifier(*, path: str | None = None, device: str = "auto", batch_size: int = 256,

@@ -13,7 +13,7 @@ import logging
 import numpy as np
 import torch
 
-from .classifier import default_classifier_path, read_classifier_file
+from .classifier import default_classifier_path, file_weights_hash, read_classifier_file
 from .nets import BatchRunner, check_images
 from .weights import (
     WeightsError,
@@ -75,7 +75,7 @@ def load_backbone(arch: str, weights: str, *, seed: int = 0, classifier: str | N
             raise WeightsError(f"{path}: a {meta.get('arch')} classifier cannot give a {arch} backbone")
         model = make_resnet(arch, num_classes=len(meta["classes"]), empty=True)
         load_strict(model, sd, arch=arch, source=str(path))
-        return model, "classifier", state_dict_hash(sd)
+        return model, "classifier", file_weights_hash(sd, meta)
     path = imagenet_path(arch) if kind == "imagenet" else arg
     sd = load_state_dict_file(path)
     num_classes = sd["fc.weight"].shape[0] if "fc.weight" in sd else 1000

@@ -60,15 +60,25 @@ class BatchRunner:
             raise ValueError(f"batch_size={batch_size}: expected a positive integer")
         self.device = resolve_device(device)
         self.batch_size = int(batch_size)
-        model = fold_batchnorm(model.eval()) if fold else model.eval()
-        self.model = model.to(self.device, memory_format=torch.channels_last)
-        for p in self.model.parameters():
-            p.requires_grad_(False)
+        self._given, self._fold, self._model = model.eval(), fold, None
         shape = (1, 3, 1, 1)
         self._scale = (1.0 / (255.0 * torch.tensor(std))).view(shape).to(self.device)
         self._shift = (-torch.tensor(mean) / torch.tensor(std)).view(shape).to(self.device)
         self.post = post
         self.mean, self.std = tuple(mean), tuple(std)
+
+    @property
+    def model(self) -> torch.nn.Module:
+        """The network run, made ready at first use (batch norms folded, on the device, no
+        gradients): a component built only for its identity, as for a table found in the
+        cache, never pays for the folding."""
+        if self._model is None:
+            model = fold_batchnorm(self._given) if self._fold else self._given
+            model = model.to(self.device, memory_format=torch.channels_last)
+            for p in model.parameters():
+                p.requires_grad_(False)
+            self._model, self._given = model, None
+        return self._model
 
     def to_input(self, batch: np.ndarray) -> torch.Tensor:
         """(N, H, W, 3) uint8 -> normalised (N, 3, H, W) float32, channels-last, on device."""
