@@ -62,13 +62,23 @@ def test_single_threaded_worker_limits_blas_in_pool_workers():
     spinning BLAS threads each oversubscribe the cores N-fold)."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from uevavd.runtime import single_threaded_worker
+    from uevavd.runtime import single_threaded_worker, usable_cores
 
     with ProcessPoolExecutor(1, initializer=single_threaded_worker) as pool:
         assert set(pool.submit(_blas_threads).result()) == {1}
-    if (os.cpu_count() or 1) > 1:  # what the limit changes: a plain worker takes every core
+    if usable_cores() > 1:  # what the limit changes: a plain worker takes every core it may use
         with ProcessPoolExecutor(1) as pool:
             assert max(pool.submit(_blas_threads).result()) > 1
+
+
+def test_the_cores_uevavd_uses_are_the_ones_the_process_may_run_on():
+    """A process confined to one core (taskset, a container's cpuset, a Slurm allocation)
+    starts one worker and gives its runs one thread, not the machine's count."""
+    code = ("import os; os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]}); "
+            "from uevavd.runtime import usable_cores; from uevavd.experiments.plan import default_workers; "
+            "from uevavd.experiments.backends import _threads; print(usable_cores(), default_workers(), _threads(1))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["1", "1", "1"]
 
 
 # -- WorkerPool: a process pool that stops when its block fails ------------------------------

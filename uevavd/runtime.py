@@ -76,6 +76,17 @@ def single_threaded_worker() -> None:
     threadpool_limits(1)
 
 
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity where the OS has one (``taskset``,
+    a container's cpuset, a Slurm allocation), else the machine's count. The default number
+    of workers and each run's torch threads come from it, so a job given 4 of a node's 64
+    cores starts 4 workers, not 64."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - macOS and Windows have no affinity call
+        return max(1, os.cpu_count() or 1)
+
+
 def resolve_device(device: str) -> Any:
     """``"auto"`` -> cuda when available else cpu; anything else as torch reads it, refused in
     one line where it is not a device or not there (before any work is done)."""

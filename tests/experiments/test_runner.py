@@ -141,7 +141,7 @@ def test_final_eval_is_recomputed_when_missing_or_stale(ablation, tmp_path):
 def test_workers_default_to_the_number_of_cores(tiny, monkeypatch):
     import os
 
-    monkeypatch.setattr(os, "cpu_count", lambda: 7)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(7)))  # 7 of the machine's cores
     assert make_plan(preset=str(tiny["preset"]), out=tiny["root"] / "w", data=tiny["world"]).workers == 7
     assert make_plan(preset=str(tiny["preset"]), out=tiny["root"] / "w", data=tiny["world"], workers=3).workers == 3
 
@@ -469,7 +469,7 @@ def test_threads_follow_the_workers_asked_for_not_the_runs_left(monkeypatch):
     the same (it used to get every core)."""
     import uevavd.experiments.backends as backends
 
-    monkeypatch.setattr(backends.os, "cpu_count", lambda: 4)
+    monkeypatch.setattr(backends, "usable_cores", lambda: 4)
     seen = []
     monkeypatch.setattr(backends, "run_local", lambda jobs, workers, log: seen.extend(jobs) or [])
     from uevavd.experiments.jobs import Job

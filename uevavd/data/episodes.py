@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..runtime import WorkerPool
+from ..runtime import WorkerPool, usable_cores
 
 #: Episodes a worker process reads at least: starting one costs about as much as reading these.
 EPISODES_PER_WORKER = 1000
@@ -30,7 +30,7 @@ def read_hdf5_episodes(path: str | os.PathLike[str], indices: Any, observation_k
     cores and 4); the result is the same for any number."""
     indices = np.asarray(indices, np.int64).reshape(-1)
     if workers is None:
-        workers = min(os.cpu_count() or 1, 4, len(indices) // EPISODES_PER_WORKER)
+        workers = min(usable_cores(), 4, len(indices) // EPISODES_PER_WORKER)
     if workers <= 1:
         return _read(Path(path), indices, observation_keys)
     with WorkerPool(workers) as pool:

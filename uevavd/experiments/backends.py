@@ -19,12 +19,12 @@ from collections.abc import Callable, Sequence
 from tqdm import tqdm
 
 from ..policy.rundir import RunDir
-from ..runtime import WorkerPool
+from ..runtime import WorkerPool, usable_cores
 from .jobs import Job, run_job
 
 
 def _threads(workers: int) -> int:
-    return max(1, (os.cpu_count() or 1) // max(1, workers))
+    return max(1, usable_cores() // max(1, workers))
 
 
 def run_jobs(jobs: Sequence[Job], *, backend: str = "local", workers: int = 1, log: Callable = print,

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import os
 import time
 from pathlib import Path
 
 from ..cli import error as _error
 from ..config_rules import check_count
 from ..plugins.registry import UnknownComponentError
+from ..runtime import usable_cores
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -117,7 +117,7 @@ def run_demo(args: argparse.Namespace) -> int:
         return _error("demo", exc)
     print_results(results)
     stages = ", ".join(f"{k} {v:.0f} s" for k, v in plan.stages.items())
-    print(f"\ndemo finished in {time.perf_counter() - t0:.0f} s ({stages}) on {os.cpu_count()} cores")
+    print(f"\ndemo finished in {time.perf_counter() - t0:.0f} s ({stages}) on {usable_cores()} cores")
     print(f"results: {results}\nreport:  {results.parent / 'report' / 'report.md'}")
     return 0
 
@@ -165,7 +165,7 @@ def add_zoo(parser: argparse.ArgumentParser):
 
 
 def _check_workers(args: argparse.Namespace) -> int:
-    return check_count("--workers", (os.cpu_count() or 1) if args.workers is None else args.workers)
+    return check_count("--workers", usable_cores() if args.workers is None else args.workers)
 
 
 def _render_check(zoo, args: argparse.Namespace) -> int:

@@ -18,7 +18,7 @@ from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
 from ..perception.training.classifier import ClassifierRecipe
 from ..presets import load_preset, preset_overrides
-from ..runtime import resolve_device
+from ..runtime import resolve_device, usable_cores
 
 #: The paper's default reward settings; sweeps vary one of them.
 DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
@@ -332,8 +332,8 @@ def with_context_axis(preset: dict[str, Any], values: Sequence[Any], *, from_dat
 
 
 def default_workers() -> int:
-    """Parallel processes when ``--workers`` is not given: the number of cores."""
-    return max(1, os.cpu_count() or 1)
+    """Parallel processes when ``--workers`` is not given: the cores this process may use."""
+    return usable_cores()
 
 
 # -- stages ---------------------------------------------------------------------------------

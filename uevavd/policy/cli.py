@@ -11,6 +11,7 @@ from typing import Any
 from ..atomic import atomic_write_json
 from ..cli import error as _error
 from ..presets import PRESET_HELP, cli_overrides, known_presets
+from ..runtime import usable_cores
 from .rundir import RunDir
 
 #: What bad input raises (ConfigError, TableError, RunDirError, CheckpointError are ValueErrors).
@@ -168,7 +169,7 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
     if problem:  # before the evaluation, not after it
         return _error("evaluate", problem)
     t0 = time.perf_counter()
-    frame, published, _ = evaluate_pretrained(args.pretrained, args.split, workers=args.workers or os.cpu_count() or 1,
+    frame, published, _ = evaluate_pretrained(args.pretrained, args.split, workers=args.workers or usable_cores(),
                                            device=args.device)
     print(f"model zoo {args.pretrained} on split {args.split!r} ({time.perf_counter() - t0:.0f} s)")
     with pd.option_context("display.width", 160, "display.max_columns", 12, "display.precision", 4):

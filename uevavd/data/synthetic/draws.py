@@ -10,10 +10,9 @@ file is ignored until then, so worlds stay right, only slower to write).
 from __future__ import annotations
 
 import argparse
-import os
 
 from ...atomic import atomic_write_json
-from ...runtime import WorkerPool, single_threaded_worker
+from ...runtime import WorkerPool, single_threaded_worker, usable_cores
 from ..splits import N_CONTEXTS
 from .world import DRAWS_FILE, draws_record, search_draw
 
@@ -37,7 +36,7 @@ def record_draws(seeds: list[int], *, workers: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="record the first valid draw of every context of a world seed")
     ap.add_argument("--seed", type=int, action="append", default=None, help="world seed(s) (default: 0)")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--workers", type=int, default=usable_cores())
     args = ap.parse_args(argv)
     data = record_draws(args.seed or [0], workers=args.workers)
     redraws = sum(d for by_context in data["draws"].values() for d in by_context.values())
