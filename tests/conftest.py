@@ -53,10 +53,12 @@ def _threads():
     try:
         import torch
 
+        from uevavd.runtime import usable_cores
+
         # the cores shared among pytest-xdist's workers (addopts runs -n auto): oversubscribed
         # torch threads wait on each other and run many times slower
         workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-        torch.set_num_threads(max(1, min(2, (os.cpu_count() or 1) // workers)))
+        torch.set_num_threads(max(1, min(2, usable_cores() // workers)))
     except ImportError:  # pragma: no cover
         pass
     yield
