@@ -243,15 +243,35 @@ def test_report_has_every_section_and_figure(tmp_path):
         "fig8_strips.pdf", "fig8_strips.png", "fig9_curves.pdf", "fig9_curves.png", "report.md", "summary.csv"]
 
 
+def test_without_figures_the_report_is_the_same_text_and_no_figure_is_left(tmp_path):
+    """``figures=False`` (``--no-figures``) writes the same report but for the figure links,
+    and removes the figures an earlier report drew, so none of other data is left beside it."""
+    df = make_results({"map": (0.5, 0.05), "ibe_map": (0.35, 0.3)})
+    d = _write_ablation(tmp_path, df)
+    drawn = write_report(d).read_text(encoding="utf-8").split("\n")
+    text = write_report(d, figures=False).read_text(encoding="utf-8").split("\n")
+    assert sorted(p.name for p in (d / "report").iterdir()) == ["report.md", "summary.csv"]
+    links = [i for i, line in enumerate(drawn) if line.startswith("![")]
+    assert [drawn[i] for i in links] == ["![Fig. 9: learning curves](fig9_curves.png)",
+                                         "![Fig. 8: observation sequences](fig8_strips.png)"]
+    assert [text[i] for i in links] == ["(Fig. 9: learning curves: not drawn, the report was written with "
+                                        "`--no-figures`.)", "(Fig. 8: observation sequences: not drawn, the report "
+                                        "was written with `--no-figures`.)"]
+    assert [line for i, line in enumerate(drawn) if i not in links] == [
+        line for i, line in enumerate(text) if i not in links]
+
+
 def test_report_without_optional_files_and_via_cli(tmp_path, capsys):
     from uevavd.cli import main
 
     d = tmp_path / "abl"
     d.mkdir()
     make_results({"map": (0.5, 0.05)}).to_csv(d / "results.csv", index=False)
-    assert main(["report", str(d)]) == 0
+    assert main(["report", str(d), "--no-figures"]) == 0
     text = (d / "report" / "report.md").read_text(encoding="utf-8")
     assert "`ablation.json` not found" in text and "No `trajectories.json`" in text
+    assert "not drawn, the report was written with `--no-figures`" in text
+    assert not list((d / "report").glob("*.png"))
     assert "(a) agrees" in capsys.readouterr().out
 
 
@@ -360,14 +380,14 @@ def test_setup_says_which_rows_are_exhaustive(tmp_path):
     d = tmp_path / "new"
     d.mkdir()
     df.to_csv(d / "results.csv", index=False)
-    text = write_report(d, window=2).read_text(encoding="utf-8")
+    text = write_report(d, window=2, figures=False).read_text(encoding="utf-8")
     assert "are exhaustive: every context of each split x all 605 start views" in text
     assert "(contexts per split: train 5, simple 5, hard 5)" in text and "(train 2, simple 2, hard 2)" in text
     assert "95% Student-t interval over seeds" in text and "trailing sliding-window mean" in text
     old = tmp_path / "old"
     old.mkdir()
     make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)
-    assert "flags each run's last per-epoch evaluation" in write_report(old).read_text(encoding="utf-8")
+    assert "flags each run's last per-epoch evaluation" in write_report(old, figures=False).read_text(encoding="utf-8")
 
 
 def test_nested_bootstrap_spans_the_recognizers_and_stays_in_range():
@@ -447,7 +467,7 @@ def test_the_report_shows_the_stopping_diagnosis_per_split_and_terrain(tmp_path)
                         "moved_if_box": moved if m == "ibe_map" else 0.0, "box_lost": 0.1,
                         "reco_lost": 0.1, "gated_return": ret + 0.05 if m == "ibe_map" else np.nan})
     pd.DataFrame(ctx).to_csv(d / "contexts.csv", index=False)
-    text = write_report(d, window=2).read_text(encoding="utf-8")
+    text = write_report(d, window=2, figures=False).read_text(encoding="utf-8")
     section = text[text.index("## Stopping"):]
     assert "| hard | IBE-MAP | 60% | 30% | 5% |" in section and "| hard | Box gate (scripted) |" in section
     # the gated difference is paired by run: every run gains exactly 0.05
@@ -462,7 +482,7 @@ def test_the_report_shows_the_stopping_diagnosis_per_split_and_terrain(tmp_path)
     old = tmp_path / "old"  # results written before the diagnosis: the section says why it is not there
     old.mkdir()
     make_results({"map": (0.5, 0.05)}).to_csv(old / "results.csv", index=False)
-    text = write_report(old, window=2).read_text(encoding="utf-8")
+    text = write_report(old, window=2, figures=False).read_text(encoding="utf-8")
     assert "## Stopping" in text and "Not written: results.csv has no column(s) ['box_start'," in text
 
 

@@ -268,7 +268,7 @@ def test_a_sweep_over_any_dotted_key_runs_and_gets_its_column(ablation, tiny, tm
     out = tmp_path / "swept"
     shutil.copytree(ablation["plan"].out, out)
     plan = make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1,
-                     sweeps=parse_sweeps(["env.xi2=0.1,0.3"]), sweep_methods=["ibe_map"])
+                     sweeps=parse_sweeps(["env.xi2=0.1,0.3"]), sweep_methods=["ibe_map"], figures=False)
     assert [n for n, _ in plan.settings("ibe_map")] == ["default", "env.xi2=0.3"]  # 0.1 is the default
     lines: list[str] = []
     df = pd.read_csv(run_ablation(plan, log=lines.append))
@@ -529,7 +529,7 @@ def test_sb3_reference_rows_are_added_to_a_finished_ablation_without_retraining(
 
     out = tmp_path / "with_sb3"
     shutil.copytree(ablation["plan"].out, out)
-    plan = make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1, sb3="dqn")
+    plan = make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1, sb3="dqn", figures=False)
     lines: list[str] = []
     results = run_ablation(plan, log=lines.append)
     assert any("2 runs, 2 finished already, 0 to run" in x for x in lines)  # nothing retrained
@@ -543,8 +543,8 @@ def test_sb3_reference_rows_are_added_to_a_finished_ablation_without_retraining(
     assert learned(df["method"].unique()) == ["map", "ibe_map"]  # a reference row, never a claimed method
     assert "SB3 DQN (reference)" in (out / "report" / "report.md").read_text()
     mtime = (run / "final_eval.json").stat().st_mtime_ns
-    run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1, sb3="dqn"),
-                 log=lambda *_: None)
+    run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1, sb3="dqn",
+                           figures=False), log=lambda *_: None)
     assert (run / "final_eval.json").stat().st_mtime_ns == mtime  # cached: not trained again
     with pytest.raises(AblationError, match="--sb3 'a2c'"):
         make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], sb3="a2c")
@@ -588,8 +588,8 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
     try:
         out = tmp_path / "with_plugin_baseline"
         shutil.copytree(ablation["plan"].out, out)
-        results = run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1),
-                               log=lambda *_: None)
+        results = run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1,
+                                         figures=False), log=lambda *_: None)
         df = pd.read_csv(results)
         rows = df[df["method"] == "first_range_up"]
         assert sorted(rows["split"]) == ["hard", "train"] and (rows["episodes"] == -1).all()
@@ -612,7 +612,7 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
 
     roles = json.loads((out / "ablation.json").read_text())["roles"]
     assert "first_range_up" in roles["baselines"] and roles["labels"]["first_range_up"] == "One move up"
-    again = write_report(out).read_text()
+    again = write_report(out, figures=False).read_text()
     assert "One move up" in again  # the recorded label, the plugin gone
     # every section after Setup (whose stage timings now include the first report's) is the same
     assert again.split("\n## ")[2:] == report.split("\n## ")[2:]

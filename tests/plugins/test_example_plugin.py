@@ -118,7 +118,8 @@ def test_a_tiny_ablation_with_the_example_from_the_command_line(installed, tmp_p
            "UEVAVD_DISABLE_PLUGIN_AUTOLOAD": "0"}  # the session's cache: the recognizer of this world and preset
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "-m", "uevavd.cli", "ablate", "--preset", str(preset), "--data", str(world),
-                           "--out", str(out), "--workers", "1"], capture_output=True, text=True, env=env)
+                           "--out", str(out), "--workers", "1", "--no-figures"], capture_output=True, text=True,
+                          env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     df = pd.read_csv(out / "results.csv")
     assert {"map", "memo_map_lstm", "confident_stop"} <= set(df["method"])

@@ -22,6 +22,12 @@ def _common(parser: argparse.ArgumentParser) -> None:
                              "train (same train_605 images and recipe, sha256-checked; about 100 s saved)")
 
 
+def _no_figures(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--no-figures", dest="figures", action="store_false",
+                        help="write the report's text and tables only, not its figures (PNG and PDF), which take "
+                             "most of its time")
+
+
 def add_ablate(parser: argparse.ArgumentParser):
     from ..presets import known_presets
 
@@ -53,6 +59,7 @@ def add_ablate(parser: argparse.ArgumentParser):
     parser.add_argument("--sb3", default=None, metavar="AGENTS",
                         help="also train Stable-Baselines3 agents (dqn, ppo; comma-separated) on the first method's "
                              "table for as many env steps as its runs, as reference rows")
+    _no_figures(parser)
     _common(parser)
     return run_ablate
 
@@ -66,7 +73,7 @@ def run_ablate(args: argparse.Namespace) -> int:
                          sweep_methods=args.sweep_methods, data=args.data, workers=args.workers,
                          backend=args.backend, device=args.device, episodes=args.episodes,
                          gpus_per_run=args.gpus_per_run, recognizers=args.recognizers, sb3=args.sb3,
-                         use_zoo=args.use_zoo, world_seed=args.world_seed)
+                         use_zoo=args.use_zoo, world_seed=args.world_seed, figures=args.figures)
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("ablate", exc)
@@ -127,13 +134,14 @@ def add_report(parser: argparse.ArgumentParser):
     parser.add_argument("dir", type=Path, metavar="DIR", help="ablation directory holding results.csv")
     parser.add_argument("--window", type=int, default=None,
                         help="sliding-window length (evaluation points) for the curves; default min(5, points/3)")
+    _no_figures(parser)
 
     def handler(args: argparse.Namespace) -> int:
         from .claims import check_claims
         from .report import write_report
         from .report_data import load_results
 
-        path = write_report(args.dir, window=args.window)
+        path = write_report(args.dir, window=args.window, figures=args.figures)
         print(path)
         for c in check_claims(load_results(args.dir / "results.csv")):
             print(f"({c.id}) {c.verdict}: {c.text}")

@@ -60,6 +60,18 @@ def save_figure(fig, path: Path) -> Path:
         plt.close(fig)
 
 
+def figure_lines(path: Path, caption: str, plot: Callable[[Path], object], *, draw: bool = True) -> list[str]:
+    """A report figure's Markdown: ``plot(path)`` draws it and its image link is returned.
+    With ``draw=False`` (``--no-figures``) nothing is drawn, an earlier drawing of it (PNG and
+    PDF) is removed, so the folder never shows a figure of other data, and a line says so."""
+    if draw:
+        plot(path)
+        return [f"![{caption}]({path.name})", ""]
+    for old in (path, path.with_suffix(".pdf")):
+        old.unlink(missing_ok=True)
+    return [f"({caption}: not drawn, the report was written with `--no-figures`.)", ""]
+
+
 def smoothed_curves(curves: pd.DataFrame, window: int) -> pd.DataFrame:
     """Each (method, seed, split) curve sorted by episodes with every metric of
     :data:`CURVE_METRICS` replaced by its trailing ``window``-point sliding mean; the

@@ -92,6 +92,9 @@ class Plan:
     #: take the recognizer from the model zoo when it is the one this plan would train
     #: (same train_605 images, same settings; :meth:`uevavd.zoo.Zoo.recognizer_for`)
     use_zoo: bool = True
+    #: draw the report's figures (``--no-figures``: its text and tables only); not part of
+    #: the fingerprint, as the report is rewritten from the files at every run
+    figures: bool = True
 
     def spec(self, method: str, setting: Mapping[str, Any] = DEFAULT_SETTING) -> MethodSpec:
         """The resolved spec of ``method`` under ``setting`` (the preset's overrides, the
@@ -191,6 +194,7 @@ def make_plan(
     sb3: str | None = None,
     use_zoo: bool = True,
     world_seed: int | None = None,
+    figures: bool = True,
 ) -> Plan:
     try:
         cfg = load_preset(preset)
@@ -282,6 +286,7 @@ def make_plan(
         recognizers=list(range(n_rec)),
         sb3=sb3_agents,
         use_zoo=bool(use_zoo),
+        figures=bool(figures),
     )
     _resolve_specs(plan, preset)
     return plan

@@ -27,7 +27,7 @@ import pandas as pd
 from ..atomic import atomic_write
 from .audit import audit_markdown
 from .claims import Claim, check_claims, diagnose
-from .figures import plot_curves, plot_strips
+from .figures import figure_lines, plot_curves, plot_strips
 from .io import ABLATION_FILE, read_ablation_meta
 from .report_contexts import contexts_section
 from .report_data import (
@@ -241,7 +241,7 @@ def _gengap_section(final: pd.DataFrame, setting: str) -> list[str]:
 
 
 def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, out_dir: Path,
-                    window: int | None) -> list[str]:
+                    window: int | None, figures: bool) -> list[str]:
     curves = curve_rows(results)
     curves = curves[(curves["setting"] == setting) & (curves["episodes"] >= 0)]
     out = ["## Learning curves (Fig. 9)", ""]
@@ -250,7 +250,6 @@ def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, ou
     points = int(curves.groupby(["method", "seed", "split"])["episodes"].nunique().min())
     w = int(window) if window is not None else max(1, min(5, points // 3))
     base = final[is_baseline(final) & (final["setting"] == setting)]
-    plot_curves(curves, base, out_dir / "fig9_curves.png", window=w)
     smoothing = (f"smoothed with a {w}-point trailing sliding-window mean (the point at k averages points "
                  f"k-{w - 1}..k, so a smoothed curve lags the raw one by about {(w - 1) / 2:g} evaluation points)"
                  if w > 1 else "not smoothed (window 1)")
@@ -263,9 +262,9 @@ def _curves_section(results: pd.DataFrame, final: pd.DataFrame, setting: str, ou
                "tables; no band with one seed)")
             + " at each evaluation point, clipped to the metric's range. Curve points are the per-epoch evaluations "
             "(`train.eval_contexts` contexts per split); dashed lines: the baselines, evaluated on every context.",
-            "",
-            "![Fig. 9: learning curves](fig9_curves.png)", ""]
-    return out
+            ""]
+    return out + figure_lines(out_dir / "fig9_curves.png", "Fig. 9: learning curves",
+                              lambda path: plot_curves(curves, base, path, window=w), draw=figures)
 
 
 def _sweep_section(final: pd.DataFrame, param: str, table_no: int, ablation_dir: Path) -> list[str]:
@@ -304,20 +303,20 @@ def _sweep_section(final: pd.DataFrame, param: str, table_no: int, ablation_dir:
     return out
 
 
-def _strips_section(ablation_dir: Path, meta: dict | None, out_dir: Path) -> list[str]:
+def _strips_section(ablation_dir: Path, meta: dict | None, out_dir: Path, figures: bool) -> list[str]:
     out = ["## Observation sequences (Fig. 8)", ""]
     trajs, note = load_trajectories(ablation_dir / "trajectories.json")
     if not trajs:
         return out + [note, ""]
     lookup = strip_images(trajs, (meta or {}).get("data_root"))
     t_max = int((meta or {}).get("t_max", 5))
-    plot_strips(trajs, lookup, out_dir / "fig8_strips.png", t_max=t_max)
     t0 = trajs[0]
     out += [f"Greedy episode of each final policy from the same start (view {t0.get('start_view')}) in hard-test "
             f"context {t0.get('context')} (scene `{t0.get('scene')}`). Left: the viewpoint grid seen from "
             "above (target at the red square), the path with the start as a red star, altitude as marker colour "
-            "and size; right: the crops observed along the path with the action taken at each.", "",
-            "![Fig. 8: observation sequences](fig8_strips.png)", ""]
+            "and size; right: the crops observed along the path with the action taken at each.", ""]
+    out += figure_lines(out_dir / "fig8_strips.png", "Fig. 8: observation sequences",
+                        lambda path: plot_strips(trajs, lookup, path, t_max=t_max), draw=figures)
     if note:
         out += [note, ""]
     out.append(f"Images read from {lookup.source}.")
@@ -347,13 +346,14 @@ def _claims_section(claims: list[Claim], notes: list[str]) -> list[str]:
     return out
 
 
-def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002 - the public signature
+def write_report(dir: Path, *, window: int | None = None, figures: bool = True) -> Path:  # noqa: A002
     """Write ``dir/report/report.md`` (+ ``fig9_curves.png``, ``fig8_strips.png``,
     ``summary.csv``) from ``dir/results.csv``, ``dir/trajectories.json`` and
     ``dir/ablation.json``; return the path of ``report.md``.
 
     ``window``: sliding-window length (evaluation points) of the curve smoothing;
-    default ``min(5, points // 3)`` (at least 1).
+    default ``min(5, points // 3)`` (at least 1). ``figures=False``: the text and tables
+    only, the same but for the figures (drawing them is most of a report's time).
     """
     ablation_dir = Path(dir)
     if not ablation_dir.is_dir():
@@ -364,11 +364,11 @@ def write_report(dir: Path, *, window: int | None = None) -> Path:  # noqa: A002
     meta_path = ablation_dir / ABLATION_FILE
     meta = read_ablation_meta(meta_path) if meta_path.is_file() else _read_json(meta_path, notes)
     with recorded_roles(meta):
-        return _write_report(ablation_dir, results, meta, notes, window)
+        return _write_report(ablation_dir, results, meta, notes, window, figures)
 
 
 def _write_report(ablation_dir: Path, results: pd.DataFrame, meta: dict | None, notes: list[str],
-                  window: int | None) -> Path:
+                  window: int | None, figures: bool) -> Path:
     out_dir = ablation_dir / REPORT_DIR
     out_dir.mkdir(parents=True, exist_ok=True)
     final = final_rows(results)
@@ -385,14 +385,14 @@ def _write_report(ablation_dir: Path, results: pd.DataFrame, meta: dict | None, 
         lines += audit_markdown(audit)
     lines += _results_section(final, setting)
     lines += _gengap_section(final, setting)
-    lines += _curves_section(results, final, setting, out_dir, window)
+    lines += _curves_section(results, final, setting, out_dir, window, figures)
     lines += _sweep_section(final, "thre", 2, ablation_dir)
     lines += _sweep_section(final, "C", 3, ablation_dir)
-    lines += contexts_section(final, out_dir)
+    lines += contexts_section(final, out_dir, figures=figures)
     lines += stopping_section(final, setting, ablation_dir)
     lines += room_section(final, setting, ablation_dir)
-    lines += rliable_section(read_contexts(ablation_dir / "contexts.csv"), setting, out_dir)
-    lines += _strips_section(ablation_dir, meta, out_dir)
+    lines += rliable_section(read_contexts(ablation_dir / "contexts.csv"), setting, out_dir, figures=figures)
+    lines += _strips_section(ablation_dir, meta, out_dir, figures)
     lines += _claims_section(claims, diagnose(results, claims))
     path = out_dir / "report.md"
     atomic_write(path, "\n".join(lines))

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .figures import plot_context_axis
+from .figures import figure_lines, plot_context_axis
 from .plan import CONTEXTS_KEY
 from .report_data import (
     default_setting,
@@ -88,21 +88,21 @@ def context_table(axis: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def contexts_section(final: pd.DataFrame, out_dir: Path) -> list[str]:
-    """The report's section on the number of training contexts (and its figure), or nothing
-    when the ablation did not sweep it."""
+def contexts_section(final: pd.DataFrame, out_dir: Path, *, figures: bool = True) -> list[str]:
+    """The report's section on the number of training contexts (and its figure unless
+    ``figures=False``), or nothing when the ablation did not sweep it."""
     axis = context_axis(final)
     if axis.empty:
         return []
     table = context_table(axis)
-    plot_context_axis(table, out_dir / "fig_contexts.png")
     fixed = set(deterministic())
     out = ["## Test return against the number of training contexts", "",
            f"`{CONTEXTS_KEY}` training contexts per target block; every setting evaluated on the same simple "
            "and hard test contexts, and on its own training contexts (GenGap is train minus hard of the same "
            "run). Mean and 95% interval as in the results tables" + (
-               "; passive and the oracles are exact per recognizer" if fixed else "") + ".", "",
-           "![Test return against the number of training contexts](fig_contexts.png)", ""]
+               "; passive and the oracles are exact per recognizer" if fixed else "") + ".", ""]
+    out += figure_lines(out_dir / "fig_contexts.png", "Test return against the number of training contexts",
+                        lambda path: plot_context_axis(table, path), draw=figures)
     rows = []
     for _, r in table.iterrows():
         cells = []

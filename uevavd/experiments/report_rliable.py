@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .figures import save_figure  # sets matplotlib's non-interactive backend first
+from .figures import figure_lines, save_figure  # sets matplotlib's non-interactive backend first
 from .report_data import SPLITS, label, learned, md_table
 
 #: The two references a context's return is normalised between: 0 and 1.
@@ -163,8 +163,9 @@ def profiles_figure(by_split: dict[str, dict[str, np.ndarray]], path: Path, *, r
 
 
 def rliable_section(contexts: pd.DataFrame, setting: str, out_dir: Path, *, reps: int = REPS,
-                    profile_reps: int = PROFILE_REPS) -> list[str]:
-    """The report's aggregate statistics, or a line saying how to get them."""
+                    profile_reps: int = PROFILE_REPS, figures: bool = True) -> list[str]:
+    """The report's aggregate statistics (and their figure unless ``figures=False``), or a
+    line saying how to get them."""
     if contexts.empty:
         return []
     by_split = {s: m for s in SPLITS if (m := score_matrices(contexts, setting, s))}
@@ -203,9 +204,8 @@ def rliable_section(contexts: pd.DataFrame, setting: str, out_dir: Path, *, reps
                   "of Y on a context drawn at random (0.5: neither; an interval above 0.5 favours X); each learned "
                   "method against the others, passive and the scripted rules</summary>", "",
                   *md_table(["split", "X", "Y", "P(X > Y) [95 %]"], pair_rows), "", "</details>"]
-    profiles_figure(by_split, out_dir / "performance_profiles.png", reps=profile_reps)
-    lines += ["", "![Performance profiles](performance_profiles.png)", ""]
-    return lines
+    return [*lines, "", *figure_lines(out_dir / "performance_profiles.png", "Performance profiles",
+                                      lambda path: profiles_figure(by_split, path, reps=profile_reps), draw=figures)]
 
 
 __all__ = ["aggregates", "improvement", "rliable_available", "rliable_section", "score_matrices"]

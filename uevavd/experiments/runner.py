@@ -176,7 +176,7 @@ def run_ablation(plan: Plan, *, log=print) -> Path:
     write_meta(plan, data, "reporting")
     with Stage(plan, "report", log):
         write_meta(plan, data, "done")
-        report = write_report(plan.out)
+        report = write_report(plan.out, figures=plan.figures)
         log(f"  report: {report}")
     write_meta(plan, data, "done")
     return results
