@@ -578,24 +578,32 @@ def test_an_empty_array_file_is_a_table_error_and_prepare_rebuilds(built, tiny_w
 
 def test_two_prepares_of_one_key_at_once_both_get_the_table(tiny_world, tiny_classifier, method_toml, tmp_path):
     """Two ablations sharing UEVAVD_CACHE build the same table at the same moment (two
-    processes): the second waits on the key's file lock and finds the first's table (it used
-    to fail on the first's vanished .partial folder)."""
+    processes: another and this one, started together once the other has imported uevavd):
+    the second waits on the key's file lock and finds the first's table (it used to fail on
+    the first's vanished .partial folder)."""
     import subprocess
     import sys
 
     method = tmp_path / "tiny.toml"
     method.write_text(method_toml.format(decompose="false"))
     code = ("import sys, torch; torch.set_num_threads(1); from uevavd.perception.prepare import prepare_table; "
+            "print('ready', flush=True); sys.stdin.readline(); "
             "print(prepare_table(sys.argv[1], sys.argv[2], classifier_path=sys.argv[3], out_dir=sys.argv[4], "
             "workers=1, progress=False))")
-    args = [sys.executable, "-c", code, str(tiny_world), str(method), str(tiny_classifier), str(tmp_path / "shared")]
-    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
-    outs = [p.communicate(timeout=300) for p in procs]
-    assert all(p.returncode == 0 for p in procs), [err[-2000:] for _, err in outs]
-    paths = {out.strip().splitlines()[-1] for out, _ in outs}
-    assert len(paths) == 1
-    path = Path(paths.pop())
-    assert ObservationTable.load(path).verify().key == path.name
+    args = [str(tiny_world), str(method), str(tiny_classifier), str(tmp_path / "shared")]
+    other = subprocess.Popen([sys.executable, "-c", code, *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline() == "ready\n", other.stderr.read()[-2000:]
+        other.stdin.write("go\n")
+        other.stdin.flush()
+        here = prep.prepare_table(*args[:2], classifier_path=args[2], out_dir=args[3], workers=1, progress=False)
+        out, err = other.communicate(timeout=300)
+    finally:
+        other.kill()
+    assert other.returncode == 0, err[-2000:]
+    assert Path(out.strip().splitlines()[-1]) == here
+    assert ObservationTable.load(here).verify().key == here.name
 
 
 def test_what_a_killed_build_leaves_is_removed_by_the_next(built, tiny_world, tiny_classifier, tmp_path,
