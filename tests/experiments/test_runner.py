@@ -216,14 +216,23 @@ def test_report_and_trajectories(ablation):
     assert oracle["recognized"] and len(oracle["views"]) > 1  # passive fails there, the oracle moves and succeeds
 
 
-def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny):
+def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny, tmp_path):
+    """Rerun on a copy of the finished ablation (its report without figures: the text is
+    what a rerun rewrites from the same files)."""
+    import shutil
+
+    out = tmp_path / "again"
+    shutil.copytree(ablation["plan"].out, out)
     before = pd.read_csv(ablation["results"])
-    mtimes = {j.out: Path(j.out, "done.json").stat().st_mtime_ns for j in ablation["jobs"]}
+    done = sorted(out.glob("runs/*/*/*/*/done.json"))
+    mtimes = {p: p.stat().st_mtime_ns for p in done}
+    assert len(done) == 2
     lines: list[str] = []
-    results = run_ablation(_plan(tiny, "out"), log=lines.append)
+    results = run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1,
+                                     figures=False), log=lines.append)
     assert any("2 runs, 2 finished already, 0 to run" in x for x in lines)
     assert any("reusing classifier" in x for x in lines)
-    assert {j.out: Path(j.out, "done.json").stat().st_mtime_ns for j in ablation["jobs"]} == mtimes
+    assert {p: p.stat().st_mtime_ns for p in done} == mtimes
     pd.testing.assert_frame_equal(pd.read_csv(results), before)
 
 
