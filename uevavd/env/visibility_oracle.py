@@ -46,35 +46,55 @@ def _cheapest_paths(max_range: int, t_max: int, xi2: float, c: float):
     (row) to a view (column) within ``T_max`` moves (inf: unreachable), ``moves`` (V, V) int64
     the number of moves of that path, ``preds[k - 1]`` (V, V) int64 the last edge of the
     cheapest path with exactly k moves, ``edges`` (E, 4) int64 rows (from view, type, range
-    index, to view), sorted by (to, type, range, from)."""
-    tr = transitions(max_range)
-    a = max_range
-    u, t, r = np.meshgrid(np.arange(N_VIEWS), np.arange(STOP), np.arange(a), indexing="ij")
-    u, t, r = u.ravel(), t.ravel(), r.ravel()
-    dst = tr.next_view[u, t, r]
-    order = np.lexsort((u, r, t, dst))
-    edges = np.stack([u[order], t[order], r[order], dst[order]], axis=1)
-    rule = EnvConfig(max_range=max_range, t_max=t_max, xi2=xi2, C=c)
-    step_cost = -rule.reward(False, False, rule.move_cost(edges[:, 2]))  # xi2 + C r: Eq. 2's cost of a move
-    starts = np.flatnonzero(np.r_[True, edges[1:, 3] != edges[:-1, 3]])  # first edge of each 'to' view
-    index = np.arange(len(edges))
-    prev = np.full((N_VIEWS, N_VIEWS), np.inf)
-    np.fill_diagonal(prev, 0.0)
-    best = prev.copy()
-    moves = np.zeros((N_VIEWS, N_VIEWS), np.int64)
-    preds = []
-    for k in range(1, t_max + 1):
-        cand = prev[:, edges[:, 0]] + step_cost  # (V starts, E)
-        cost_k = np.minimum.reduceat(cand, starts, axis=1)  # (V, V): every view is some edge's 'to'
-        hit = np.where(cand == np.repeat(cost_k, np.diff(np.r_[starts, len(edges)]), axis=1), index, len(edges))
-        preds.append(np.minimum.reduceat(hit, starts, axis=1))
-        better = np.round(cost_k, _COST_DECIMALS) < np.round(best, _COST_DECIMALS)
-        best = np.where(better, cost_k, best)
-        moves = np.where(better, k, moves)
-        prev = cost_k
-    for arr in (best, moves, edges, *preds):
-        arr.setflags(write=False)
-    return best, moves, preds, edges
+    index, to view), sorted by (to, type, range, from). The answer for ``T_max`` = k is the
+    first k moves' search of any longer one: a search runs once per (range, costs), as far as
+    asked so far (DAgger's labels ask for every T_max up to the env's)."""
+    search = _search(max_range, xi2, c)
+    search.extend(t_max)
+    return search.best[t_max], search.moves[t_max], search.preds[:t_max], search.edges
+
+
+class _Search:
+    """The cheapest-path search of :func:`_cheapest_paths` over moves 1, 2, ...: ``best[k]``,
+    ``moves[k]`` within k moves, ``preds[k - 1]`` of exactly k moves (all read-only)."""
+
+    def __init__(self, max_range: int, xi2: float, c: float) -> None:
+        tr = transitions(max_range)
+        u, t, r = np.meshgrid(np.arange(N_VIEWS), np.arange(STOP), np.arange(max_range), indexing="ij")
+        u, t, r = u.ravel(), t.ravel(), r.ravel()
+        dst = tr.next_view[u, t, r]
+        order = np.lexsort((u, r, t, dst))
+        self.edges = np.stack([u[order], t[order], r[order], dst[order]], axis=1)
+        rule = EnvConfig(max_range=max_range, xi2=xi2, C=c)
+        self.step_cost = -rule.reward(False, False, rule.move_cost(self.edges[:, 2]))  # xi2 + C r: Eq. 2's
+        self.starts = np.flatnonzero(np.r_[True, self.edges[1:, 3] != self.edges[:-1, 3]])  # first edge per 'to'
+        self.counts = np.diff(np.r_[self.starts, len(self.edges)])
+        self.index = np.arange(len(self.edges))
+        self.prev = np.full((N_VIEWS, N_VIEWS), np.inf)  # the cheapest cost with exactly k moves
+        np.fill_diagonal(self.prev, 0.0)
+        self.best, self.moves, self.preds = [self.prev.copy()], [np.zeros((N_VIEWS, N_VIEWS), np.int64)], []
+        self.edges.setflags(write=False)
+
+    def extend(self, t_max: int) -> None:
+        edges, n_edges = self.edges, len(self.edges)
+        while len(self.preds) < t_max:
+            k = len(self.preds) + 1
+            cand = self.prev[:, edges[:, 0]] + self.step_cost  # (V starts, E)
+            cost_k = np.minimum.reduceat(cand, self.starts, axis=1)  # (V, V): every view is some edge's 'to'
+            hit = np.where(cand == np.repeat(cost_k, self.counts, axis=1), self.index, n_edges)
+            self.preds.append(np.minimum.reduceat(hit, self.starts, axis=1))
+            best = self.best[-1]
+            better = np.round(cost_k, _COST_DECIMALS) < np.round(best, _COST_DECIMALS)
+            self.best.append(np.where(better, cost_k, best))
+            self.moves.append(np.where(better, k, self.moves[-1]))
+            for arr in (self.preds[-1], self.best[-1], self.moves[-1]):
+                arr.setflags(write=False)
+            self.prev = cost_k
+
+
+@functools.lru_cache(maxsize=8)
+def _search(max_range: int, xi2: float, c: float) -> _Search:
+    return _Search(max_range, xi2, c)
 
 
 def visibility_plans(visible: np.ndarray, config: EnvConfig | dict | None = None
