@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import atexit
 import os
 import pickle
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +37,11 @@ def _ram_temproot(mounts: Path = Path("/proc/mounts"), folder: str = "/dev/shm",
 # there is one with room; --basetemp or a PYTEST_DEBUG_TEMPROOT of the user's own wins
 if "PYTEST_XDIST_WORKER" not in os.environ and (_ram := _ram_temproot()):
     os.environ.setdefault("PYTEST_DEBUG_TEMPROOT", _ram)
+    if "TMPDIR" not in os.environ:  # and the system temp folder of the suite's processes (the zoo's render
+        # check, Ray's session files, SB3's logs): one of the session's own, removed when it ends
+        os.environ["TMPDIR"] = _tmp = tempfile.mkdtemp(prefix="uevavd-tests-", dir=_ram)
+        tempfile.tempdir = None  # read TMPDIR again
+        atexit.register(shutil.rmtree, _tmp, True)
 
 
 @pytest.fixture(autouse=True, scope="session")
