@@ -44,6 +44,59 @@ if "PYTEST_XDIST_WORKER" not in os.environ and (_ram := _ram_temproot()):
         atexit.register(shutil.rmtree, _tmp, True)
 
 
+#: The tests that run on a local Ray instance, in this order and one after the other: they
+#: share one (starting it, and the imports of its task process, cost about 10 s each time).
+#: The xdist scheduler runs the second in the first's module's scope, after that module's tests.
+RAY_TESTS = ("tests/experiments/test_runner.py::test_ray_backend_gives_the_local_results",
+             "tests/perception/test_prepare.py::test_ray_backend_builds_the_same_table")
+
+
+def pytest_collection_modifyitems(items):
+    """The Ray tests after the first one's module's last test, one after the other."""
+    ray_items = [next((i for i in items if i.nodeid == n), None) for n in RAY_TESTS]
+    if None in ray_items:  # a test renamed, or not selected: each starts its own instance
+        return
+    for item in ray_items:
+        items.remove(item)
+    module = ray_items[0].nodeid.split("::")[0]
+    at = max((k for k, i in enumerate(items) if i.nodeid.split("::")[0] == module), default=len(items) - 1) + 1
+    items[at:at] = ray_items
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadscope``, but for the Ray tests, which share the first one's scope."""
+    if config.getvalue("dist") != "loadscope":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    first = RAY_TESTS[0].rsplit("::", 1)[0]
+
+    class RayTogether(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return first if nodeid in RAY_TESTS else super()._split_scope(nodeid)
+
+    return RayTogether(config, log)
+
+
+@pytest.fixture
+def local_ray():
+    """A local Ray instance of one CPU (one task process: less startup), shared by the Ray
+    tests that run one after the other and stopped after the last of them."""
+    ray = pytest.importorskip("ray")
+    if not ray.is_initialized():
+        ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)
+    return ray
+
+
+def pytest_runtest_teardown(item, nextitem):
+    if "local_ray" in getattr(item, "fixturenames", ()) and (
+            nextitem is None or "local_ray" not in getattr(nextitem, "fixturenames", ())):
+        import ray
+
+        ray.shutdown()  # an idle instance takes about 8% of a core
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _isolated_cache(shared):
     """One uevavd cache for the session's workers, in the folder they share: a recognizer or

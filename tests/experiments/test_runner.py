@@ -385,20 +385,16 @@ def test_an_ablation_killed_in_its_first_write_reruns(tiny, tmp_path):
         check_out_dir(plan)
 
 
-def test_ray_backend_gives_the_local_results(ablation, tiny):
+def test_ray_backend_gives_the_local_results(ablation, tiny, local_ray):
     """Same jobs as Ray tasks on a local 1-CPU instance: identical evaluations."""
-    ray = pytest.importorskip("ray")
     import dataclasses
 
     from uevavd.experiments.backends import run_jobs
 
     local = [j for j in ablation["jobs"] if j.method == "map"]
     moved = [dataclasses.replace(j, out=str(tiny["root"] / "ray" / Path(j.out).name)) for j in local]
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)  # one task process: less startup
-    try:
-        run_jobs(moved, backend="ray", workers=1, log=lambda *_: None)
-    finally:
-        ray.shutdown()
+    run_jobs(moved, backend="ray", workers=1, log=lambda *_: None)
+    assert local_ray.is_initialized()  # the backend used the running instance and left it running
     for a, b in zip(local, moved, strict=True):
         ea = [json.loads(x) for x in Path(a.out, "evals.jsonl").read_text().splitlines()]
         eb = [json.loads(x) for x in Path(b.out, "evals.jsonl").read_text().splitlines()]

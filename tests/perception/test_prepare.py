@@ -295,10 +295,9 @@ def test_gt_segmenter_without_categories_is_refused(tiny_classifier, tmp_path, m
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")
-def test_ray_backend_builds_the_same_table(tiny_world, tiny_classifier, tmp_path):
+def test_ray_backend_builds_the_same_table(tiny_world, tiny_classifier, tmp_path, local_ray):
     """Scenes sharded over Ray tasks (a local 1-CPU instance, one task process, a scene a
     shard) give the local build's table."""
-    ray = pytest.importorskip("ray")
     from uevavd.perception.prepare import prepare_table
     from uevavd.perception.prepare_ray import prepare_table_ray
     from uevavd.table import ObservationTable
@@ -307,11 +306,8 @@ def test_ray_backend_builds_the_same_table(tiny_world, tiny_classifier, tmp_path
     method = dict(classifier_path=tiny_classifier,
                   overrides={"perception.encoder.name": "resnet18", "perception.encoder.weights": "random"})
     local = prepare_table(world, "ibe_map", out_dir=tmp_path / "local", workers=1, progress=False, **method)
-    ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False)  # one task process: less startup
-    try:
-        remote = prepare_table_ray(world, "ibe_map", out_dir=tmp_path / "ray", shards=2, progress=False, **method)
-    finally:
-        ray.shutdown()
+    remote = prepare_table_ray(world, "ibe_map", out_dir=tmp_path / "ray", shards=2, progress=False, **method)
+    assert local_ray.is_initialized()  # the build used the running instance and left it running
     assert remote.name == local.name  # the same key
     a, b = ObservationTable.load(local), ObservationTable.load(remote)
     assert list(a.scenes) == list(b.scenes) == ["001", "031"]
