@@ -469,6 +469,39 @@ def test_two_recognizers_give_their_own_classifiers_tables_and_runs(tiny):
     assert len({j.out for j in jobs}) == len(jobs)
 
 
+def test_a_recognizer_another_process_is_making_is_waited_for_not_trained_again(tiny, tmp_path, monkeypatch):
+    """Two ablations on one cache both trained the same recognizer at once (the tables had
+    their lock, the recognizers none): the second now waits on the recognizer's lock, then
+    reuses the first's file."""
+    import subprocess
+    import sys
+
+    import uevavd.experiments.stages as stages
+    from uevavd.data.reader import read_dataset
+    from uevavd.perception.classifier import classifier_cache_path, data_hash, train_records
+    from uevavd.perception.training.classifier import ClassifierRecipe
+
+    monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
+    plan = _plan(tiny, "waits")
+    path = classifier_cache_path(data_hash(train_records(read_dataset(tiny["world"]))),
+                                 ClassifierRecipe.from_preset(plan.preset, seed=0))
+    path.parent.mkdir(parents=True)
+    holder = ("import sys, time; from filelock import FileLock; lock = FileLock(sys.argv[1]); lock.acquire(); "
+              "print('held', flush=True); time.sleep(1.0); open(sys.argv[2], 'wb').write(b'made by the other'); "
+              "lock.release()")
+    other = subprocess.Popen([sys.executable, "-c", holder, str(path.parent / f".{path.name}.lock"), str(path)],
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline() == "held\n"
+        monkeypatch.setattr(stages, "train_classifier", lambda *a, **k: pytest.fail("trained it again"))
+        lines: list[str] = []
+        assert stages.stage_classifier(plan, tiny["world"], lines.append) == {0: path}
+    finally:
+        other.wait(timeout=60)
+    assert "another process is making it" in lines[0] and lines[1] == f"  reusing classifier {path}"
+    assert path.read_bytes() == b"made by the other"
+
+
 def test_threads_follow_the_workers_asked_for_not_the_runs_left(monkeypatch):
     """For a method that sets ``train.threads = 0``, a resumed ablation with one run left gives
     it the thread count an uninterrupted one gave it (cores // workers), so its weights are

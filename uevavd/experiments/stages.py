@@ -5,9 +5,10 @@ model zoo), the observation tables (cached by the hash of everything that made t
 from __future__ import annotations
 
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, folder_lock
 from ..data.reader import read_dataset
 from ..data.splits import VALIDATION, resolve_split, split_of
 from ..data.synthetic import write_world
@@ -79,15 +80,19 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
     for r in plan.recognizers:
         recipe = ClassifierRecipe.from_preset(plan.preset, seed=r)
         path = classifier_cache_path(digest, recipe)
-        shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
-        if path.is_file():
-            log(f"  reusing classifier {path}")
-        elif shipped is not None:
-            atomic_write(path, shipped.read_bytes())
-            log(f"  recognizer {r}: the model zoo's ({shipped}, sha256 checked), trained by this preset's recipe on "
-                "these train_605 images (--no-zoo trains it here)")
-        else:
-            train_classifier(data, path, settings=recipe, workers=plan.workers, progress=True, device=plan.device)
+        with ExitStack() as held:
+            if not path.is_file():  # one process makes it: another ablation on this cache waits, then reuses it
+                held.enter_context(folder_lock(path, RuntimeError, wait=lambda lock, r=r: log(
+                    f"  recognizer {r}: another process is making it ({lock}); waiting for it")))
+            shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
+            if path.is_file():
+                log(f"  reusing classifier {path}")
+            elif shipped is not None:
+                atomic_write(path, shipped.read_bytes())
+                log(f"  recognizer {r}: the model zoo's ({shipped}, sha256 checked), trained by this preset's recipe "
+                    "on these train_605 images (--no-zoo trains it here)")
+            else:
+                train_classifier(data, path, settings=recipe, workers=plan.workers, progress=True, device=plan.device)
         out[r] = path
     return out
 
