@@ -36,11 +36,10 @@ _COST_DECIMALS = 9
 
 
 def cheapest_paths(config: EnvConfig) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
-    """Cached per (max_range, t_max, xi2, C): see :func:`_cheapest_paths`."""
+    """Searched once per (max_range, xi2, C): see :func:`_cheapest_paths`."""
     return _cheapest_paths(config.max_range, config.t_max, float(config.xi2), float(config.C))
 
 
-@functools.lru_cache(maxsize=8)
 def _cheapest_paths(max_range: int, t_max: int, xi2: float, c: float):
     """``(cost, moves, preds, edges)``: ``cost`` (V, V) float64 the cheapest cost from a start
     (row) to a view (column) within ``T_max`` moves (inf: unreachable), ``moves`` (V, V) int64

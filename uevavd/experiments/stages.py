@@ -84,10 +84,9 @@ def stage_classifier(plan: Plan, data: Path, log) -> dict[int, Path]:
             if not path.is_file():  # one process makes it: another ablation on this cache waits, then reuses it
                 held.enter_context(folder_lock(path, RuntimeError, wait=lambda lock, r=r: log(
                     f"  recognizer {r}: another process is making it ({lock}); waiting for it")))
-            shipped = _zoo_recognizer(plan, path.name) if not path.is_file() else None
             if path.is_file():
                 log(f"  reusing classifier {path}")
-            elif shipped is not None:
+            elif (shipped := _zoo_recognizer(plan, path.name)) is not None:
                 atomic_write(path, shipped.read_bytes())
                 log(f"  recognizer {r}: the model zoo's ({shipped}, sha256 checked), trained by this preset's recipe "
                     "on these train_605 images (--no-zoo trains it here)")
