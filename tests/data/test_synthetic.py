@@ -339,19 +339,32 @@ def test_shifted_urban_ranges_lie_outside_the_training_ranges():
     assert shifted["p_tree"][0] >= train["p_tree"][1]
 
 
+def test_the_validity_renders_without_shading_see_what_the_shaded_views_see():
+    """shade=False (the validity rule's renders, and the tests' below) changes the colours
+    only: segmentation, boxes and visible fractions are the shaded views' own."""
+    from uevavd.data.synthetic.render import render_views
+    from uevavd.data.synthetic.world import VALIDITY
+
+    scene, views = build_context(29, seed=0), range(0, 605, 11)
+    lit, flat = (render_views(scene, VALIDITY.check_size, views, shade=s) for s in (True, False))
+    assert np.array_equal(lit.seg, flat.seg) and np.array_equal(lit.boxes, flat.boxes)
+    assert np.array_equal(lit.visible, flat.visible) and {0.0, 1.0} <= set(lit.visible.tolist())
+    assert not flat.rgb.any() and lit.rgb.std() > 10
+
+
 def test_a_context_that_breaks_the_validity_rule_is_redrawn_deterministically():
     """Context 29 (woodland) of world seed 0: its first draw has too few clear views, so
     the generator takes the next draw; the choice is a function of (seed, context)."""
     from uevavd.data.synthetic.render import render_views
     from uevavd.data.synthetic.world import VALIDITY, context_draw, draw_context
 
-    first = render_views(draw_context(29, seed=0, draw=0), VALIDITY.check_size).visible
+    first = render_views(draw_context(29, seed=0, draw=0), VALIDITY.check_size, shade=False).visible
     assert not VALIDITY.passes(first, margin=VALIDITY.margin)
     context_draw.cache_clear()
     assert context_draw(29, seed=0) == 1
     scene = build_context(29, seed=0)
     assert scene.draw == 1 and scene.terrain == "woodland"
-    assert VALIDITY.passes(render_views(scene, VALIDITY.check_size).visible, margin=VALIDITY.margin)
+    assert VALIDITY.passes(render_views(scene, VALIDITY.check_size, shade=False).visible, margin=VALIDITY.margin)
 
 
 def test_the_recorded_draws_are_what_the_search_finds_and_a_stale_record_is_ignored(tmp_path, monkeypatch):
@@ -388,7 +401,7 @@ def test_every_context_of_a_preset_passes_the_validity_rule(preset):
 
     world = load_preset(preset)["world"]
     for c in subset(world["per_block"]):
-        vis = render_views(build_context(c, seed=world["seed"]), VALIDITY.check_size).visible
+        vis = render_views(build_context(c, seed=world["seed"]), VALIDITY.check_size, shade=False).visible
         assert VALIDITY.passes(vis), f"context {c}"
 
 
@@ -402,4 +415,4 @@ def test_the_quick_worlds_hard_contexts_pass_the_validity_rule():
 
     hard = [c for c in subset({"train": 4, "simple": 1, "hard": 1}) if split(c) == "hard"]
     for c in hard:
-        assert VALIDITY.passes(render_views(build_context(c, seed=0), VALIDITY.check_size).visible), c
+        assert VALIDITY.passes(render_views(build_context(c, seed=0), VALIDITY.check_size, shade=False).visible), c
