@@ -40,12 +40,14 @@ def test_info_reports_libraries_and_weights(capsys, tmp_path, monkeypatch):
 
 
 def test_a_reader_that_leaves_early_gets_no_traceback():
-    """`uevavd info | head -1`: the pipe closes under the command, which stops quietly."""
+    """`uevavd plugins | head -1` (as `uevavd info | head -1`: every command stops the same
+    way, in the CLI's one handler): the pipe closes under the command, which stops quietly."""
     import subprocess
     import sys
 
     # -u: every print goes to the pipe at once, as a long listing does once its buffer fills
-    proc = subprocess.Popen([sys.executable, "-u", "-c", "import sys; from uevavd.cli import main; sys.exit(main(['info']))"],
+    proc = subprocess.Popen([sys.executable, "-u", "-c",
+                             "import sys; from uevavd.cli import main; sys.exit(main(['plugins']))"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0)
     proc.stdout.close()  # the reader leaves before the first line
     err = proc.stderr.read().decode()
