@@ -101,26 +101,24 @@ def test_the_example_passes_check_plugin(example_loaded):
     assert "example" in {p.name for p in example_loaded.plugins}
 
 
-def test_a_tiny_ablation_with_the_example_from_the_command_line(installed, tmp_path, ablation_world):
+def test_a_tiny_ablation_with_the_example_from_the_command_line(example_loaded, tmp_path, ablation_world, capsys):
     """As a user who pip-installed the plugin runs it: its method trains beside MAP, its
-    baseline joins every evaluation, both under their registered labels."""
+    baseline joins every evaluation, both under their registered labels. The command runs
+    in this process (its entry point found as above); the session's cache holds the
+    recognizer of this world and preset."""
     import json
-    import os
 
     import pandas as pd
 
+    from uevavd.cli import main
     from uevavd.testing.worlds import tiny_preset
 
     preset = tmp_path / "tiny.toml"
     preset.write_text(tiny_preset(ablation='methods = ["map", "memo_map_lstm"]\nseeds = 1\nrecognizers = 1\n'))
-    world = ablation_world
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(installed), os.environ.get("PYTHONPATH", "")]),
-           "UEVAVD_DISABLE_PLUGIN_AUTOLOAD": "0"}  # the session's cache: the recognizer of this world and preset
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "uevavd.cli", "ablate", "--preset", str(preset), "--data", str(world),
-                           "--out", str(out), "--workers", "1", "--no-figures"], capture_output=True, text=True,
-                          env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    code = main(["ablate", "--preset", str(preset), "--data", str(ablation_world), "--out", str(out), "--workers", "1",
+                 "--no-figures"])
+    assert code == 0, capsys.readouterr().err[-3000:]
     df = pd.read_csv(out / "results.csv")
     assert {"map", "memo_map_lstm", "confident_stop"} <= set(df["method"])
     roles = json.loads((out / "ablation.json").read_text())["roles"]
