@@ -27,6 +27,23 @@ def tiny_world(shared) -> Path:
     return shared.tiny_world((1, 31), train605=False)
 
 
+@pytest.fixture
+def own_tiny_world(tiny_world, tmp_path) -> Path:
+    """``tiny_world`` for a test that edits scene 031's files: a copy of that scene (file
+    times kept, so the world's tables keep their keys) beside links to the rest. The shared
+    world is read by the other xdist worker meanwhile, so it is never edited in place."""
+    import shutil
+
+    root = tmp_path / "own-tiny-world"
+    root.mkdir()
+    for entry in tiny_world.iterdir():
+        if entry.name == "031":
+            shutil.copytree(entry, root / entry.name)
+        else:
+            (root / entry.name).symlink_to(entry, target_is_directory=entry.is_dir())
+    return root
+
+
 @pytest.fixture(scope="session")
 def world_605(shared) -> Path:
     """One context scene plus ``train_605`` (the five classes, unoccluded)."""

@@ -55,8 +55,9 @@ def test_rerun_reuses_the_table(built, tiny_world, tiny_classifier, monkeypatch)
     assert again == path
 
 
-def test_key_changes_with_every_input(built, tiny_world, tiny_classifier, tmp_path, monkeypatch):
+def test_key_changes_with_every_input(built, own_tiny_world, tiny_classifier, tmp_path, monkeypatch):
     method, path = built
+    tiny_world = own_tiny_world  # scene 031 is edited below
     import functools
 
     import uevavd.data.reader as reader
@@ -493,10 +494,11 @@ def test_decomposed_table_reuses_the_raw_views_probabilities(built, tiny_world, 
     np.testing.assert_array_equal(ObservationTable.load(second).probs, ObservationTable.load(path).probs)
 
 
-def test_each_scene_is_keyed_by_its_own_files(built, tiny_world, tiny_classifier):
+def test_each_scene_is_keyed_by_its_own_files(built, own_tiny_world, tiny_classifier):
     """The raw views' probabilities are cached per scene under that scene's own fingerprint,
     so rewriting one image invalidates its scene's cache entry and no other."""
     method, path = built
+    tiny_world = own_tiny_world  # scene 031 is edited below
     p = prep.plan_table(tiny_world, method, classifier_path=tiny_classifier)
     assert p.scene_fingerprints == {s: prep.dataset_fingerprint(p.manifest, [(s, r)]) for s, r in p.scenes}
     cached = {f.name for f in (path.parent / "probs").glob("*/*.npz")}
