@@ -51,7 +51,7 @@ def test_each_member_bootstraps_from_its_own_greedy_action():
 
 def test_a_method_with_the_ensemble_trains_and_resumes_bit_for_bit(tmp_path):
     table = toy_table(n_train=3, n_hard=2, feature_dim=8)
-    spec = load_method("ibe_map_ens", overrides={**small_run("ibe_map"), "train.episodes": 600, "head.members": 3})
+    spec = load_method("ibe_map_ens", overrides={**small_run("ibe_map"), "train.episodes": 200, "head.members": 3})
     train(spec, table, out=tmp_path / "whole", seed=1, device="cpu", progress=False)
     train(spec, table, out=tmp_path / "paused", seed=1, device="cpu", progress=False, max_epochs=1)
     train(spec, table, out=tmp_path / "paused", seed=1, device="cpu", progress=False)

@@ -63,7 +63,7 @@ def test_bad_level_replay_settings_are_refused(bad):
 
 def test_a_level_replay_run_skews_its_contexts_and_resumes_bit_for_bit(tmp_path):
     table = toy_table(n_train=4, n_hard=1, feature_dim=8)
-    spec = load_method("ibe_map_plr", overrides={**small_run("ibe_map"), "train.episodes": 900})
+    spec = load_method("ibe_map_plr", overrides={**small_run("ibe_map"), "train.episodes": 300})
     a, b = _runs(spec, table, tmp_path, 2)
     assert _same_net(a, b)
     assert torch.equal(a["level_replay"]["scores"], b["level_replay"]["scores"])
@@ -86,9 +86,9 @@ def test_feature_dropout_augments_the_updates_only_and_resumes_bit_for_bit(tmp_p
     with pytest.raises(ConfigError, match="train.feature_dropout"):
         TrainConfig(feature_dropout=1.0)
     table = toy_table(n_train=3, n_hard=1, feature_dim=8)
-    spec = load_method("ibe_map_aug", overrides={**small_run("ibe_map"), "train.episodes": 600,
+    spec = load_method("ibe_map_aug", overrides={**small_run("ibe_map"), "train.episodes": 200,
                                                  "train.feature_dropout": 0.3})
-    plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
+    plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 200})
     a, b, c = _runs(spec, table, tmp_path, 4, plain=plain)
     assert _same_net(a, b) and "feature_dropout" in a
     assert not _same_net(a, c) and "feature_dropout" not in c
@@ -101,8 +101,8 @@ def test_the_recognition_probe_trains_with_the_state_and_resumes_bit_for_bit(tmp
     from safetensors.torch import load_file
 
     table = toy_table(n_train=3, n_hard=1, feature_dim=8)
-    spec = load_method("ibe_map_aux", overrides={**small_run("ibe_map"), "train.episodes": 600})
-    plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 600})
+    spec = load_method("ibe_map_aux", overrides={**small_run("ibe_map"), "train.episodes": 200})
+    plain = load_method("ibe_map", overrides={**small_run("ibe_map"), "train.episodes": 200})
     a, b, c = _runs(spec, table, tmp_path, 5, plain=plain)
     assert _same_net(a, b)
     assert torch.equal(a["aux_recognition"]["linear.weight"], b["aux_recognition"]["linear.weight"]) and "aux_recognition" not in c

@@ -36,7 +36,7 @@ def hidden_table(seed: int = 0) -> ObservationTable:
 
 
 def _spec(method: str, **overrides):
-    return load_method(method, overrides={**small_run("ibe_map"), "train.episodes": 600, **overrides})
+    return load_method(method, overrides={**small_run("ibe_map"), "train.episodes": 200, **overrides})
 
 
 def test_bad_stop_gate_settings_are_refused():
