@@ -22,6 +22,7 @@ from .weights import (
     load_strict,
     make_resnet,
     parse_spec,
+    random_weights_hash,
     state_dict_hash,
 )
 
@@ -61,8 +62,7 @@ def load_backbone(arch: str, weights: str, *, seed: int = 0, classifier: str | N
     kind, arg = parse_spec(weights)
     if kind == "random":
         log.warning("%s encoder: random weights (seed %d), not pretrained", arch, seed)
-        model = make_resnet(arch, seed=seed)
-        return model, f"random:{seed}", state_dict_hash(model.state_dict())
+        return make_resnet(arch, seed=seed), f"random:{seed}", random_weights_hash(arch, seed=seed)
     if kind == "classifier":
         path = classifier or (default_classifier_path(data) if data else None)
         if path is None:
