@@ -113,3 +113,28 @@ def test_random_weights_are_seeded_and_announced(caplog):
 def test_bad_spec_is_explained():
     with pytest.raises(WeightsError, match="expected 'imagenet', 'random'"):
         build_resnet18(weights="imagnet")
+
+
+def test_a_seeded_resnet_is_torchvisions_initialisation_and_each_copy_is_its_own():
+    """make_resnet(seed=...) keeps the seed's tensors for the next call: each call still gives
+    torchvision's initialisation from that seed, trainable, and one trained in place leaves the
+    next untouched; the caller's RNG is not moved."""
+    import torchvision.models as tvm
+
+    from uevavd.perception.weights import random_weights_hash, state_dict_hash
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(7)
+        want = tvm.resnet18(weights=None, num_classes=5).state_dict()
+    rng = torch.get_rng_state()
+    first = make_resnet("resnet18", num_classes=5, seed=7)
+    with torch.no_grad():
+        for p in first.parameters():
+            p.add_(1.0)
+    again = make_resnet("resnet18", num_classes=5, seed=7)
+    assert torch.equal(torch.get_rng_state(), rng)
+    got = again.state_dict()
+    assert list(got) == list(want) and all(torch.equal(got[k], want[k]) for k in want)
+    assert all(p.requires_grad and not p.is_meta for p in again.parameters())
+    assert random_weights_hash("resnet18", num_classes=5, seed=7) == state_dict_hash(want)
+    assert random_weights_hash("resnet18", num_classes=5, seed=8) != state_dict_hash(want)
