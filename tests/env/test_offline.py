@@ -176,7 +176,7 @@ def test_the_flat_view_read_from_the_file_is_minaris_episodes_in_any_number_of_p
 
     posed = [SimpleNamespace(observations={**e.observations, "pose": np.zeros((len(e.rewards) + 1, 3), np.float32)},
                              actions=e.actions, rewards=e.rewards, terminations=e.terminations,
-                             truncations=e.truncations) for e in list(oracle_dataset.iterate_episodes())[:3]]
+                             truncations=e.truncations) for e in oracle_dataset.iterate_episodes([0, 1, 2])]
     assert flat_dataset(posed).observations.shape[1] == flat_dataset(oracle_dataset).observations.shape[1] + 3
     with pytest.raises(ValueError, match=r"holds the observation parts .*'pose'.* one env config together"):
         flat_dataset(oracle_dataset, posed)
