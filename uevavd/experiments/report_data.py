@@ -358,9 +358,13 @@ def per_seed(final: pd.DataFrame, method: str, split: str, metric: str, setting:
 
 
 def _per_unit(final: pd.DataFrame, method: str, split: str, metric: str, setting: str):
-    sel = final[(final["method"] == method) & (final["split"] == split) & (final["setting"] == setting)]
-    sel = sel.sort_values("seed")
-    return sel["seed"].to_numpy(dtype=np.int64), sel[metric].to_numpy(dtype=np.float64)
+    # on the columns' arrays: a report asks for hundreds of these, and a pandas mask and sort
+    # each took 4 ms; the order is sort_values("seed")'s (the same quicksort on the same rows)
+    rows = np.flatnonzero((final["method"].to_numpy() == method) & (final["split"].to_numpy() == split)
+                          & (final["setting"].to_numpy() == setting))
+    seeds = final["seed"].to_numpy(dtype=np.int64)[rows]
+    order = np.argsort(seeds, kind="quicksort")
+    return seeds[order], final[metric].to_numpy(dtype=np.float64)[rows[order]]
 
 
 def estimate_units(units, values, deterministic: bool = False) -> Estimate:
