@@ -241,24 +241,19 @@ def test_report_has_every_section_and_figure(tmp_path):
     # no stray temp files from the atomic writes
     assert sorted(p.name for p in (d / "report").iterdir()) == [
         "fig8_strips.pdf", "fig8_strips.png", "fig9_curves.pdf", "fig9_curves.png", "report.md", "summary.csv"]
-
-
-def test_without_figures_the_report_is_the_same_text_and_no_figure_is_left(tmp_path):
-    """``figures=False`` (``--no-figures``) writes the same report but for the figure links,
-    and removes the figures an earlier report drew, so none of other data is left beside it."""
-    df = make_results({"map": (0.5, 0.05), "ibe_map": (0.35, 0.3)})
-    d = _write_ablation(tmp_path, df)
-    drawn = write_report(d).read_text(encoding="utf-8").split("\n")
-    text = write_report(d, figures=False).read_text(encoding="utf-8").split("\n")
+    # figures=False (--no-figures): the same report but for the figure links, and the figures
+    # drawn above removed, so that none of other data is left beside it
+    drawn = text.split("\n")
+    plain = write_report(d, figures=False).read_text(encoding="utf-8").split("\n")
     assert sorted(p.name for p in (d / "report").iterdir()) == ["report.md", "summary.csv"]
     links = [i for i, line in enumerate(drawn) if line.startswith("![")]
     assert [drawn[i] for i in links] == ["![Fig. 9: learning curves](fig9_curves.png)",
                                          "![Fig. 8: observation sequences](fig8_strips.png)"]
-    assert [text[i] for i in links] == ["(Fig. 9: learning curves: not drawn, the report was written with "
-                                        "`--no-figures`.)", "(Fig. 8: observation sequences: not drawn, the report "
-                                        "was written with `--no-figures`.)"]
+    assert [plain[i] for i in links] == ["(Fig. 9: learning curves: not drawn, the report was written with "
+                                         "`--no-figures`.)", "(Fig. 8: observation sequences: not drawn, the report "
+                                         "was written with `--no-figures`.)"]
     assert [line for i, line in enumerate(drawn) if i not in links] == [
-        line for i, line in enumerate(text) if i not in links]
+        line for i, line in enumerate(plain) if i not in links]
 
 
 def test_report_without_optional_files_and_via_cli(tmp_path, capsys):
