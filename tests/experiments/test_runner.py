@@ -730,7 +730,8 @@ def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_repo
     """On data with two training contexts per block, sweeping ``env.train_per_block=1``: the
     runs and the baselines of that setting train and are evaluated on the first training
     context of each block, the hard contexts are the same for both settings, and the report
-    gains the table and figure of the axis."""
+    gains the table and figure of the axis (the report's text written without figures; the
+    axis's figure drawn by its section from this ablation's rows)."""
     preset = tmp_path / "tiny.toml"
     preset.write_text(tiny_preset(ablation='methods = ["map"]\nseeds = 1\n'))
     world = tmp_path / "world"
@@ -739,7 +740,7 @@ def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_repo
         (world / scene.name).symlink_to(scene, target_is_directory=True)
     write_tiny_world(world, contexts=(2, 32), train605=False)  # a second training context per block
     plan = make_plan(preset=str(preset), out=tmp_path / "out", data=world, workers=1,
-                     sweeps=parse_sweeps(["env.train_per_block=1"]))
+                     sweeps=parse_sweeps(["env.train_per_block=1"]), figures=False)
     assert plan.preset["overrides"]["env.train_per_block"] == 0  # on --data the default is all of it
     df = pd.read_csv(run_ablation(plan, log=lambda *_: None))
     final = df[df["final"]].set_index(["method", "setting", "split"])
@@ -755,7 +756,13 @@ def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_repo
     report = (plan.out / "report" / "report.md").read_text()
     assert "## Test return against the number of training contexts" in report
     assert "| MAP | 2 | 1 |" in report and "| MAP | 4 | 1 |" in report
-    assert (plan.out / "report" / "fig_contexts.png").stat().st_size > 10_000
+    assert "(Test return against the number of training contexts: not drawn" in report
+    from uevavd.experiments.report_contexts import contexts_section
+    from uevavd.experiments.report_data import final_rows, load_results
+
+    drawn = contexts_section(final_rows(load_results(plan.out / "results.csv")), tmp_path, figures=True)
+    assert "![Test return against the number of training contexts](fig_contexts.png)" in drawn
+    assert (tmp_path / "fig_contexts.png").stat().st_size > 10_000
 
 
 def test_a_sweep_that_would_run_on_no_method_or_outside_its_range_is_refused(tmp_path):
