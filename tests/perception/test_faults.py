@@ -93,24 +93,29 @@ def test_prepare_refuses_a_count_below_one_in_one_line(tiny_world, method_toml, 
     assert not (tmp_path / "tables").exists()
 
 
-def test_a_file_size_limit_during_prepare_is_one_line(tiny_world, tiny_classifier, method_toml, tmp_path):
+def test_a_file_size_limit_during_prepare_is_one_line(tiny_world, tiny_classifier, method_toml, tmp_path, capsys,
+                                                     monkeypatch):
     """`ulimit -f` below a cache's or the table's size: numpy's short write ("N requested and M
-    written", no errno) was a traceback."""
-    import os
+    written", no errno) was a traceback. The limit is this process's own for the command (Python
+    ignores SIGXFSZ, so a write past it fails with EFBIG, as in a shell under `ulimit -f`)."""
     import resource
-    import subprocess
-    import sys
 
+    from uevavd.cli import main
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     method = tmp_path / "m.toml"
     method.write_text(method_toml.format(decompose="false"))
     out = tmp_path / "tables"
-    p = subprocess.run(
-        [sys.executable, "-m", "uevavd.cli", "prepare", str(tiny_world), "--method", str(method), "--classifier",
-         str(tiny_classifier), "--out", str(out), "--workers", "1"],
-        capture_output=True, text=True, timeout=300, env={**os.environ, "UEVAVD_DEBUG": ""},
-        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000)))
-    err = [line for line in p.stderr.splitlines() if "uevavd prepare: error" in line]
-    assert p.returncode == 2 and "Traceback" not in p.stderr and len(err) == 1, p.stderr
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, hard))
+    try:
+        rc = main(["prepare", str(tiny_world), "--method", str(method), "--classifier", str(tiny_classifier),
+                   "--out", str(out), "--workers", "1"])
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    stderr = capsys.readouterr().err
+    err = [line for line in stderr.splitlines() if "uevavd prepare: error" in line]
+    assert rc == 2 and "Traceback" not in stderr and len(err) == 1, stderr
     assert "File too large" in err[0] or "file-size limit of 200,000 bytes" in err[0], err
     assert str(out) in err[0] and "raise it, or write elsewhere" in err[0], err
     assert not [f for f in out.rglob("*") if f.name.startswith(".") and ".tmp" in f.name]
