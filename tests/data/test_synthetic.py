@@ -136,9 +136,10 @@ def test_context_ground_truth_is_consistent():
 
 
 def test_scenes_are_deterministic_and_differ_between_contexts():
-    a = render_view(build_context(2, seed=5), 100, 32)
-    b = render_view(build_context(2, seed=5), 100, 32)
-    c = render_view(build_context(2, seed=6), 100, 32)
+    # seed 0's draw is recorded (draws.json); seed 1's is searched for, once per process
+    a = render_view(build_context(2, seed=0), 100, 32)
+    b = render_view(build_context(2, seed=0), 100, 32)
+    c = render_view(build_context(2, seed=1), 100, 32)
     assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.seg, b.seg)
     assert not np.array_equal(a.rgb, c.rgb)
 
