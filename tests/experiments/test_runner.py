@@ -59,7 +59,7 @@ def ablation(tiny) -> dict:
     partial_epochs = len(Path(interrupted.out, "evals.jsonl").read_text().splitlines())
 
     lines: list[str] = []
-    plan = _plan(tiny, "out")
+    plan = _plan(tiny, "out", figures=False)  # the figures' drawing is test_report.py's; the default is checked below
     results = run_ablation(plan, log=lines.append)
     return {"plan": plan, "results": results, "log": lines, "interrupted": interrupted,
             "partial_epochs": partial_epochs, "jobs": jobs}
@@ -204,7 +204,7 @@ def test_report_and_trajectories(ablation):
                     "## Observation sequences", "## Claims checked", "| MAP |", "| IBE-MAP |", "| Class-knowing oracle (upper bound) |",
                     "| Visibility oracle |"):
         assert section in report
-    assert (out / "report" / "fig9_curves.png").stat().st_size > 0
+    assert "(Fig. 9: learning curves: not drawn" in report and "(Fig. 8: observation sequences: not drawn" in report
     meta = json.loads((out / "ablation.json").read_text())
     assert meta["status"] == "done" and set(meta["stages"]) >= {"classifier", "tables", "training"}
     traj = json.loads((out / "trajectories.json").read_text())
@@ -216,10 +216,13 @@ def test_report_and_trajectories(ablation):
     assert oracle["recognized"] and len(oracle["views"]) > 1  # passive fails there, the oracle moves and succeeds
 
 
-def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny, tmp_path):
-    """Rerun on a copy of the finished ablation (its report without figures: the text is
-    what a rerun rewrites from the same files)."""
+def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny, tmp_path, monkeypatch):
+    """Rerun on a copy of the finished ablation, as `uevavd ablate` runs it: the runner asks for
+    the report's figures unless told not to (they are drawn by test_report.py; the report is
+    written here without them: its text is what a rerun rewrites from the same files)."""
     import shutil
+
+    import uevavd.experiments.runner as runner
 
     out = tmp_path / "again"
     shutil.copytree(ablation["plan"].out, out)
@@ -227,9 +230,12 @@ def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny
     done = sorted(out.glob("runs/*/*/*/*/done.json"))
     mtimes = {p: p.stat().st_mtime_ns for p in done}
     assert len(done) == 2
+    asked, real = [], runner.write_report
+    monkeypatch.setattr(runner, "write_report", lambda d, *, figures: asked.append(figures) or real(d, figures=False))
     lines: list[str] = []
-    results = run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1,
-                                     figures=False), log=lines.append)
+    results = run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1),
+                           log=lines.append)
+    assert asked == [True]
     assert any("2 runs, 2 finished already, 0 to run" in x for x in lines)
     assert any("reusing classifier" in x for x in lines)
     assert {p: p.stat().st_mtime_ns for p in done} == mtimes
