@@ -337,20 +337,27 @@ def test_the_two_replay_samplings_train_different_weights(table, tmp_path):
     assert any(not (a[k] == b[k]).all() for k in a)
 
 
+@pytest.fixture(scope="module")
+def whole_run(table, tmp_path_factory):
+    """``(spec, folder)``: a finished 200-episode MAP run, the uninterrupted reference of the
+    kill cases below (they only read it)."""
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 200})
+    return spec, train(spec, table, out=tmp_path_factory.mktemp("whole") / "run", device="cpu", progress=False)
+
+
 @pytest.mark.parametrize("left", [
     ("method.toml",), ("settings.json",),
     (".settings.json.k1ll3d.tmp",),  # killed while writing its first file
     ("settings.json", "method.toml", "evals.jsonl", ".checkpoint.pt.k1ll3d.tmp"),  # inside its first checkpoint
 ])
-def test_a_run_killed_before_its_first_checkpoint_resumes(table, tmp_path, left):
+def test_a_run_killed_before_its_first_checkpoint_resumes(table, tmp_path, left, whole_run):
     """A kill after method.toml (the order of earlier versions) or after settings.json (now
     written first), before the other, or while either was written (a temporary file), or in
     the first checkpoint's save: the rerun trains the run instead of calling the folder
     someone else's; it ends with the weights of an uninterrupted run."""
     from safetensors.torch import load_file
 
-    spec = load_method("map", overrides={**small("map"), "train.episodes": 200})
-    whole = train(spec, table, out=tmp_path / "whole", device="cpu", progress=False)
+    spec, whole = whole_run
     killed = tmp_path / "killed"
     killed.mkdir()
     for name in left:
