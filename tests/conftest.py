@@ -177,6 +177,15 @@ def shared(tmp_path_factory) -> SharedBuilds:
 
 
 @pytest.fixture(scope="session")
+def synthetic_root(shared) -> Path:
+    """One hard-test context (26) of the synthetic world at 16 px, written by its writer (world
+    seed 1, whose draw the validity search finds: no record of it); read it only."""
+    synthetic = pytest.importorskip("uevavd.data.synthetic")
+    return shared.once("synthetic-26", lambda out: synthetic.write_world(out, contexts=[26], size=16, seed=1,
+                                                                          include_unoccluded=False, progress=False))
+
+
+@pytest.fixture(scope="session")
 def ablation_world(shared) -> Path:
     """The tiny world the ablation tests run on: contexts 1 (train) and 26 (hard) of the
     hatchback block, 31 / 56 of the pickup block, and train_605 (read it only)."""

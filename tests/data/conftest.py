@@ -218,14 +218,6 @@ def _write_broken(root: Path) -> dict:
     return {k: v.relative_to(root) if isinstance(v, Path) else v for k, v in defects.items()}
 
 
-@pytest.fixture(scope="session")
-def synthetic_root(shared) -> Path:
-    """One hard-test context (26) of the synthetic world at 16 px, written by its writer."""
-    synthetic = pytest.importorskip("uevavd.data.synthetic")
-    return shared.once("synthetic-26", lambda out: synthetic.write_world(out, contexts=[26], size=16, seed=1,
-                                                                          include_unoccluded=False, progress=False))
-
-
 @pytest.fixture(name="encoded")
 def encoded_fixture():
     """:func:`encoded` for tests (importing ``conftest`` by name is ambiguous: each test

@@ -13,12 +13,10 @@ from uevavd.perception.images import read_rgb
 from uevavd.table import ObservationTable
 
 
-def test_frames_show_the_dataset_view_and_the_path(tmp_path):
+def test_frames_show_the_dataset_view_and_the_path(synthetic_root):
     from uevavd.data.reader import read_dataset
-    from uevavd.data.synthetic import write_world
 
-    root = tmp_path / "world"
-    write_world(root, contexts=[26], size=16, seed=1, include_unoccluded=False, progress=False)
+    root = synthetic_root  # context 26 of the synthetic world at 16 px, as written
     manifest = read_dataset(root)
     rec = next(r for r in manifest.records if r.context == 26)
     rng = np.random.default_rng(0)
