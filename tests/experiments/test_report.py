@@ -338,9 +338,15 @@ def test_curve_band_is_the_student_t_interval_over_seeds():
 
 
 def test_fig9_draws_the_t_band_and_none_for_one_seed(tmp_path, monkeypatch):
+    """What the curves' panels draw (the bands), read off the axes; the figures are not saved
+    (saving them is test_report_has_every_section_and_figure's)."""
     import matplotlib.axes
+    import matplotlib.pyplot as plt
 
+    from uevavd.experiments import figures
     from uevavd.experiments.figures import plot_curves
+
+    monkeypatch.setattr(figures, "save_figure", lambda fig, path: plt.close(fig) or path)
 
     calls = []
     real = matplotlib.axes.Axes.fill_between
