@@ -24,12 +24,11 @@ def build_unoccluded(target, seed):
 
 @functools.lru_cache(maxsize=16)
 def _visible(context: int, draw: int) -> np.ndarray:
-    """Visible fractions of draw ``draw`` of a context (world seed 0) as the validity search
-    renders them (its check size, no shading); the validity tests below share them."""
-    from uevavd.data.synthetic.render import render_views
-    from uevavd.data.synthetic.world import VALIDITY, draw_context
+    """The validity rule's visible fractions of draw ``draw`` of a context (world seed 0),
+    rendered once for the validity tests below."""
+    from uevavd.data.synthetic.world import draw_context, validity_views
 
-    return render_views(draw_context(context, seed=0, draw=draw), VALIDITY.check_size, shade=False).visible
+    return validity_views(draw_context(context, seed=0, draw=draw))
 
 
 def _with_building(scene, centre, size_xy, height):
@@ -354,13 +353,14 @@ def test_the_validity_renders_without_shading_see_what_the_shaded_views_see():
     """shade=False (the validity rule's renders, and the tests' below) changes the colours
     only: segmentation, boxes and visible fractions are the shaded views' own."""
     from uevavd.data.synthetic.render import render_views
-    from uevavd.data.synthetic.world import VALIDITY
+    from uevavd.data.synthetic.world import VALIDITY, validity_views
 
     scene, views = build_context(29, seed=0), range(0, 605, 11)
     lit, flat = (render_views(scene, VALIDITY.check_size, views, shade=s) for s in (True, False))
     assert np.array_equal(lit.seg, flat.seg) and np.array_equal(lit.boxes, flat.boxes)
     assert np.array_equal(lit.visible, flat.visible) and {0.0, 1.0} <= set(lit.visible.tolist())
     assert not flat.rgb.any() and lit.rgb.std() > 10
+    assert np.array_equal(validity_views(scene)[list(views)], lit.visible)  # the rule's own render
 
 
 def test_a_context_that_breaks_the_validity_rule_is_redrawn_deterministically():
@@ -407,14 +407,12 @@ def test_every_context_of_a_preset_passes_the_validity_rule(preset):
     """Every context of every split, at the rule's check size (the paper world too: the
     chosen draws do not depend on the written size)."""
     from uevavd.data.splits import subset
-    from uevavd.data.synthetic.render import render_views
-    from uevavd.data.synthetic.world import VALIDITY
+    from uevavd.data.synthetic.world import VALIDITY, validity_views
     from uevavd.presets import load_preset
 
     world = load_preset(preset)["world"]
     for c in subset(world["per_block"]):
-        vis = render_views(build_context(c, seed=world["seed"]), VALIDITY.check_size, shade=False).visible
-        assert VALIDITY.passes(vis), f"context {c}"
+        assert VALIDITY.passes(validity_views(build_context(c, seed=world["seed"]))), f"context {c}"
 
 
 def test_the_quick_worlds_hard_contexts_pass_the_validity_rule():

@@ -141,14 +141,19 @@ def context_draw(context_id: int, *, seed: int) -> int:
     return recorded if recorded is not None else search_draw(context_id, seed=seed)
 
 
-def search_draw(context_id: int, *, seed: int) -> int:
-    """The validity search: draws 0, 1, ... of the context until one passes, rendering its
-    605 views at the check size (visible fractions only) per draw tried."""
+def validity_views(scene: Scene) -> np.ndarray:
+    """(605,) the visible fractions :data:`VALIDITY` reads: the scene's views rendered at its
+    check size, without shading (the colours do not change what is seen)."""
     from .render import render_views
 
+    return render_views(scene, VALIDITY.check_size, shade=False).visible
+
+
+def search_draw(context_id: int, *, seed: int) -> int:
+    """The validity search: draws 0, 1, ... of the context until one passes, rendering its
+    605 views at the check size (:func:`validity_views`) per draw tried."""
     for draw in range(VALIDITY.max_draws):
-        scene = draw_context(context_id, seed=seed, draw=draw)
-        if VALIDITY.passes(render_views(scene, VALIDITY.check_size, shade=False).visible, margin=VALIDITY.margin):
+        if VALIDITY.passes(validity_views(draw_context(context_id, seed=seed, draw=draw)), margin=VALIDITY.margin):
             return draw
     raise RuntimeError(f"context {context_id} (seed {seed}): no draw among {VALIDITY.max_draws} passes the "
                        f"validity rule ({VALIDITY.describe()}); the generator's ranges are broken")
