@@ -738,6 +738,9 @@ def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_repo
     context of each block, the hard contexts are the same for both settings, and the report
     gains the table and figure of the axis (the report's text written without figures; the
     axis's figure drawn by its section from this ablation's rows)."""
+    from uevavd.experiments.report_contexts import contexts_section
+    from uevavd.experiments.report_data import final_rows, load_results
+
     preset = tmp_path / "tiny.toml"
     preset.write_text(tiny_preset(ablation='methods = ["map"]\nseeds = 1\n'))
     world = tmp_path / "world"
@@ -763,9 +766,6 @@ def test_the_number_of_training_contexts_is_an_axis_of_the_ablation_and_its_repo
     assert "## Test return against the number of training contexts" in report
     assert "| MAP | 2 | 1 |" in report and "| MAP | 4 | 1 |" in report
     assert "(Test return against the number of training contexts: not drawn" in report
-    from uevavd.experiments.report_contexts import contexts_section
-    from uevavd.experiments.report_data import final_rows, load_results
-
     drawn = contexts_section(final_rows(load_results(plan.out / "results.csv")), tmp_path, figures=True)
     assert "![Test return against the number of training contexts](fig_contexts.png)" in drawn
     assert (tmp_path / "fig_contexts.png").stat().st_size > 10_000
