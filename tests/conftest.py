@@ -26,7 +26,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # twenty times per worker (8.8 s in both). A full collection after every 100 younger ones
 # instead of 10 (Python's default) walks them four times; young garbage is still collected as
 # often, and no test depends on when a cycle is freed.
-gc.set_threshold(gc.get_threshold()[0], gc.get_threshold()[1], 100)
+gc.set_threshold(*gc.get_threshold()[:2], 100)
 
 
 def _ram_temproot(mounts: Path = Path("/proc/mounts"), folder: str = "/dev/shm", room: int = 3 << 30) -> str | None:

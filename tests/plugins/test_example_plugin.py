@@ -114,8 +114,8 @@ def test_a_tiny_ablation_with_the_example_from_the_command_line(example_loaded, 
     from uevavd.testing.worlds import tiny_preset
 
     preset = tmp_path / "tiny.toml"
-    preset.write_text(tiny_preset(ablation='methods = ["map", "memo_map_lstm"]\nseeds = 1\nrecognizers = 1\n').replace(
-        '"train.episodes" = 200', '"train.episodes" = 100'))  # one epoch: the rows are what is checked
+    preset.write_text(tiny_preset(ablation='methods = ["map", "memo_map_lstm"]\nseeds = 1\nrecognizers = 1\n',
+                                  episodes=100))  # one epoch: the rows are what is checked
     out = tmp_path / "out"
     code = main(["ablate", "--preset", str(preset), "--data", str(ablation_world), "--out", str(out), "--workers", "1",
                  "--no-figures"])

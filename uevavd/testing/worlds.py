@@ -84,17 +84,17 @@ def write_tiny_world(root: str | os.PathLike[str], contexts=(1, 31), train605: b
 __all__ = ["SHAPES", "SIZE", "draw_view", "write_tiny_world"]
 
 
-def tiny_preset(*, overrides: str = "", ablation: str = "") -> str:
-    """A preset TOML for :func:`write_tiny_world`: a few hundred episodes per run and a
-    2-epoch recognizer. ``overrides`` adds lines to its ``[overrides]`` section, ``ablation``
-    gives it an ``[ablation]`` section."""
+def tiny_preset(*, overrides: str = "", ablation: str = "", episodes: int = 200) -> str:
+    """A preset TOML for :func:`write_tiny_world`: ``episodes`` per run (evaluated every 100)
+    and a 2-epoch recognizer. ``overrides`` adds lines to its ``[overrides]`` section,
+    ``ablation`` gives it an ``[ablation]`` section."""
     text = """name = "tiny"
 description = "a few hundred episodes per run on the 16 px test world"
 
 [overrides]
 "perception.encoder.name" = "resnet18"
 "perception.encoder.weights" = "classifier"
-"train.episodes" = 200
+"train.episodes" = """ + str(int(episodes)) + """
 "train.epoch_episodes" = 100
 "train.n_envs" = 16
 "train.learning_starts" = 50
