@@ -184,7 +184,7 @@ def test_the_whole_import_graph_has_no_cycle_beside_the_written_lazy_edges():
 LAYERS = (
     ("foundation", ("uevavd.version", "uevavd.paths", "uevavd.atomic", "uevavd.hashing", "uevavd.runtime")),
     ("plugins", ("uevavd.plugins",)),
-    ("config", ("uevavd.config_rules", "uevavd.config")),
+    ("config", ("uevavd.config_rules", "uevavd.config_layers", "uevavd.config")),
     ("data", ("uevavd.data",)),
     ("presets", ("uevavd.presets",)),
     ("table", ("uevavd.table", "uevavd.toy")),

@@ -28,7 +28,6 @@ type against the builders' signatures and the dataclasses' fields, and returns a
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import os
 import tomllib
@@ -37,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from .atomic import atomic_write
+from .config_layers import component_of, is_shipped, layer_method, merge_sections
 from .config_rules import (
     COMPONENT_SECTIONS,
     DATACLASS_SECTIONS,
@@ -62,9 +62,15 @@ from .plugins.registry import UnknownComponentError, import_target, resolve_meth
 
 
 # -- locating method files ------------------------------------------------------------------
+def is_method_path(name_or_path: str | os.PathLike[str]) -> bool:
+    """Whether a method is given as a TOML path (else it is a registered name)."""
+    s = str(name_or_path)
+    return s.endswith(".toml") or os.sep in s or "/" in s
+
+
 def _method_path(name_or_path: str | os.PathLike[str], relative_to: Path | None = None) -> Path:
     s = str(name_or_path)
-    if s.endswith(".toml") or os.sep in s or "/" in s:
+    if is_method_path(s):
         p = Path(s)
         if not p.is_absolute() and relative_to is not None and (relative_to / p).is_file():
             p = relative_to / p
@@ -93,22 +99,9 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
 
 
-def _merge(base: dict[str, Any], child: Mapping[str, Any]) -> dict[str, Any]:
-    out = copy.deepcopy(base)
-    for k, v in child.items():
-        if isinstance(v, Mapping) and isinstance(out.get(k), dict):
-            # A component section that picks another `name` starts from scratch: the base's
-            # arguments belong to the base's builder.
-            if "name" in v and out[k].get("name") not in (None, v["name"]):
-                out[k] = copy.deepcopy(dict(v))
-            else:
-                out[k] = _merge(out[k], v)
-        else:
-            out[k] = copy.deepcopy(v)
-    return out
-
-
-def _resolve_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+def _resolve_chain(path: Path, seen: tuple[Path, ...] = ()) -> list[tuple[Path, dict[str, Any]]]:
+    """The files of a method's inheritance chain, the root first: ``[(path, its keys), ...]``
+    without ``_base_``, and a base's ``description`` dropped (the child describes itself)."""
     if path in seen:
         chain = " -> ".join(str(p) for p in (*seen, path))
         raise ConfigError(f"method inheritance loops: {chain}")
@@ -117,16 +110,30 @@ def _resolve_file(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     data = _read_toml(path)
     base_name = data.pop("_base_", None)
     if base_name is None:
-        return data
+        return [(path, data)]
     if not isinstance(base_name, str):
         raise ConfigError(f"{path}: _base_ must be a method name or path, got {base_name!r}")
     try:
         base_path = _method_path(base_name, path.parent)
     except (ConfigError, FileNotFoundError) as exc:  # name the file that holds the _base_
         raise ConfigError(f"{path}: _base_ = {base_name!r}: {exc}") from None
-    base = _resolve_file(base_path, (*seen, path))
-    base.pop("description", None)
-    return _merge(base, data)
+    base = _resolve_chain(base_path, (*seen, path))
+    base[-1][1].pop("description", None)
+    return [*base, (path, data)]
+
+
+def method_chain(name_or_path: str | os.PathLike[str]) -> list[Path]:
+    """The files of a method's inheritance chain, the root first (``ibe_map``: map.toml,
+    memo_map.toml, ibe_map.toml)."""
+    return [p for p, _ in _resolve_chain(_method_path(name_or_path))]
+
+
+def resolve_method_file(path: Path) -> dict[str, Any]:
+    """A method file with its inheritance resolved, as one nested dict."""
+    data: dict[str, Any] = {}
+    for _, keys in _resolve_chain(path):
+        data = merge_sections(data, keys)
+    return data
 
 
 # -- the spec -------------------------------------------------------------------------------
@@ -184,6 +191,8 @@ class MethodSpec:
     name: str
     data: Mapping[str, Any]  #: read-only nested mapping (no `_base_`)
     source: str  #: file it came from
+    #: the preset's [overrides] keys not applied, each with the reason (:func:`layer_method`)
+    preset_notes: tuple[str, ...] = dataclasses.field(default=(), compare=False)
 
     @property
     def hash(self) -> str:
@@ -194,13 +203,16 @@ class MethodSpec:
         """The spec as plain nested dicts and lists (a copy: editing it changes nothing here)."""
         return thaw(self.data)
 
-    def with_overrides(self, overrides: Mapping[str, Any] | None) -> MethodSpec:
-        """This spec with dotted ``overrides`` applied (order-independent, see
-        :func:`apply_overrides`) and validated; itself when there are none."""
-        if not overrides:
+    def with_overrides(self, overrides: Mapping[str, Any] | None, *,
+                       preset: Mapping[str, Any] | None = None) -> MethodSpec:
+        """This spec with a preset's ``[overrides]`` and then dotted ``overrides`` applied
+        (each order-independent, see :func:`apply_overrides`) and validated; itself when there
+        are none. A resolved spec is one layer: the preset applies to all of it."""
+        if not overrides and not preset:
             return self
-        data = apply_overrides(self.to_dict(), overrides)
-        validate(data, _with_overrides(self.source, overrides))
+        data = apply_overrides(self.to_dict(), preset)
+        apply_overrides(data, overrides)
+        validate(data, _with_overrides(self.source, {**(preset or {}), **(overrides or {})}))
         return MethodSpec(name=data["name"], data=freeze(data), source=self.source)
 
     def get(self, dotted: str, default: Any = None) -> Any:
@@ -278,19 +290,25 @@ class MethodSpec:
 def load_method(
     name_or_path: str | os.PathLike[str],
     overrides: Mapping[str, Any] | None = None,
+    *,
+    preset: Mapping[str, Any] | None = None,
 ) -> MethodSpec:
     """Load, resolve and validate a method config.
 
     ``name_or_path`` is a registered method name (``"ibe_map"``) or a TOML path.
-    ``overrides`` maps dotted keys to values, e.g. ``{"state.name": "single_view"}``.
+    ``overrides`` maps dotted keys to values, e.g. ``{"state.name": "single_view"}``: what you
+    name explicitly, which wins over everything. ``preset`` is a preset's ``[overrides]``
+    (:func:`uevavd.presets.preset_overrides`), applied by the precedence rule of
+    :func:`layer_method`: it scales uevavd's shipped methods, and never replaces what your own
+    method file sets (``spec.preset_notes`` lists the preset keys not applied).
     Unknown keys or wrong types raise :class:`ConfigError`, listing the accepted keys.
     """
     path = _method_path(name_or_path)
-    data = _resolve_file(path)
-    apply_overrides(data, overrides)
-    source = _with_overrides(path, overrides) if overrides else str(path)
+    data, notes = layer_method(_resolve_chain(path), preset, overrides)
+    both = {**(preset or {}), **(overrides or {})}
+    source = _with_overrides(path, both) if both else str(path)
     validate(data, source)
-    return MethodSpec(name=data["name"], data=freeze(data), source=str(path))
+    return MethodSpec(name=data["name"], data=freeze(data), source=str(path), preset_notes=tuple(notes))
 
 
 def _with_overrides(source: Any, overrides: Mapping[str, Any]) -> str:
@@ -300,13 +318,15 @@ def _with_overrides(source: Any, overrides: Mapping[str, Any]) -> str:
 
 
 def as_method(spec_or_method: MethodSpec | str | os.PathLike[str],
-              overrides: Mapping[str, Any] | None = None) -> MethodSpec:
-    """A :class:`MethodSpec` from a spec, a registered method name or a TOML path, with
-    dotted ``overrides`` applied and validated: what an entry point that takes "a method"
-    resolves once, before handing its consumers the sections they need."""
+              overrides: Mapping[str, Any] | None = None, *,
+              preset: Mapping[str, Any] | None = None) -> MethodSpec:
+    """A :class:`MethodSpec` from a spec, a registered method name or a TOML path, with a
+    preset's ``[overrides]`` and dotted ``overrides`` applied by the precedence rule of
+    :func:`layer_method` and validated: what an entry point that takes "a method" resolves
+    once, before handing its consumers the sections they need."""
     if isinstance(spec_or_method, MethodSpec):
-        return spec_or_method.with_overrides(overrides)
-    return load_method(spec_or_method, overrides)
+        return spec_or_method.with_overrides(overrides, preset=preset)
+    return load_method(spec_or_method, overrides, preset=preset)
 
 
 def loads_method(text: str, source: str = "<string>") -> MethodSpec:
@@ -327,7 +347,7 @@ def known_methods() -> list[str]:
 
 
 __all__ = [
-    "COMPONENT_SECTIONS", "DATACLASS_SECTIONS", "PERCEPTION_KEYS", "TOP_KEYS", "TOP_SECTIONS", "Component", "ConfigError",
+    "COMPONENT_SECTIONS", "DATACLASS_SECTIONS", "component_of", "is_method_path", "is_shipped", "layer_method", "method_chain", "resolve_method_file", "PERCEPTION_KEYS", "TOP_KEYS", "TOP_SECTIONS", "Component", "ConfigError",
     "MethodSpec", "PerceptionSection", "apply_overrides", "as_method", "check_type", "known_methods", "load_method", "loads_method",
     "parse_override", "resolve_method_target", "validate",
 ]

@@ -50,21 +50,22 @@ def preset_overrides(preset: Mapping[str, Any]) -> dict[str, Any]:
 
 #: The ``--preset`` option's help, for every command that loads methods.
 PRESET_HELP = ("a preset (quick, paper64, paper) or its TOML path: the method is loaded with its [overrides] (encoder, "
-               "recognizer, network sizes, schedule), as `uevavd ablate --preset` does; --set wins over it")
+               "recognizer, network sizes, schedule), as `uevavd ablate --preset` does; what your own method file sets, "
+               "and --set, win over it")
 
 
-def cli_overrides(preset: str | None, sets: list[str]) -> dict[str, Any]:
-    """The method overrides of a command's ``--preset`` (none when None) and its ``--set
-    KEY=VALUE`` options, which win."""
-    over = preset_overrides(load_preset(preset)) if preset else {}
-    over.update(parse_override(s) for s in sets)
-    return over
+def cli_layers(preset: str | None, sets: list[str]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(the preset's [overrides], the --set KEY=VALUE keys)`` of a command: two layers of the
+    precedence rule (:func:`uevavd.config_layers.layer_method`), the command line's winning; the
+    preset's are empty when ``preset`` is None."""
+    return (preset_overrides(load_preset(preset)) if preset else {}), dict(parse_override(s) for s in sets)
 
 
 def world_root(preset: Mapping[str, Any]) -> Path:
-    """Where a preset's synthetic world is cached: ``<cache>/worlds/<name>-<digest of its
-    [world] table>`` (another seed, size or context count is another folder)."""
-    return cache_dir() / "worlds" / f"{preset.get('name', 'world')}-{json_digest(preset['world'], 12)}"
+    """Where a preset's synthetic world is cached: ``<cache>/worlds/world-<digest of its [world]
+    table>``, keyed by the world's content alone (another seed, size or context count is another
+    folder; a renamed or edited copy of a preset with the same world shares it)."""
+    return cache_dir() / "worlds" / f"world-{json_digest(preset['world'], 12)}"
 
 
 def world_contexts(preset: Mapping[str, Any], split: str | None = None) -> list[int]:

@@ -167,7 +167,7 @@ class Zoo:
         if self.manifest["recognizer"]["settings"] != recognizer_settings(preset, 0):
             out.append("the preset's [classifier] recipe changed since the recognizer was trained")
         for m, rec in self.manifest["policies"].items():
-            spec = load_method(m, overrides=preset_overrides(preset))
+            spec = load_method(m, preset=preset_overrides(preset))
             if spec.hash != rec["spec_hash"]:
                 out.append(f"method {m!r} with the preset's overrides now hashes to {spec.hash}, the shipped "
                            f"policy was trained as {rec['spec_hash']}")

@@ -514,16 +514,21 @@ def test_each_scene_is_keyed_by_its_own_files(built, own_tiny_world, tiny_classi
 
 
 def test_prepare_with_a_preset(built, tiny_world, tiny_classifier, tmp_path, capsys):
-    """``prepare --preset`` builds the table of the method loaded with the preset's
-    [overrides]: the table ``plan_table`` keys with those overrides."""
+    """``prepare --preset`` builds the table of the method loaded with the preset's [overrides]
+    by the precedence rule: a key the method file sets itself keeps the file's value, and
+    ``--set`` wins over both."""
     from uevavd.cli import main
 
-    method, path = built
+    method, path = built  # its file sets perception.gray_seed = 0
     preset = tmp_path / "mine.toml"
-    preset.write_text('name = "mine"\n[overrides]\n"perception.gray_seed" = 7\n')
+    preset.write_text('name = "mine"\n[overrides]\n"perception.gray_seed" = 7\n"perception.encoder.seed" = 3\n')
     capsys.readouterr()
-    assert main(["prepare", str(tiny_world), "--method", str(method), "--preset", str(preset), "--classifier",
-                 str(tiny_classifier), "--out", str(path.parent)]) == 0
+    args = ["prepare", str(tiny_world), "--method", str(method), "--preset", str(preset), "--classifier",
+            str(tiny_classifier), "--out", str(path.parent)]
+    assert main(args) == 0
+    printed = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed == path  # the file's gray_seed and encoder seed, not the preset's
+    assert main([*args, "--set", "perception.gray_seed=7"]) == 0
     printed = Path(capsys.readouterr().out.strip().splitlines()[-1])
     want = prep.plan_table(tiny_world, method, classifier_path=tiny_classifier,
                            overrides={"perception.gray_seed": 7}).key

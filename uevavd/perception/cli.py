@@ -6,7 +6,7 @@ import argparse
 import logging
 
 from ..config_rules import check_count
-from ..presets import PRESET_HELP, cli_overrides
+from ..presets import PRESET_HELP, cli_layers
 
 
 def _logging() -> None:
@@ -88,7 +88,7 @@ def add_prepare(p: argparse.ArgumentParser):
                    help="Ray tasks to split the scenes into (default: the cluster's CPUs)")
 
     def run(args) -> int:
-        overrides = cli_overrides(args.preset, args.overrides)  # bad input before any work
+        preset, overrides = cli_layers(args.preset, args.overrides)  # bad input before any work
         check_count("--workers", args.workers)
         if args.threads is not None:
             check_count("--threads", args.threads)
@@ -105,10 +105,12 @@ def add_prepare(p: argparse.ArgumentParser):
             from .prepare_ray import prepare_table_ray
 
             path = prepare_table_ray(args.data, args.method, classifier_path=args.classifier,
-                                     overrides=overrides or None, out_dir=args.out, shards=args.shards)
+                                     overrides=overrides or None, preset=preset or None, out_dir=args.out,
+                                     shards=args.shards)
         else:
             path = prepare_table(args.data, args.method, classifier_path=args.classifier,
-                                 overrides=overrides or None, out_dir=args.out, workers=args.workers)
+                                 overrides=overrides or None, preset=preset or None, out_dir=args.out,
+                                 workers=args.workers)
         print(path)
         return 0
 

@@ -264,11 +264,12 @@ def plan_table(
     *,
     classifier_path: str | os.PathLike[str] | None = None,
     overrides: Mapping[str, Any] | None = None,
+    preset: Mapping[str, Any] | None = None,
 ) -> TablePlan:
     """Read the dataset, build the components and compute the table key (no images decoded).
     The method is resolved here, once; what follows reads its perception section only."""
     data_root = Path(data_root).expanduser().resolve()
-    spec = as_method(spec_or_method, overrides)
+    spec = as_method(spec_or_method, overrides, preset=preset)
     perception = spec.perception
     manifest = read_dataset(data_root)
     scenes = context_scenes(manifest)
@@ -311,6 +312,7 @@ def prepare_table(
     overrides: Mapping[str, Any] | None = None,
     out_dir: str | os.PathLike[str] | None = None,
     workers: int = 2,
+    preset: Mapping[str, Any] | None = None,
     progress: bool = True,
     only_scenes: Sequence[str] | None = None,
     assemble: bool = True,
@@ -326,7 +328,7 @@ def prepare_table(
     """
     from tqdm.auto import tqdm
 
-    p = plan_table(data_root, spec_or_method, classifier_path=classifier_path, overrides=overrides)
+    p = plan_table(data_root, spec_or_method, classifier_path=classifier_path, overrides=overrides, preset=preset)
     data_root, manifest, scenes = p.data_root, p.manifest, p.scenes
     segmenter, encoder, classifier, gray_seed = p.segmenter, p.encoder, p.classifier, p.gray_seed
     parts, key = p.parts, p.key

@@ -35,6 +35,7 @@ def prepare_table_ray(
     *,
     classifier_path: str | os.PathLike[str] | None = None,
     overrides: Mapping[str, Any] | None = None,
+    preset: Mapping[str, Any] | None = None,
     out_dir: str | os.PathLike[str] | None = None,
     shards: int | None = None,
     cpus_per_task: float = 1.0,
@@ -57,7 +58,7 @@ def prepare_table_ray(
         raise RuntimeError("--backend ray needs Ray: pip install 'uevavd[ray]'") from None
     from tqdm.auto import tqdm
 
-    spec = as_method(spec_or_method, overrides)
+    spec = as_method(spec_or_method, overrides, preset=preset)
     p = plan_table(data_root, spec, classifier_path=classifier_path)
     out_dir = Path(out_dir).expanduser().resolve() if out_dir is not None else tables_dir()
     final = out_dir / p.key

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
 from ..atomic import atomic_write_json
 from ..cli import error as _error
-from ..presets import PRESET_HELP, cli_overrides, known_presets
+from ..presets import PRESET_HELP, cli_layers, known_presets
 from ..runtime import usable_cores
 from .rundir import RunDir
 
@@ -61,7 +62,8 @@ def _with_preset_hint(args: argparse.Namespace, exc: BaseException) -> BaseExcep
             if name == args.preset:
                 continue
             try:
-                spec = load_method(args.method, cli_overrides(name, args.set))
+                preset, sets = cli_layers(name, args.set)
+                spec = load_method(args.method, sets, preset=preset)
                 check_table_perception(spec.perception, table, args.method)
             except (PerceptionMismatch, ValueError):
                 continue
@@ -105,8 +107,10 @@ def add_train(p: argparse.ArgumentParser):
 
         try:
             sets = [*args.set, *([f"train.threads={args.threads}"] if args.threads is not None else [])]
-            overrides = cli_overrides(args.preset, sets)
-            spec = load_method(args.method, overrides)
+            preset, overrides = cli_layers(args.preset, sets)
+            spec = load_method(args.method, overrides, preset=preset)
+            for note in spec.preset_notes:
+                print(f"{spec.name}: the preset's {note}", file=sys.stderr)
         except (ConfigError, *BAD_INPUT) as exc:
             return _error("train", exc)
         was_done = RunDir(args.out).finished  # the same run again: nothing to do, not an error

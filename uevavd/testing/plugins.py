@@ -231,7 +231,7 @@ def _check_method(entry: Entry, report: PluginReport, presets: tuple[str, ...], 
     what = f"method {entry.name}"
     for preset in (None, *presets):
         over = preset_overrides(load_preset(preset)) if preset else {}
-        spec = load_method(entry.name, overrides=over or None)
+        spec = load_method(entry.name, preset=over or None)
         spec.train_config()
         report.checked.append(f"{what} loads" + (f" with preset {preset}'s overrides" if preset else ""))
     if not episodes:
