@@ -35,7 +35,7 @@ def test_pretrained_policy_reproduces_its_published_numbers_on_a_fresh_context(t
     frame, published, per_context = uevavd.evaluate_pretrained("map", "hard", contexts=[26], workers=1,
                                                                progress=False, baselines=False)
     # the world was rendered here, byte for byte the one the zoo was trained and evaluated on
-    scene = next((tmp_path / "cache" / "worlds").glob("quick-*-26")) / "026" / "scene.json"
+    scene = next((tmp_path / "cache" / "worlds").glob("world-*-26")) / "026" / "scene.json"
     assert scene_digest(scene) == zoo.manifest["world"]["scenes"]["026"]
     assert list(per_context["context"]) == [26]
     assert {k: float(frame.loc["map", k]) for k in PUBLISHED} == published

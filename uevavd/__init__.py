@@ -17,13 +17,16 @@ from .version import __version__
 
 #: The researcher's API (:mod:`uevavd.api`), importable from the top level.
 API = ("train_classifier", "build_table", "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained",
-       "policy_network", "save_network")
+       "policy_network", "save_network", "ablate", "Ablation")
 __all__ = ["__version__", "load_method", "load_preset", "MethodSpec", "registry", "train_classifier", "build_table",
-           "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained", "policy_network", "save_network"]
+           "train", "load_run", "Run", "load_policy_file", "evaluate_pretrained", "policy_network", "save_network",
+           "ablate", "Ablation"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from .api import (
+        Ablation,
         Run,
+        ablate,
         build_table,
         evaluate_pretrained,
         load_policy_file,

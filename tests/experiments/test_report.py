@@ -240,12 +240,16 @@ def test_report_has_every_section_and_figure(tmp_path):
     assert hard.loc["passive", "return_ci_lo"] == hard.loc["passive", "return_ci_hi"] == pytest.approx(-0.2)
     # no stray temp files from the atomic writes
     assert sorted(p.name for p in (d / "report").iterdir()) == [
-        "fig8_strips.pdf", "fig8_strips.png", "fig9_curves.pdf", "fig9_curves.png", "report.md", "summary.csv"]
+        "arms.csv", "fig8_strips.pdf", "fig8_strips.png", "fig9_curves.pdf", "fig9_curves.png", "report.md",
+        "summary.csv"]
+    # the thre settings of IBE-MAP against its default, paired seed by seed
+    arms = pd.read_csv(d / "report" / "arms.csv")
+    assert set(arms["method"]) == {"ibe_map"} and "## Arms against the default" in text
     # figures=False (--no-figures): the same report but for the figure links, and the figures
     # drawn above removed, so that none of other data is left beside it
     drawn = text.split("\n")
     plain = write_report(d, figures=False).read_text(encoding="utf-8").split("\n")
-    assert sorted(p.name for p in (d / "report").iterdir()) == ["report.md", "summary.csv"]
+    assert sorted(p.name for p in (d / "report").iterdir()) == ["arms.csv", "report.md", "summary.csv"]
     links = [i for i, line in enumerate(drawn) if line.startswith("![")]
     assert [drawn[i] for i in links] == ["![Fig. 9: learning curves](fig9_curves.png)",
                                          "![Fig. 8: observation sequences](fig8_strips.png)"]

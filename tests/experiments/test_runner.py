@@ -304,7 +304,7 @@ def test_bad_presets_and_sweeps_are_refused(tmp_path):
         make_plan(preset="quik", out=tmp_path / "a")
     with pytest.raises(AblationError, match=r"--sweep 'gamma'"):
         parse_sweeps(["gamma"])
-    for key, message in (("gamma", "expected thre, C or a dotted key"), ("perception.gray_seed", "other tables"),
+    for key, message in (("gamma", "expected thre, C or a dotted key"), ("perception.gray_seed", r"perception.gray_seed = 'abc': expected int"),
                          ("stat.hidden", "did you mean 'state'"), ("thr", "did you mean 'thre'"),
                          ("env.xi2", r"--sweep env.xi2='abc' for method 'map'.*wrong type")):
         with pytest.raises(AblationError, match=message):

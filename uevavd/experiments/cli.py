@@ -33,16 +33,30 @@ def add_ablate(parser: argparse.ArgumentParser):
 
     parser.add_argument("--preset", default="quick", help=f"one of {known_presets()} or a TOML path")
     parser.add_argument("--methods", nargs="+", default=None, metavar="METHOD",
-                        help="methods to compare (default: the preset's, map memo_map ibe_map)")
+                        help="methods to compare, by registered name or method-file path (my_ibe.toml; its `name` "
+                             "names its rows): default the preset's, map memo_map ibe_map")
     parser.add_argument("--seeds", type=int, default=None, help="seeds per method and setting (default: the preset's)")
     parser.add_argument("--recognizers", type=int, default=None,
                         help="recognizers (seeds of the classifier, each with its own tables) crossed with the "
                              "seeds (default: the preset's)")
     parser.add_argument("--sweep", action="append", default=None, metavar="KEY=V1,V2,...",
                         help="sweep one key from the default: thre, C (the paper's) or any dotted key of a method's "
-                             "env/train/state/head section, e.g. --sweep thre=0.2,0.4,0.6,0.8 --sweep env.xi2=0.05,0.2; "
-                             "--sweep env.train_per_block=4,10,20 varies the number of training contexts per target "
-                             "block for every method, on a world holding the most asked and every test context")
+                             "env/train/state/head/perception section, e.g. --sweep thre=0.2,0.4,0.6,0.8 --sweep "
+                             "env.xi2=0.05,0.2 --sweep perception.encoder.name=efficientnet_lite0,resnet18 --sweep "
+                             "perception.decompose=true,false. A component's name switches its arguments with it (the "
+                             "new builder's defaults); give a component whole to set them: --sweep 'perception.encoder="
+                             "{name=\"resnet18\",weights=\"random\"},{name=\"resnet50\",weights=\"file:/w/r50.pth\"}'. "
+                             "A perception value builds its own observation table once (cached). --sweep "
+                             "env.train_per_block=4,10,20 varies the number of training contexts per target block for "
+                             "every method, on a world holding the most asked and every test context")
+    parser.add_argument("--cross", action="store_true", default=None,
+                        help="cross the --sweep axes (a factorial: every combination of their values, e.g. --sweep "
+                             "state.name=single_view,gru --sweep perception.decompose=false,true --cross) instead of "
+                             "varying one key at a time from the default")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="sets",
+                        help="set a method key for every method of the ablation, like `uevavd train --set`, e.g. "
+                             "--set perception.encoder.weights=random. Precedence, later wins: uevavd's method files, "
+                             "the preset's [overrides], your method files (the keys they set), --set, --sweep")
     parser.add_argument("--sweep-methods", nargs="+", default=None, metavar="METHOD",
                         help="methods the sweeps run on (default: the preset's [ablation] sweep_methods among "
                              "--methods, else the last of --methods); env.train_per_block runs on every method")
@@ -65,15 +79,21 @@ def add_ablate(parser: argparse.ArgumentParser):
 
 
 def run_ablate(args: argparse.Namespace) -> int:
+    from ..config_rules import parse_override
     from .runner import make_plan, parse_sweeps, run_ablation
 
     try:
+        sets = dict(parse_override(s) for s in args.sets)
         plan = make_plan(preset=args.preset, out=args.out, methods=args.methods, seeds=args.seeds,
                          sweeps=parse_sweeps(args.sweep) if args.sweep else None,
                          sweep_methods=args.sweep_methods, data=args.data, workers=args.workers,
                          backend=args.backend, device=args.device, episodes=args.episodes,
                          gpus_per_run=args.gpus_per_run, recognizers=args.recognizers, sb3=args.sb3,
-                         use_zoo=args.use_zoo, world_seed=args.world_seed, figures=args.figures)
+                         use_zoo=args.use_zoo, world_seed=args.world_seed, figures=args.figures, sets=sets,
+                         cross=args.cross)
+        for m in plan.methods:  # what a method file kept out of the preset, said before any work
+            for note in plan.spec(m).preset_notes:
+                print(f"{m}: the preset's {note}")
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("ablate", exc)
@@ -130,20 +150,32 @@ def run_demo(args: argparse.Namespace) -> int:
 
 
 def add_report(parser: argparse.ArgumentParser):
-    """``uevavd report DIR``: (re)write DIR/report/report.md from the ablation's files."""
-    parser.add_argument("dir", type=Path, metavar="DIR", help="ablation directory holding results.csv")
+    """``uevavd report DIR``: (re)write DIR/report/report.md from the ablation's files;
+    ``uevavd report DIR1 DIR2 ... --out DIR``: one report for several ablations."""
+    parser.add_argument("dir", type=Path, nargs="+", metavar="DIR", help="ablation directory holding results.csv; "
+                        "several with --out to merge them")
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
+                        help="merge the ablations DIR1 DIR2 ... (the same world, recognizers and evaluation: "
+                             "checked) into DIR and write one report there: one table, one set of paired "
+                             "intervals and one figure set for arms run on two days or two machines")
     parser.add_argument("--window", type=int, default=None,
                         help="sliding-window length (evaluation points) for the curves; default min(5, points/3)")
     _no_figures(parser)
 
     def handler(args: argparse.Namespace) -> int:
         from .claims import check_claims
+        from .io import ABLATION_FILE, read_ablation_meta
+        from .merge import merge_ablations
         from .report import write_report
         from .report_data import load_results
 
-        path = write_report(args.dir, window=args.window, figures=args.figures)
+        if len(args.dir) > 1 and args.out is None:
+            return _error("report", f"{len(args.dir)} folders given: merge them into one report with --out DIR")
+        folder = merge_ablations(args.dir, args.out) if args.out is not None else args.dir[0]
+        path = write_report(folder, window=args.window, figures=args.figures)
         print(path)
-        for c in check_claims(load_results(args.dir / "results.csv")):
+        meta = read_ablation_meta(folder / ABLATION_FILE) if (folder / ABLATION_FILE).is_file() else {}
+        for c in check_claims(load_results(folder / "results.csv"), meta.get("lineage")):
             print(f"({c.id}) {c.verdict}: {c.text}")
         return 0
 

@@ -25,7 +25,7 @@ def save_spec(spec: MethodSpec, path: Path) -> Path:
     return path
 
 
-def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
+def plan_jobs(plan: Plan, tables: dict[int, dict]) -> list[Job]:
     jobs = []
     for m in plan.methods:
         for setting_name, setting in plan.settings(m):
@@ -35,7 +35,8 @@ def plan_jobs(plan: Plan, tables: dict[int, dict[str, Path]]) -> list[Job]:
             for r in plan.recognizers:
                 for seed in plan.seeds:
                     out = plan.out / "runs" / m / setting_name / f"rec{r}" / f"seed{seed}"
-                    jobs.append(Job(m, setting_name, seed, str(spec_path), str(tables[r][m]), str(out),
+                    table = tables[r].get((m, setting_name), tables[r][m])
+                    jobs.append(Job(m, setting_name, seed, str(spec_path), str(table), str(out),
                                     device=plan.device, recognizer=r, episodes=episodes))
     return jobs
 

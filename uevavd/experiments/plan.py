@@ -12,21 +12,32 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..config import MethodSpec, known_methods, load_method, parse_override
-from ..config_rules import check_count, did_you_mean
+from ..config import (
+    COMPONENT_SECTIONS,
+    MethodSpec,
+    is_shipped,
+    load_method,
+    method_chain,
+)
+from ..config_rules import check_count, did_you_mean, thaw
 from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
 from ..perception.training.classifier import ClassifierRecipe
 from ..presets import load_preset, preset_overrides
 from ..runtime import resolve_device, usable_cores
+from .axes import SB3_AGENTS as SB3_AGENTS
+from .axes import SWEEPABLE as SWEEPABLE
+from .axes import AblationError as AblationError
+from .axes import file_digest, method_names, parse_sb3, resolved_value, same_value, value_label
+from .axes import parse_sweeps as parse_sweeps
 
+#: The paper's three methods, whose claims the report checks.
+PAPER_METHODS = ("map", "memo_map", "ibe_map")
 #: The paper's default reward settings; sweeps vary one of them.
 DEFAULT_SETTING = {"thre": EnvConfig.thre, "C": EnvConfig.C}
-#: The paper's two sweeps, by their short names; any other dotted key of a method (env.*,
-#: train.*, state.*, head.*; not perception.*, which would need other tables) sweeps too.
-SWEEPABLE = {"thre": "env.thre", "C": "env.C"}
-#: The method sections whose dotted keys an ablation sweeps (perception keys would need other tables).
-SWEEP_SECTIONS = ("env", "train", "state", "head")
+#: The method sections whose dotted keys an ablation sweeps; a perception value builds its own
+#: observation tables (cached like every table).
+SWEEP_SECTIONS = ("env", "train", "state", "head", "perception")
 #: The number of training contexts (per target block): swept for every method, on one world
 #: that holds the most training contexts asked and every test context (see :func:`make_plan`).
 CONTEXTS_KEY = "env.train_per_block"
@@ -36,34 +47,7 @@ MAX_RECOGNIZERS = 100
 
 PRESET_SECTIONS = {"name", "description", "world", "overrides", "classifier", "ablation"}
 SECTION_KEYS = {"world": {"seed", "size", "per_block"},
-                "ablation": {"methods", "seeds", "recognizers", "sweeps", "sweep_methods"}}
-
-
-#: The agents ``--sb3`` accepts, by their row name: SB3 class name.
-SB3_AGENTS: dict[str, str] = {"sb3_dqn": "DQN", "sb3_ppo": "PPO"}
-
-
-def parse_sb3(text: str | None) -> tuple[str, ...]:
-    """``"dqn,ppo"`` -> ``("sb3_dqn", "sb3_ppo")``; an unknown name is a ValueError naming the accepted ones."""
-    if not text:
-        return ()
-    names = []
-    for part in text.split(","):
-        name = f"sb3_{part.strip().lower()}"
-        if name not in SB3_AGENTS:
-            raise ValueError(f"--sb3 {part.strip()!r}: expected a comma-separated list of "
-                             f"{[n.removeprefix('sb3_') for n in SB3_AGENTS]}")
-        names.append(name)
-    try:
-        import stable_baselines3  # noqa: F401
-    except ImportError:
-        raise ValueError("--sb3 needs stable-baselines3: pip install -e \".[sb3]\"") from None
-    return tuple(dict.fromkeys(names))
-
-
-
-class AblationError(ValueError):
-    """Bad ablation input; the message names the value and what is accepted."""
+                "ablation": {"methods", "seeds", "recognizers", "sweeps", "sweep_methods", "cross"}}
 
 
 @dataclass
@@ -95,6 +79,13 @@ class Plan:
     #: draw the report's figures (``--no-figures``: its text and tables only); not part of
     #: the fingerprint, as the report is rewritten from the files at every run
     figures: bool = True
+    #: ``--set KEY=V`` of every method: the command line, which wins over the preset and the
+    #: method files (:func:`uevavd.config_layers.layer_method`)
+    sets: dict[str, Any] = field(default_factory=dict)
+    #: method name -> its file, for methods given by path (``--methods my_ibe.toml``)
+    method_files: dict[str, str] = field(default_factory=dict)
+    #: cross the swept axes (a factorial) instead of varying one key at a time from the default
+    cross: bool = False
 
     def spec(self, method: str, setting: Mapping[str, Any] = DEFAULT_SETTING) -> MethodSpec:
         """The resolved spec of ``method`` under ``setting`` (the preset's overrides, the
@@ -102,24 +93,37 @@ class Plan:
         cache = self.__dict__.setdefault("_specs", {})
         key = (method, json.dumps(dict(setting), sort_keys=True, default=str))
         if key not in cache:
-            cache[key] = load_method(method, overrides=method_overrides(self, method, setting))
+            cache[key] = load_method(self.method_files.get(method, method), preset=preset_overrides(self.preset),
+                                     overrides=method_overrides(self, method, setting))
         return cache[key]
 
     def __getstate__(self) -> dict[str, Any]:  # a plan sent to a worker carries no resolved specs
         return {k: v for k, v in self.__dict__.items() if k != "_specs"}
 
     def settings(self, method: str) -> list[tuple[str, dict[str, Any]]]:
-        """(name, {thre, C[, swept key]}) of each setting this method runs: "default" plus the
+        """(name, {thre, C[, swept keys]}) of each setting this method runs: "default" plus the
         sweeps if it is a sweep method, and the number of training contexts (:data:`CONTEXTS_KEY`)
-        whatever it is (one key varied at a time from the default)."""
-        out = [("default", dict(DEFAULT_SETTING))]
+        whatever it is. One key varied at a time from the default, or with ``cross`` every
+        combination of the swept values (a factorial); a value equal to the method's own is its
+        default and runs once."""
         spec = self.spec(method) if self.extra_sweeps else None
+        axes = []
         for key, values in self.sweeps.items():
             if method in self.sweep_methods or key == CONTEXTS_KEY:
-                for v in values:
-                    s = dict(DEFAULT_SETTING, **{key: v})
-                    if s != DEFAULT_SETTING and (key in SWEEPABLE or v != resolved_value(spec, key)):
-                        out.append((f"{key}={v:g}" if isinstance(v, int | float) else f"{key}={v}", s))
+                own = DEFAULT_SETTING[key] if key in SWEEPABLE else resolved_value(spec, key)
+                axes.append((key, [v for v in values if not same_value(v, own)]))
+        combos: list[dict[str, Any]] = [{}]
+        if self.cross:
+            for key, values in axes:
+                combos = combos + [{**c, key: v} for c in combos for v in values]
+        else:
+            combos += [{key: v} for key, values in axes for v in values]
+        out, seen = [], set()
+        for combo in combos:
+            name = "+".join(f"{k}={value_label(v)}" for k, v in combo.items()) or "default"
+            if name not in seen:
+                seen.add(name)
+                out.append((name, dict(DEFAULT_SETTING, **combo)))
         return out
 
     @property
@@ -135,45 +139,36 @@ class Plan:
         return list(seen.items())
 
     def fingerprint(self) -> dict[str, Any]:
-        """What makes two ablations comparable: the preset's content and the data source."""
+        """What makes two ablations comparable: the preset's content, the data source, the
+        command line's ``--set`` and the content of every method given by path (a changed
+        file is another ablation)."""
         preset = {k: v for k, v in self.preset.items() if k not in ("ablation", "description")}
-        return {"preset": preset, "data": str(self.data) if self.data else None, "episodes": self.episodes,
-                "workers": self.workers}
+        out = {"preset": preset, "data": str(self.data) if self.data else None, "episodes": self.episodes,
+               "workers": self.workers}
+        if self.sets:
+            out["sets"] = dict(sorted(self.sets.items()))
+        if self.method_files:
+            out["method_files"] = {m: file_digest(p) for m, p in sorted(self.method_files.items())}
+        return out
 
+    def lineage(self, method: str) -> str | None:
+        """The paper's method (map, memo_map, ibe_map) that ``method`` derives from: the last of
+        them in its inheritance chain, None when none is (the claims judge a derived arm in its
+        place where the paper's own is not run)."""
+        chain = method_chain(self.method_files.get(method, method))
+        paper = [p.stem for p in chain if is_shipped(p) and p.stem in PAPER_METHODS]
+        return paper[-1] if paper else None
 
-def resolved_value(spec: Any, key: str) -> Any:
-    """The value dotted ``key`` has in a resolved spec: the file's, else EnvConfig's or
-    TrainConfig's default for env.* and train.* keys (None for a builder argument left unset)."""
-    section, _, field_name = key.partition(".")
-    if section == "env":
-        return getattr(spec.env, field_name, None)
-    if section == "train":
-        return getattr(spec.train_config(), field_name, None)
-    return spec.get(key)
-
-
-def parse_sweeps(items: Sequence[str] | None) -> dict[str, list[Any]]:
-    """``["thre=0.2,0.4", "env.xi2=0.05,0.2"]`` -> ``{"thre": [0.2, 0.4], "env.xi2": [0.05, 0.2]}``.
-    thre and C are numbers; a dotted key's values are read like ``--set`` values (TOML:
-    ``train.batch_size=32,128`` gives integers). Keys are checked by :func:`make_plan`."""
-    sweeps: dict[str, list[Any]] = {}
-    for item in items or []:
-        key, sep, values = item.partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise AblationError(f"--sweep {item!r}: expected KEY=V1,V2,... with KEY thre, C or a method's dotted key "
-                                "(e.g. env.xi2, train.lr)")
-        raw = [v.strip() for v in values.split(",") if v.strip()]
-        if key in SWEEPABLE:
-            try:
-                sweeps[key] = [float(v) for v in raw]
-            except ValueError:
-                raise AblationError(f"--sweep {item!r}: values must be numbers separated by commas") from None
-        else:
-            sweeps[key] = [parse_override(f"{key}={v}")[1] for v in raw]
-        if not sweeps[key]:
-            raise AblationError(f"--sweep {item!r}: no values")
-    return sweeps
+    def components(self, method: str, setting: Mapping[str, Any] = DEFAULT_SETTING) -> dict[str, Any]:
+        """The components a run of ``method`` under ``setting`` uses, as resolved: every component
+        section's name and arguments, and the perception switches (what ``ablation.json`` and the
+        report name, so that nobody has to trust the preset's text)."""
+        spec = self.spec(method, setting)
+        out: dict[str, Any] = {s: thaw(spec.get(s)) for s in COMPONENT_SECTIONS if spec.get(s) is not None}
+        out["perception.decompose"] = bool(spec.get("perception.decompose", False))
+        if spec.preset_notes:
+            out["preset keys not applied"] = list(spec.preset_notes)
+        return out
 
 
 def make_plan(
@@ -195,6 +190,8 @@ def make_plan(
     use_zoo: bool = True,
     world_seed: int | None = None,
     figures: bool = True,
+    sets: Mapping[str, Any] | None = None,
+    cross: bool | None = None,
 ) -> Plan:
     try:
         cfg = load_preset(preset)
@@ -216,11 +213,9 @@ def make_plan(
     if data is None and "world" not in cfg:
         raise AblationError(f"preset {preset!r} has no [world] section: pass --data DATASET_ROOT")
     abl = cfg.get("ablation", {})
-    methods = list(methods or abl.get("methods", ["map", "memo_map", "ibe_map"]))
-    known = known_methods()
-    for m in methods:
-        if m not in known:
-            raise AblationError(f"unknown method {m!r}: known methods are {known} (see `uevavd plugins`)")
+    methods, method_files = method_names(methods or abl.get("methods", ["map", "memo_map", "ibe_map"]))
+    if sweep_methods is not None:
+        sweep_methods, _ = method_names(sweep_methods, method_files)
     # each seed is a run per method, recognizer and setting: 10**9 seeds was the kernel's kill
     n_seeds = check_count("--seeds", seeds if seeds is not None else abl.get("seeds", 1), high=MAX_SEEDS,
                           exc=AblationError)
@@ -240,8 +235,11 @@ def make_plan(
         section = key.split(".", 1)[0]
         if section not in SWEEP_SECTIONS or "." not in key:
             hint = did_you_mean(section, SWEEP_SECTIONS) if "." in key else did_you_mean(key, list(SWEEPABLE))
-            raise AblationError(f"sweep over {key!r}: expected thre, C or a dotted key of a method's env, train, state "
-                                f"or head section (perception keys would need other tables: run another ablation){hint}")
+            raise AblationError(f"sweep over {key!r}: expected thre, C or a dotted key of a method's env, train, state, "
+                                f"head or perception section{hint}")
+        if key in (sets or {}):
+            raise AblationError(f"--set {key} and --sweep {key} name the same key: sweep it, with the --set value "
+                                "among the sweep's values, or set it")
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
         sweep_methods = [m for m in abl.get("sweep_methods", [methods[-1]]) if m in methods]
     sweep_methods = list(sweep_methods)
@@ -287,6 +285,9 @@ def make_plan(
         sb3=sb3_agents,
         use_zoo=bool(use_zoo),
         figures=bool(figures),
+        sets=dict(sets or {}),
+        method_files=method_files,
+        cross=bool(abl.get("cross", False) if cross is None else cross),
     )
     _resolve_specs(plan, preset)
     return plan
@@ -305,7 +306,8 @@ def _resolve_specs(plan: Plan, preset: str) -> None:
             swept = {k: v for k, v in setting.items() if k not in DEFAULT_SETTING or DEFAULT_SETTING[k] != v}
             where = (", ".join(f"--sweep {k}={v!r}" for k, v in swept.items()) if swept
                      else f"preset {preset!r} [overrides]" + (f" with --episodes {plan.episodes}"
-                                                              if plan.episodes is not None else ""))
+                                                              if plan.episodes is not None else "")
+                     + "".join(f", --set {k}={v!r}" for k, v in plan.sets.items()))
             raise AblationError(f"{where} for method {m!r}: {exc}") from None
 
 
@@ -344,7 +346,10 @@ def default_workers() -> int:
 # -- stages ---------------------------------------------------------------------------------
 
 def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
-    over = preset_overrides(plan.preset)
+    """The command line's keys of a run: ``--set``, the setting's swept keys (thre and C as
+    env keys) and ``--episodes``; the preset's ``[overrides]`` are a lower layer
+    (:func:`uevavd.config_layers.layer_method`), applied by :meth:`Plan.spec`."""
+    over = dict(plan.sets)
     over.update({SWEEPABLE.get(k, k): v for k, v in setting.items()})
     if plan.episodes is not None:
         over["train.episodes"] = int(plan.episodes)

@@ -9,22 +9,18 @@ rebuilt from the run directories at the end, plus ``DIR/report/``.
 
 import json
 from pathlib import Path
+from typing import Any
 
 from ..atomic import atomic_write_json, is_temporary, write_sealed_json
 from ..config_rules import ConfigError
 from ..env.baselines import check_baselines
 from ..policy.contract import build_checked_network
 from .audit import audit_table, classifier_summary
+from .axes import parse_sweeps, resolved_value, value_label
 from .backends import run_jobs
 from .io import ABLATION_FILE, read_ablation_meta, write_csv
 from .jobs import Job, plan_jobs, run_job
-from .plan import (
-    AblationError,
-    Plan,
-    make_plan,
-    parse_sweeps,
-    resolved_value,
-)
+from .plan import AblationError, Plan, make_plan
 from .references import sb3_rows
 from .report import write_report
 from .report_data import roles_now
@@ -61,23 +57,40 @@ def check_out_dir(plan: Plan) -> None:
         )
 
 
+def perception_line(perception: dict) -> str:
+    """"encoder NAME (WEIGHTS), segmenter NAME[, decomposed], recognizer NAME" of a perception section."""
+    enc, seg, clf = perception.get("encoder", {}), perception.get("segmenter", {}), perception.get("classifier", {})
+    return (f"encoder {enc.get('name')} ({enc.get('weights', 'default weights')}), segmenter "
+            f"{seg.get('name')}{', decomposed' if perception.get('decompose') else ''}, recognizer {clf.get('name')}")
+
+
 def perception_summary(plan: Plan) -> dict[str, str]:
     """``{method: "encoder NAME (WEIGHTS), segmenter NAME, recognizer NAME"}`` as the runs
-    see them, and ``{"recognizer training": settings}``: what the report names as the
+    see them (``"method @ setting"`` for a setting whose perception differs from the method's
+    default), and ``{"recognizer training": settings}``: what the report names as the
     perception every method used."""
     out = {}
     for m in plan.methods:
-        p = plan.spec(m).perception.as_dict()
-        enc, seg, clf = p.get("encoder", {}), p.get("segmenter", {}), p.get("classifier", {})
-        out[m] = (f"encoder {enc.get('name')} ({enc.get('weights', 'default weights')}), segmenter "
-                  f"{seg.get('name')}{', decomposed' if p.get('decompose') else ''}, recognizer {clf.get('name')}")
+        out[m] = perception_line(plan.spec(m).perception.as_dict())
+        for name, setting in plan.settings(m)[1:]:
+            line = perception_line(plan.spec(m, setting).perception.as_dict())
+            if line != out[m]:
+                out[f"{m} @ {name}"] = line
     out["recognizer training"] = json.dumps(plan.preset.get("classifier", {}), sort_keys=True)
     return out
+
+
+def components_summary(plan: Plan) -> dict[str, dict[str, Any]]:
+    """``{method: {setting: components}}``: every run's components as resolved
+    (:meth:`Plan.components`), the preset keys a method file kept out included."""
+    return {m: {name: plan.components(m, setting) for name, setting in plan.settings(m)} for m in plan.methods}
 
 
 def write_meta(plan: Plan, data: Path | None, status: str) -> None:
     meta = {
         "perception": perception_summary(plan),
+        "components": components_summary(plan),
+        "lineage": {m: plan.lineage(m) for m in plan.methods},
         "preset": plan.preset.get("name"),
         "fingerprint": plan.fingerprint(),
         "methods": plan.methods,
@@ -85,6 +98,9 @@ def write_meta(plan: Plan, data: Path | None, status: str) -> None:
         "recognizers": len(plan.recognizers),
         "sweeps": plan.sweeps,
         "sweep_methods": plan.sweep_methods,
+        "cross": plan.cross,
+        "sets": plan.sets,
+        "method_files": plan.method_files,
         "backend": plan.backend,
         "data_root": str(data) if data else None,
         "stages": {k: round(v, 2) for k, v in plan.stages.items()},
@@ -108,6 +124,7 @@ def _with_swept_columns(plan: Plan, rows: list[dict]) -> tuple[list[dict], list[
     defaults = {m: {k: resolved_value(resolved.get(m) or first, k) for k in extra}
                 for m in {*resolved, *(r["method"] for r in rows)}}
     rows = [{**defaults[r["method"]], **r} for r in rows]
+    rows = [{**r, **{k: value_label(r[k]) for k in extra if isinstance(r.get(k), dict | list | bool)}} for r in rows]
     at = RESULT_COLUMNS.index("C") + 1
     return rows, [*RESULT_COLUMNS[:at], *extra, *RESULT_COLUMNS[at:]]
 
@@ -122,9 +139,37 @@ def check_components(plan: Plan) -> None:
 
     with torch.random.fork_rng(devices=[]):  # the checks draw nothing a run's numbers depend on
         for method in plan.methods:
-            spec = plan.spec(method)
-            build_checked_network(spec.state, spec.head, 16, n_ranges=spec.env.max_range)
+            for _, setting in plan.settings(method):
+                spec = plan.spec(method, setting)
+                build_checked_network(spec.state, spec.head, 16, n_ranges=spec.env.max_range)
+        check_perception(plan)
     check_baselines()
+
+
+def check_perception(plan: Plan) -> None:
+    """Build every distinct encoder and segmenter the runs' tables need, before any work: a
+    missing weights file or SAM checkpoint is refused in one line naming the method, the setting
+    and the file, not when the tables stage reaches it minutes later. An encoder that takes the
+    recognizer's backbone (``weights="classifier"``) is built by its table, after the recognizer."""
+    seen: set[str] = set()
+    for method in plan.methods:
+        for name, setting in plan.settings(method):
+            perception = plan.spec(method, setting).perception
+            parts = [("perception.encoder", perception.encoder)]
+            if perception.decompose:
+                parts.append(("perception.segmenter", perception.segmenter))
+            for section, comp in parts:
+                if comp is None or comp.kwargs.get("weights") == "classifier":
+                    continue
+                key = json.dumps([comp.kind, comp.name, dict(comp.kwargs)], sort_keys=True, default=str)
+                if key in seen:
+                    continue
+                seen.add(key)
+                try:
+                    comp.build(**({"device": "cpu"} if comp.accepts("device") else {}))
+                except (ValueError, OSError, RuntimeError) as exc:
+                    where = f"method {method!r}" + (f" at {name}" if name != "default" else "")
+                    raise AblationError(f"{where}: {section} {comp.name!r} cannot be built: {exc}") from None
 
 
 def run_ablation(plan: Plan, *, log=print) -> Path:

@@ -103,23 +103,29 @@ def _zoo_recognizer(plan: Plan, cache_name: str) -> Path | None:
     zoo = Zoo.find(str(plan.preset.get("name", "")))
     return None if zoo is None else zoo.recognizer_for(cache_name)
 
-def stage_tables(plan: Plan, data: Path, classifiers: dict[int, Path], log) -> dict[int, dict[str, Path]]:
-    """``{recognizer: {method: table}}``: per recognizer, one table per distinct perception
-    config among the methods (MAP and Memo-MAP share)."""
+def stage_tables(plan: Plan, data: Path, classifiers: dict[int, Path], log) -> dict[int, dict]:
+    """``{recognizer: {method: table, (method, setting): table}}``: per recognizer, one table per
+    distinct perception config among the methods and their settings (MAP and Memo-MAP share; a
+    swept encoder value builds its own, once). ``tables[r][m]`` is the method's default table."""
     return {r: _tables_of(plan, data, path, log) for r, path in classifiers.items()}
 
 
-def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict[str, Path]:
-    tables: dict[str, Path] = {}
+def _tables_of(plan: Plan, data: Path, classifier: Path, log) -> dict:
+    tables: dict = {}
     by_perception: dict[str, Path] = {}
     for m in plan.methods:
-        spec = plan.spec(m)
-        key = json_digest(spec.perception.as_dict(), 12)
-        if key not in by_perception and plan.backend == "ray":
-            by_perception[key] = prepare_table_ray(data, spec, classifier_path=classifier, progress=True)
-        elif key not in by_perception:
-            by_perception[key] = prepare_table(data, spec, classifier_path=classifier, workers=plan.workers,
-                                               progress=True)
-        tables[m] = by_perception[key]
-        log(f"  {m}: table {tables[m]}")
+        for setting_name, setting in plan.settings(m):
+            spec = plan.spec(m, setting)
+            key = json_digest(spec.perception.as_dict(), 12)
+            if key not in by_perception and plan.backend == "ray":
+                by_perception[key] = prepare_table_ray(data, spec, classifier_path=classifier, progress=True)
+            elif key not in by_perception:
+                by_perception[key] = prepare_table(data, spec, classifier_path=classifier, workers=plan.workers,
+                                                   progress=True)
+            tables[(m, setting_name)] = by_perception[key]
+            if setting_name == "default":
+                tables[m] = by_perception[key]
+                log(f"  {m}: table {tables[m]}")
+            elif by_perception[key] != tables[m]:
+                log(f"  {m} at {setting_name}: table {by_perception[key]}")
     return tables
