@@ -4,6 +4,8 @@ it where d3rlpy is installed (its own extra: it pins gymnasium 1.0)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -186,3 +188,69 @@ def test_the_flat_view_read_from_the_file_is_minaris_episodes_in_any_number_of_p
     with pytest.raises(ValueError, match=r"dataset list has 3 ranges where dataset .* has 4: flatten datasets of one "
                                          "action space together"):
         flat_dataset(oracle_dataset, narrow)
+
+
+@pytest.fixture
+def damaged(oracle_dataset, tmp_path, monkeypatch):
+    """A copy of the exported dataset, loaded from its own folder after ``edit(h5py.File)``."""
+    import shutil
+
+    import h5py
+
+    source = Path(oracle_dataset.storage.data_path).parents[2]  # <MINARI_DATASETS_PATH>/uevavd/<name>-v0/data
+    copy = tmp_path / "datasets"
+    shutil.copytree(source, copy)
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(copy))
+    dataset_id = oracle_dataset.spec.dataset_id
+
+    def load(edit):
+        path = next(copy.rglob("main_data.hdf5"))
+        with h5py.File(path, "r+") as f:
+            edit(f)
+        return minari.load_dataset(dataset_id), path
+
+    return load
+
+
+def _replace(group, key, value):
+    del group[key]
+    group[key] = value
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda f: _replace(f["episode_3"], "actions", f["episode_3/actions"][()] - 0.3),
+     r"episode_3, key actions: float64 .* expected integral \(type, range\) pairs"),
+    (lambda f: f["episode_4/actions"].__setitem__((0, 0), 9), r"episode_4, key actions: step 0 is \[9, .*type in 0..6"),
+    (lambda f: f["episode_4/actions"].__setitem__((0, 1), -3), r"episode_4, key actions: step 0 is .*range in 0..3"),
+    (lambda f: _replace(f["episode_5"], "actions", f["episode_5/actions"][()][:-1]),
+     r"episode_5, key actions: \d+ rows where rewards has \d+"),
+    (lambda f: _replace(f["episode_6/observations"], "box", f["episode_6/observations/box"][()].astype(np.int8)),
+     r"episode_6, key observations/box: int8 \(4,\) per row; the dataset's observation space records float32"),
+    (lambda f: f["episode_7/rewards"].__setitem__(0, np.nan), r"episode_7, key rewards: holds NaN"),
+    (lambda f: f.__delitem__("episode_8"), r"episode_8: no such episode group"),
+])
+def test_a_damaged_minari_file_is_refused_naming_the_file_the_episode_and_the_key(damaged, edit, message):
+    """Each of these passed through, or was another action's index, or a raw h5py error."""
+    from uevavd.data.episodes import EpisodeError
+    from uevavd.env.offline import flat_dataset
+
+    dataset, path = damaged(edit)
+    for workers in (1, 2):  # in this process and from worker processes alike
+        with pytest.raises(EpisodeError, match=message) as info:
+            flat_dataset(dataset, workers=workers)
+        assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_truncated_file_bad_workers_and_foreign_episodes_are_one_line(damaged, oracle_dataset):
+    from uevavd.data.episodes import EpisodeError
+    from uevavd.env.offline import flat_dataset
+
+    dataset, path = damaged(lambda f: None)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(EpisodeError, match=r"main_data.hdf5: cannot be opened as HDF5"):
+        flat_dataset(dataset)
+    for bad in ("2", 2.5, 0, -1, True):
+        with pytest.raises(ValueError, match=r"workers=.*expected an integer >= 1"):
+            flat_dataset(oracle_dataset, workers=bad)
+    with pytest.raises(EpisodeError, match=r"episode 0: a dict, not an episode"):
+        flat_dataset([{"a": 1}])

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from ..data.episodes import STEP_KEYS, read_hdf5_episodes
+from ..data.episodes import STEP_KEYS, EpisodeError, check_episode, check_workers, read_hdf5_episodes
 from ..data.grid import N_TYPES
 from .aod_env import integral_actions
 from .gate import fit_to_mask
@@ -72,7 +72,10 @@ def flat_dataset(*datasets: Iterable[Any], workers: int | None = None) -> FlatTr
     taken on (not the last one, which no action follows). Datasets of different action spaces
     (``max_range``) or observation parts are refused. A Minari dataset stored in HDF5 (the
     exporter's format) is read straight from its file, only the arrays the flat view needs,
-    by ``workers`` processes (default: one per 1,000 episodes, at most the cores and 4)."""
+    by ``workers`` processes (default: one per 1,000 episodes, at most the cores and 4). Every
+    episode is checked first (:func:`uevavd.data.episodes.check_episode`): a damaged or foreign
+    one is an error naming the file, the episode and the key."""
+    check_workers(workers)
     chunks = [(name, c) for d in datasets for name in [_name(d)] if (c := _arrays(d, name, workers)) is not None]
     if not chunks:
         raise ValueError("the dataset holds no episodes")
@@ -108,12 +111,22 @@ def _arrays(dataset: Any, name: str, workers: int | None) -> dict[str, np.ndarra
         _check_parts(keys, name)
         if len(indices) == 0:
             return None
-        return read_hdf5_episodes(path, indices, tuple(k for k in FLAT_PARTS if k in keys), workers=workers)
+        spec = {k: (s.dtype, s.shape) for k, s in space.spaces.items() if k in FLAT_PARTS}
+        return read_hdf5_episodes(path, indices, tuple(k for k in FLAT_PARTS if k in keys), workers=workers,
+                                  spec=spec)
     out: dict[str, list[np.ndarray]] = {}
-    for ep in getattr(dataset, "iterate_episodes", lambda: dataset)():
+    for i, ep in enumerate(getattr(dataset, "iterate_episodes", lambda: dataset)()):
+        if not all(hasattr(ep, k) for k in ("observations", "rewards")):
+            raise EpisodeError(f"dataset {name}, episode {i}: a {type(ep).__name__}, not an episode; expected Minari's "
+                               f"EpisodeData (or an object with observations, {', '.join(STEP_KEYS)})")
         n = len(ep.rewards)
         _check_parts(tuple(ep.observations) if isinstance(ep.observations, dict) else type(ep.observations).__name__,
                      name)
+        missing = [k for k in STEP_KEYS if not hasattr(ep, k)]
+        if missing:
+            raise EpisodeError(f"dataset {name}, episode {i}: no {', '.join(missing)}; expected Minari's EpisodeData")
+        check_episode({**{k: np.asarray(ep.observations[k]) for k in FLAT_PARTS if k in ep.observations},
+                       **{k: np.asarray(getattr(ep, k)) for k in STEP_KEYS}}, f"dataset {name}, episode {i}")
         for key in FLAT_PARTS:
             if key in ep.observations:
                 out.setdefault(key, []).append(np.asarray(ep.observations[key])[:n])
