@@ -196,3 +196,37 @@ def test_a_policy_header_without_its_digests_is_refused(run, tmp_path):
         save_file(weights, str(edited), metadata={k: v for k, v in meta.items() if k not in drop})
         with pytest.raises(DamagedFileError, match=r"\d.safetensors: damaged or edited .no sha256 digest"):
             read_policy_file(edited)
+
+
+def test_a_first_format_policy_is_read_only_when_it_is_a_zoo_file(run, tmp_path, capsys, monkeypatch):
+    """A policy rewritten as uevavd-policy/1 (no digest) with env.thre edited evaluated with exit 0
+    (0.267 -> 0.170); an edited copy of the zoo's own format-1 file passed too. Format 1 is read
+    for the files the zoo's manifests list, and refused with the way out otherwise."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    from uevavd.policy.checkpoint import shipped_policy_digests
+    from uevavd.presets import ZOO
+
+    monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
+    src = run / "policy.safetensors"
+    with safe_open(str(src), framework="pt") as fh:
+        meta = dict(fh.metadata())
+    settings = json.loads(meta["settings"])
+    settings["env"]["thre"] = 0.1
+    legacy = {"format": "uevavd-policy/1", "method_toml": meta["method_toml"], "settings": json.dumps(settings)}
+    edited = tmp_path / "legacy.safetensors"
+    save_file(load_file(str(src)), str(edited), metadata=legacy)
+    with pytest.raises(Exception, match=r"legacy.safetensors: a uevavd-policy/1 file, whose header no digest protects"):
+        read_policy_file(edited)
+    assert main(["evaluate", str(edited), "--table", str(run.parent / "table"), "--split", "hard"]) == 2
+    _one_line_error(capsys, "save the policy again from its run")
+    shipped = ZOO / "pretrained" / "quick" / "map.safetensors"
+    read_policy_file(shipped)  # the zoo's own file, byte for byte its manifest's
+    assert len(shipped_policy_digests()) >= 4
+    with safe_open(str(shipped), framework="pt") as fh:
+        header = dict(fh.metadata())
+    copy = tmp_path / "map.safetensors"
+    save_file(load_file(str(shipped)), str(copy), metadata={**header, "method_toml": header["method_toml"] + "\n"})
+    with pytest.raises(Exception, match="whose header no digest protects"):
+        read_policy_file(copy)

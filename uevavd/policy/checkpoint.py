@@ -24,8 +24,9 @@ from typing import Any
 import torch
 
 from ..atomic import atomic_save, atomic_write
-from ..hashing import seal, unseal
+from ..hashing import file_sha256, seal, unseal
 from ..perception.weights import state_dict_hash
+from ..presets import ZOO
 from .rundir import RunDir, with_legacy_settings
 
 #: What a checkpoint's network must agree on with whoever loads it (method, table, spaces).
@@ -98,8 +99,10 @@ def load_checkpoint(path: str | os.PathLike[str], *, expect: dict[str, Any] | No
 POLICY_FILE = RunDir(".").policy.name
 POLICY_FORMAT = "uevavd-policy/2"
 #: The formats a policy file may have: this version's (sealed, always) and the first, whose
-#: files may lack the header's digest (the zoo's are checked against its manifest as whole files).
-POLICY_FORMATS = ("uevavd-policy/1", POLICY_FORMAT)
+#: header no digest protects: read only for the model zoo's own files, whose whole-file sha256
+#: its manifests list (:func:`shipped_policy_digests`).
+LEGACY_FORMAT = "uevavd-policy/1"
+POLICY_FORMATS = (LEGACY_FORMAT, POLICY_FORMAT)
 #: The run settings a policy file carries (what loading it must check and rebuild).
 POLICY_KEYS = ("method", "spec_hash", "table_key", "table_identity", "feature_dim", "env", "seed")
 
@@ -136,6 +139,11 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any],
     if meta.get("format") not in POLICY_FORMATS:
         raise CheckpointError(f"{path}: not a uevavd policy file (format {meta.get('format')!r}, expected one of "
                               f"{list(POLICY_FORMATS)})")
+    if meta["format"] == LEGACY_FORMAT and file_sha256(path) not in shipped_policy_digests():
+        raise CheckpointError(f"{path}: a {LEGACY_FORMAT} file, whose header no digest protects (an edited method or "
+                              "threshold would pass): that format is read only for the model zoo's own files; save the "
+                              f"policy again from its run (uevavd.load_run(RUN).save_policy(FILE)) for a sealed "
+                              f"{POLICY_FORMAT} file")
     # files of the first format may lack the header's digest (and the oldest the weights'); this
     # format's always carry both, so one without them had them removed
     meta = unseal(meta, str(path), "copy it again, or evaluate the run's checkpoint",
@@ -144,6 +152,18 @@ def read_policy_file(path: str | os.PathLike[str]) -> tuple[str, dict[str, Any],
         raise CheckpointError(f"{path}: damaged (its weights no longer match the weights_hash written with them); "
                               "copy it again, or evaluate the run's checkpoint")
     return meta["method_toml"], json.loads(meta["settings"]), state
+
+
+def shipped_policy_digests() -> frozenset[str]:
+    """The sha256 of every file the package's model zoo manifests list (``model_zoo/pretrained/*/
+    manifest.json``): the only first-format policy files this version reads."""
+    out: set[str] = set()
+    for manifest in sorted((ZOO / "pretrained").glob("*/manifest.json")):
+        try:
+            out.update(str(rec["sha256"]) for rec in json.loads(manifest.read_text(encoding="utf-8"))["files"].values())
+        except (OSError, ValueError, KeyError, TypeError):
+            continue  # a damaged manifest vouches for nothing; `uevavd zoo check` names it
+    return frozenset(out)
 
 
 def check_policy_fits(path: str | os.PathLike[str], settings: dict[str, Any], *, table: Any = None,
