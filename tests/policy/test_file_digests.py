@@ -230,3 +230,26 @@ def test_a_first_format_policy_is_read_only_when_it_is_a_zoo_file(run, tmp_path,
     save_file(load_file(str(shipped)), str(copy), metadata={**header, "method_toml": header["method_toml"] + "\n"})
     with pytest.raises(Exception, match="whose header no digest protects"):
         read_policy_file(copy)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda lines: [lines[0], *lines], r"evals.jsonl, line 2: epoch 1, split train where .* belongs \(lines deleted"),
+    (lambda lines: lines[:1] + lines[2:], r"evals.jsonl, line 3: epoch 2, split hard where .* belongs \(lines deleted"),
+    (lambda lines: [lines[1], lines[0], *lines[2:]], r"evals.jsonl, line 3: .* belongs \(lines deleted"),
+    (lambda lines: lines[:-2], r"rows that are not the \d+ the finished run recorded in done.json"),
+])
+def test_a_runs_evals_are_bound_as_a_whole(table, tmp_path, edit, message):
+    """Each line was sealed, the set was not: a duplicated line gave results.csv a row more, a
+    deleted one a row less, a swapped pair reordered rows, and a finished run's last lines
+    deleted left a short curve, without a word."""
+    from uevavd.hashing import DamagedFileError
+    from uevavd.policy.rundir import read_evals
+
+    spec = load_method("map", overrides={**small("map"), "train.episodes": 300, "train.epoch_episodes": 100,
+                                         "train.eval_splits": ["train", "hard"]})
+    run = train(spec, table, out=tmp_path / "run", device="cpu", progress=False)
+    lines = (run / "evals.jsonl").read_text().splitlines()
+    assert len(read_evals(run)) == len(lines) == 6
+    (run / "evals.jsonl").write_text("\n".join(edit(lines)) + "\n")
+    with pytest.raises(DamagedFileError, match=message):
+        read_evals(run)

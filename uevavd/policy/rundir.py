@@ -210,7 +210,37 @@ def read_evals(run_dir: str | Path) -> list[dict[str, Any]]:
         if not isinstance(row.get("episodes"), int) or not isinstance(row.get("split"), str):
             raise DamagedFileError(f"{path}, line {n}: not an evaluation row (no episodes or split); {RETRAIN}")
         rows.append(row)
+    _check_sequence(rows, path)
+    if RunDir(run_dir).done.is_file():
+        done = read_done(run_dir)
+        if "evals_digest" in done and (len(rows), evals_digest(rows)) != (done.get("evals_rows"), done["evals_digest"]):
+            raise DamagedFileError(f"{path}: {len(rows)} rows that are not the {done.get('evals_rows')} the finished run "
+                                   f"recorded in done.json (lines deleted, duplicated, swapped or copied in); {RETRAIN}")
     return rows
+
+
+def evals_digest(rows: list[dict[str, Any]]) -> str:
+    """The digest of a run's evaluation rows, in order: ``done.json`` records it, binding
+    ``evals.jsonl`` as a whole (each line's own seal cannot tell a line deleted or repeated)."""
+    return json_digest(rows, 16)
+
+
+def _check_sequence(rows: list[dict[str, Any]], path: Path) -> None:
+    """Rows of epochs 1, 2, ... in order, each epoch's splits in the first epoch's order, none
+    twice: a duplicated, deleted or swapped line of an unfinished run is named too."""
+    if not rows or not all(isinstance(r.get("epoch"), int) for r in rows):
+        return  # an earlier version's rows carry no epoch
+    splits = [r["split"] for r in rows if r["epoch"] == rows[0]["epoch"]]
+    splits = splits[:next((i for i in range(1, len(splits)) if splits[i] in splits[:i]), len(splits))]
+    epochs = -(-len(rows) // len(splits))  # a deleted line leaves an epoch short, named below
+    want = [(e, s) for e in range(1, epochs + 1) for s in splits]
+    have = [(r["epoch"], r["split"]) for r in rows]
+    if have != want:
+        i = next(i for i in range(len(want) + 1) if i >= len(have) or i >= len(want) or have[i] != want[i])
+        found = f"epoch {have[i][0]}, split {have[i][1]}" if i < len(have) else "no row"
+        expected = f"epoch {want[i][0]}, split {want[i][1]}" if i < len(want) else "no row"
+        raise DamagedFileError(f"{path}, line {i + 1}: {found} where {expected} belongs (lines deleted, duplicated "
+                               f"or swapped); {RETRAIN}")
 
 
 def run_spec(run_dir: str | Path) -> MethodSpec:

@@ -48,7 +48,16 @@ from .imitation import OracleLabels, check_branches
 from .learner import FeatureDropout, FeatureLookup, FlightPays, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
-from .rundir import RunDir, RunDirError, check_run_dir, run_lock, write_done, write_evals, write_settings
+from .rundir import (
+    RunDir,
+    RunDirError,
+    check_run_dir,
+    evals_digest,
+    run_lock,
+    write_done,
+    write_evals,
+    write_settings,
+)
 from .trainlog import Loop, TrainLog
 
 #: Gradient updates between TensorBoard points of the update's diagnostics (``update/*``).
@@ -233,7 +242,8 @@ def _train(spec: MethodSpec, table: Any, *, out: Path, episodes: int | None, see
                          RunDir(run.out).method.read_text(encoding="utf-8"), run.settings)
         write_done(run.out, run.settings, {
             "episodes": loop.episodes, "env_steps": loop.env_steps, "updates": run.learner.updates,
-            "wall_s": loop.wall, "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else []})
+            "wall_s": loop.wall, "final_eval": run.evals[-len(cfg.eval_splits):] if cfg.eval_splits else [],
+            "evals_rows": len(run.evals), "evals_digest": evals_digest(run.evals)})
     return run.out
 
 
