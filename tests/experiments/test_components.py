@@ -17,7 +17,7 @@ from uevavd.cli import main
 from uevavd.config import load_method
 from uevavd.experiments.plan import AblationError, make_plan, parse_sweeps
 from uevavd.experiments.runner import check_out_dir
-from uevavd.presets import load_preset, preset_overrides
+from uevavd.presets import load_preset, preset_dir, preset_overrides
 from uevavd.testing.worlds import tiny_preset
 
 QUICK = preset_overrides(load_preset("quick"))
@@ -57,6 +57,15 @@ def test_a_method_file_keeps_the_encoder_it_names_under_a_preset(ibe_r18, tmp_pa
     # --set is the command line: it wins over the method file
     plan = make_plan(preset="quick", out=tmp_path / "out2", methods=[str(ibe_r18)], sets={"state.state_dim": 32})
     assert plan.spec("ibe_r18").get("state.state_dim") == 32
+
+
+def test_a_presets_ablation_names_method_files_from_its_own_folder(ibe_r18, tmp_path):
+    preset = tmp_path / "mine.toml"
+    preset.write_text((preset_dir() / "quick.toml").read_text().split("[ablation]")[0]
+                      + '[ablation]\nmethods = ["ibe_map", "ibe_r18.toml"]\nsweep_methods = ["ibe_r18.toml"]\n')
+    plan = make_plan(preset=str(preset), out=tmp_path / "o", sweeps=parse_sweeps(["train.lr=3e-3"]))
+    assert plan.methods == ["ibe_map", "ibe_r18"] and plan.sweep_methods == ["ibe_r18"]
+    assert plan.method_files == {"ibe_r18": str(ibe_r18.resolve())}
 
 
 def test_a_swept_component_name_switches_its_arguments_with_it(tmp_path):
@@ -126,6 +135,16 @@ def test_an_edited_method_file_is_another_ablation(ibe_r18, tmp_path):
         check_out_dir(make_plan(preset="quick", out=tmp_path / "out", methods=[str(ibe_r18)]))
 
 
+def test_a_decomposition_without_masks_is_refused_before_any_work(tmp_path, capsys):
+    out = tmp_path / "out"
+    rc = main(["ablate", "--preset", "quick", "--methods", "ibe_map", "--sweep", "perception.segmenter.name=gt,none",
+               "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert "method 'ibe_map' at perception.segmenter.name=none: perception.decompose = true with segmenter 'none'" in err[0]
+    assert not out.exists()
+
+
 def test_missing_weights_are_refused_before_any_work(tmp_path, capsys, monkeypatch):
     """ResNet50 with ImageNet weights that this machine lacks: one line naming the method, the
     setting and the file, before the world or ablation.json is written."""
@@ -185,6 +204,8 @@ def test_run_curve_reads_the_learning_curve(encoder_ablation):
     assert curve["episodes"].nunique() == 1 and curve["episodes"].iloc[0] >= 100  # one epoch of 100 episodes
     assert set(curve["split"]) == {"train", "hard"}
     assert {"return", "accuracy", "recognition", "path_m"} <= set(curve.columns)
+    frame = run.evaluate("hard", baselines=False)  # the shape evaluate_pretrained returns too
+    assert list(frame.index) == ["ibe_map"] and list(frame.attrs["per_context"]["context"]) == [26, 56]
 
 
 def test_two_ablations_merge_into_one_report(encoder_ablation, tmp_path, capsys):
@@ -207,7 +228,30 @@ def test_two_ablations_merge_into_one_report(encoder_ablation, tmp_path, capsys)
     assert main(["report", str(first.path), str(second.path)]) == 2
     assert "merge them into one report with --out DIR" in capsys.readouterr().err
     results = pd.read_csv(second.path / "results.csv")
-    results.loc[results["method"] == "passive", "return"] += 0.01  # another evaluation
+    results.loc[results["method"] == "passive", "return"] += 0.01
     results.to_csv(second.path / "results.csv", index=False)
     assert main(["report", str(first.path), str(second.path), "--out", str(tmp_path / "bad")]) == 2
+    assert "results.csv: not the table the ablation wrote" in capsys.readouterr().err
+    from uevavd.atomic import write_sealed_json
+    from uevavd.experiments.io import output_digests, read_ablation_meta
+
+    meta = read_ablation_meta(second.path / "ablation.json")  # as if evaluated under another reward
+    write_sealed_json(second.path / "ablation.json", {**meta, "outputs": output_digests(second.path)})
+    assert main(["report", str(first.path), str(second.path), "--out", str(tmp_path / "bad")]) == 2
     assert "evaluate otherwise: their baselines' final rows differ" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cut", ["row", "field"])
+def test_a_cut_results_table_is_refused_by_the_report(encoder_ablation, tmp_path, capsys, cut):
+    """results.csv cut at a row boundary, or inside a row's last field (which keeps its field
+    count), was reported from the rows left: ablation.json seals both tables now."""
+    import shutil
+
+    folder = tmp_path / "copy"
+    shutil.copytree(encoder_ablation["ablation"].path, folder)
+    text = (folder / "results.csv").read_text()
+    lines = text.splitlines(keepends=True)
+    (folder / "results.csv").write_text("".join(lines[:-5]) if cut == "row" else text[:-3])
+    assert main(["report", str(folder), "--no-figures"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "results.csv: not the table the ablation wrote" in err

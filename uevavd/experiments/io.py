@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ..atomic import atomic_write, load_sealed_json
-from ..hashing import is_sealed
+from ..hashing import file_sha256, is_sealed
 
 #: The ablation's record: its fingerprint (checked on a rerun), stages, status and the rows' roles.
 ABLATION_FILE = "ablation.json"
@@ -23,6 +23,28 @@ def read_ablation_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
     an error naming the file."""
     return load_sealed_json(path, "restore it from a copy, or run the ablation again into a new --out",
                             legacy=not _runs_sealed(Path(path).parent))
+
+
+#: The tables an ablation writes and seals in its ablation.json (``outputs``): the report reads them.
+OUTPUTS = ("results.csv", "contexts.csv")
+
+
+def output_digests(folder: str | os.PathLike[str]) -> dict[str, str]:
+    """``{name: sha256}`` of the :data:`OUTPUTS` in ``folder`` (those that exist)."""
+    return {name: file_sha256(Path(folder) / name) for name in OUTPUTS if (Path(folder) / name).is_file()}
+
+
+def check_outputs(folder: str | os.PathLike[str], meta: dict[str, Any]) -> dict[str, Any]:
+    """``meta``, after checking that each table its ``outputs`` records is the file the ablation wrote
+    (a results.csv cut at a row boundary, or inside a field, kept its columns and lost rows); an
+    ablation.json of an earlier version records none. A ValueError naming the file otherwise."""
+    for name, digest in (meta.get("outputs") or {}).items():
+        path = Path(folder) / name
+        if not path.is_file() or file_sha256(path) != digest:
+            raise ValueError(f"{path}: not the table the ablation wrote (missing, cut, edited or replaced: its sha256 "
+                             f"is not the one {ABLATION_FILE} records); rerun the `uevavd ablate` that wrote it (it "
+                             "resumes and writes the table again)")
+    return meta
 
 
 def _runs_sealed(ablation_dir: Path) -> bool:

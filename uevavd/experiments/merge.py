@@ -21,7 +21,7 @@ from typing import Any
 import pandas as pd
 
 from ..atomic import atomic_write, atomic_write_json, write_sealed_json
-from .io import ABLATION_FILE, read_ablation_meta
+from .io import ABLATION_FILE, check_outputs, output_digests, read_ablation_meta
 from .report_data import is_baseline, recorded_roles
 
 
@@ -30,7 +30,7 @@ class MergeError(ValueError):
 
 
 def _read(folder: Path) -> tuple[dict[str, Any], pd.DataFrame, pd.DataFrame]:
-    meta = read_ablation_meta(folder / ABLATION_FILE)
+    meta = check_outputs(folder, read_ablation_meta(folder / ABLATION_FILE))
     if meta.get("status") != "done":
         raise MergeError(f"{folder}: its ablation is {meta.get('status', 'not finished')!r}, not done: finish it "
                          "(rerun its `uevavd ablate`) before merging")
@@ -111,7 +111,8 @@ def merge_ablations(folders: Sequence[str | os.PathLike[str]], out: str | os.Pat
         atomic_write(out / "contexts.csv", pd.concat(ctx, ignore_index=True).to_csv(index=False), fsync=True)
     if (first / "recognizer_audit.json").is_file():
         atomic_write_json(out / "recognizer_audit.json", json.loads((first / "recognizer_audit.json").read_text()))
-    write_sealed_json(out / ABLATION_FILE, _merged_meta([(f, m) for f, m, _, _ in read]), fsync=True)
+    meta = {**_merged_meta([(f, m) for f, m, _, _ in read]), "outputs": output_digests(out)}
+    write_sealed_json(out / ABLATION_FILE, meta, fsync=True)
     return out
 
 

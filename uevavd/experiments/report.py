@@ -29,7 +29,7 @@ from .arms import arm_label, write_arms
 from .audit import audit_markdown
 from .claims import Claim, check_claims, diagnose
 from .figures import figure_lines, plot_curves, plot_strips
-from .io import ABLATION_FILE, read_ablation_meta
+from .io import ABLATION_FILE, check_outputs, read_ablation_meta
 from .report_contexts import contexts_section
 from .report_data import (
     DEFAULT_C,
@@ -353,14 +353,13 @@ def write_report(dir: Path, *, window: int | None = None, figures: bool = True) 
     default ``min(5, points // 3)`` (at least 1). ``figures=False``: the text and tables
     only, the same but for the figures (drawing them is most of a report's time).
     """
-    ablation_dir = Path(dir)
-    if not ablation_dir.is_dir():
-        raise FileNotFoundError(f"{ablation_dir} is not a directory; expected an ablation directory "
-                                "holding results.csv")
+    if not (ablation_dir := Path(dir)).is_dir():
+        raise FileNotFoundError(f"{ablation_dir} is not a directory; expected an ablation directory holding results.csv")
     results = load_results(ablation_dir / "results.csv")
     notes: list[str] = []
     meta_path = ablation_dir / ABLATION_FILE
-    meta = read_ablation_meta(meta_path) if meta_path.is_file() else _read_json(meta_path, notes)
+    meta = (check_outputs(ablation_dir, read_ablation_meta(meta_path)) if meta_path.is_file()
+            else _read_json(meta_path, notes))
     with recorded_roles(meta):
         return _write_report(ablation_dir, results, meta, notes, window, figures)
 

@@ -14,11 +14,12 @@ from typing import Any
 from ..atomic import atomic_write_json, is_temporary, write_sealed_json
 from ..config_rules import ConfigError
 from ..env.baselines import check_baselines
+from ..perception.prepare import check_decomposition
 from ..policy.contract import build_checked_network
 from .audit import audit_table, classifier_summary
 from .axes import parse_sweeps, resolved_value, value_label
 from .backends import run_jobs
-from .io import ABLATION_FILE, read_ablation_meta, write_csv
+from .io import ABLATION_FILE, output_digests, read_ablation_meta, write_csv
 from .jobs import Job, plan_jobs, run_job
 from .plan import AblationError, Plan, make_plan
 from .references import sb3_rows
@@ -105,6 +106,8 @@ def write_meta(plan: Plan, data: Path | None, status: str) -> None:
         "data_root": str(data) if data else None,
         "stages": {k: round(v, 2) for k, v in plan.stages.items()},
         "status": status,
+        # the sha256 of results.csv and contexts.csv as written: the report refuses another table
+        **({"outputs": output_digests(plan.out)} if status in ("reporting", "done") else {}),
         # which rows are references, as installed now: `uevavd report` reads this, not the
         # plugins installed when it runs
         "roles": roles_now(),
@@ -155,6 +158,11 @@ def check_perception(plan: Plan) -> None:
     for method in plan.methods:
         for name, setting in plan.settings(method):
             perception = plan.spec(method, setting).perception
+            where = f"method {method!r}" + (f" at {name}" if name != "default" else "")
+            try:
+                check_decomposition(perception, where)
+            except ValueError as exc:
+                raise AblationError(str(exc)) from None
             parts = [("perception.encoder", perception.encoder)]
             if perception.decompose:
                 parts.append(("perception.segmenter", perception.segmenter))
@@ -168,7 +176,6 @@ def check_perception(plan: Plan) -> None:
                 try:
                     comp.build(**({"device": "cpu"} if comp.accepts("device") else {}))
                 except (ValueError, OSError, RuntimeError) as exc:
-                    where = f"method {method!r}" + (f" at {name}" if name != "default" else "")
                     raise AblationError(f"{where}: {section} {comp.name!r} cannot be built: {exc}") from None
 
 
