@@ -45,6 +45,10 @@ from .test_cli import _sets
     ("train.per_alpha", 1e308, "train.per_alpha = 1e+308: expected a prioritisation exponent in [0, 10]"),
     ("train.stop_gate", "boxx", "train.stop_gate = 'boxx' has the wrong type: expected one of 'none', 'box', "
                                 "'learned', 'pays'"),
+    # settings nothing reads under the options chosen were accepted and never read
+    ("train.stop_threshold", 0.7, "train.stop_threshold = 0.7: expected its default 0.5: only the learned and pays "
+                                  "stop gates read it"),
+    ("train.imitation_fraction", 0.5, "train.imitation_fraction = 0.5: expected its default 1.0"),
 ])
 def test_out_of_range_training_values_are_refused_before_the_run_starts(table, tmp_path, capsys, monkeypatch,
                                                                         key, value, needle):

@@ -191,6 +191,13 @@ class TrainConfig:
              "imitation_fraction", "a share of training in (0, 1]")
         need(isinstance(self.stop_threshold, int | float) and 0.0 <= self.stop_threshold <= 1.0, "stop_threshold",
              "a probability in [0, 1]")
+        # a setting nothing reads under the options chosen is a mistake, not a no-op: refuse it
+        need(self.stop_threshold == 0.5 or self.stop_gate in ("learned", "pays"), "stop_threshold",
+             f"its default 0.5: only the learned and pays stop gates read it, and train.stop_gate is {self.stop_gate!r} "
+             "(set train.stop_gate, or leave train.stop_threshold out)")
+        need(self.imitation_fraction == 1.0 or self.imitation != "none", "imitation_fraction",
+             "its default 1.0: it is the share of training that imitates, and train.imitation is 'none' (set "
+             "train.imitation, or leave train.imitation_fraction out)")
         need(0.0 < self.gamma <= 1.0, "gamma", "a discount in (0, 1]")
         need(self.grad_clip >= 0, "grad_clip", "a number >= 0 (0 disables clipping)")
         need(self.learning_starts < self.episodes, "learning_starts",
