@@ -32,8 +32,8 @@ def test_pretrained_policy_reproduces_its_published_numbers_on_a_fresh_context(t
 
     monkeypatch.setenv("UEVAVD_CACHE", str(tmp_path / "cache"))
     zoo = Zoo.load("quick")
-    frame, published, per_context = uevavd.evaluate_pretrained("map", "hard", contexts=[26], workers=1,
-                                                               progress=False, baselines=False)
+    frame = uevavd.evaluate_pretrained("map", "hard", contexts=[26], workers=1, progress=False, baselines=False)
+    published, per_context = frame.attrs["published"], frame.attrs["per_context"]
     # the world was rendered here, byte for byte the one the zoo was trained and evaluated on
     scene = next((tmp_path / "cache" / "worlds").glob("world-*-26")) / "026" / "scene.json"
     assert scene_digest(scene) == zoo.manifest["world"]["scenes"]["026"]

@@ -155,12 +155,16 @@ class Run:
     def evaluate(self, split: str = "hard", *, baselines: bool = True, device: str = "cpu"):
         """A pandas DataFrame, one row per policy (this run's method, then random, passive,
         the visibility oracle where the table knows visible fractions, and the class-knowing
-        oracle), from every context of ``split`` x all 605 starts, under the run's env config."""
+        oracle), from every context of ``split`` x all 605 starts, under the run's env config;
+        ``frame.attrs["per_context"]`` holds the run's policy per context. The same shape as
+        :func:`evaluate_pretrained`."""
         from .env.baselines import evaluate_beside_baselines
 
         name = self.settings["method"]
-        return evaluate_beside_baselines(self.table(), split, self.policy(device), name, self.env_config,
-                                         device=device, baselines=baselines)[0]
+        frame, per_context = evaluate_beside_baselines(self.table(), split, self.policy(device), name,
+                                                       self.env_config, device=device, baselines=baselines)
+        frame.attrs["per_context"] = per_context
+        return frame
 
     def curve(self):
         """The learning curve: a pandas DataFrame, one row per evaluation epoch x split
@@ -187,11 +191,15 @@ class Run:
 
 def evaluate_pretrained(method: str, split: str = "hard", **kwargs: Any):
     """The model zoo's ``method`` policy evaluated on ``split`` of the quick world, beside the
-    baselines, as ``uevavd evaluate --pretrained`` does: ``(DataFrame, published numbers,
-    per-context DataFrame)``. See :func:`uevavd.pretrained.evaluate_pretrained` for the options."""
+    baselines, as ``uevavd evaluate --pretrained`` does: the DataFrame :meth:`Run.evaluate`
+    returns (a row per policy), with ``frame.attrs["per_context"]`` (the policy per context) and
+    ``frame.attrs["published"]`` (the zoo's published numbers of this split). See
+    :func:`uevavd.pretrained.evaluate_pretrained` for the options."""
     from .pretrained import evaluate_pretrained as _evaluate_pretrained
 
-    return _evaluate_pretrained(method, split, **kwargs)
+    frame, published, per_context = _evaluate_pretrained(method, split, **kwargs)
+    frame.attrs.update(per_context=per_context, published=published)
+    return frame
 
 
 def load_policy_file(path: str | os.PathLike[str], *, table: Any = None, method: str | None = None,

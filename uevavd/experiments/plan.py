@@ -15,6 +15,7 @@ from typing import Any
 from ..config import (
     COMPONENT_SECTIONS,
     MethodSpec,
+    is_method_path,
     is_shipped,
     load_method,
     method_chain,
@@ -213,7 +214,11 @@ def make_plan(
     if data is None and "world" not in cfg:
         raise AblationError(f"preset {preset!r} has no [world] section: pass --data DATASET_ROOT")
     abl = cfg.get("ablation", {})
-    methods, method_files = method_names(methods or abl.get("methods", ["map", "memo_map", "ibe_map"]))
+    if not methods:  # the preset's, a method file's path read from the preset file's folder
+        here = Path(preset).parent if str(preset).endswith(".toml") else Path.cwd()
+        methods = [str(here / m) if is_method_path(m) and not Path(m).is_absolute() else m
+                   for m in abl.get("methods", ["map", "memo_map", "ibe_map"])]
+    methods, method_files = method_names(methods)
     if sweep_methods is not None:
         sweep_methods, _ = method_names(sweep_methods, method_files)
     # each seed is a run per method, recognizer and setting: 10**9 seeds was the kernel's kill
@@ -241,7 +246,11 @@ def make_plan(
             raise AblationError(f"--set {key} and --sweep {key} name the same key: sweep it, with the --set value "
                                 "among the sweep's values, or set it")
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
-        sweep_methods = [m for m in abl.get("sweep_methods", [methods[-1]]) if m in methods]
+        by_path = {p: n for n, p in method_files.items()}
+        here = Path(preset).parent if str(preset).endswith(".toml") else Path.cwd()
+        named = [by_path.get(str((here / m).resolve()), m) if is_method_path(m) else m
+                 for m in abl.get("sweep_methods", [methods[-1]])]
+        sweep_methods = [m for m in named if m in methods]
     sweep_methods = list(sweep_methods)
     unknown = [m for m in sweep_methods if m not in methods]
     if unknown:

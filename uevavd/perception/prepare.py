@@ -106,6 +106,20 @@ def dataset_fingerprint(manifest, scenes: list[tuple[str, list]]) -> str:
     return _fingerprints(manifest, scenes)[0]
 
 
+def check_decomposition(perception: PerceptionSection, where: str) -> None:
+    """Refuse a decomposition that cannot be made: no segmenter, or the ``none`` segmenter (every
+    view one flat gray); ``where`` names the method. Checked before any work by ``uevavd ablate``."""
+    if not perception.decompose:
+        return
+    if perception.segmenter is None:
+        raise ValueError(f"{where}: perception.decompose = true needs a perception.segmenter")
+    if perception.segmenter.name == "none":
+        raise ValueError(
+            f"{where}: perception.decompose = true with segmenter 'none' would turn "
+            "every view into one flat gray (no target mask); use segmenter 'gt' or 'sam', or set "
+            "perception.decompose = false")
+
+
 def build_components(perception: PerceptionSection, data_root: Path, classifier_path: str | None, *,
                      where: str = "the perception section"):
     """``(segmenter or None, encoder, classifier)`` of a method's perception section;
@@ -117,15 +131,9 @@ def build_components(perception: PerceptionSection, data_root: Path, classifier_
         if comp is None:
             raise ValueError(f"{where} names no {section}; a table needs both an "
                              "encoder and a classifier, e.g. encoder = { name = \"resnet50\" }")
+    check_decomposition(perception, where)
     decomposing = perception.decompose
-    if decomposing and perception.segmenter is not None and perception.segmenter.name == "none":
-        raise ValueError(
-            f"{where}: perception.decompose = true with segmenter 'none' would turn "
-            "every view into one flat gray (no target mask); use segmenter 'gt' or 'sam', or set "
-            "perception.decompose = false")
     segmenter = perception.segmenter.build() if decomposing and perception.segmenter is not None else None
-    if decomposing and segmenter is None:
-        raise ValueError(f"{where}: perception.decompose = true needs a perception.segmenter")
     named = classifier_path is not None
     clf_runtime = runtime(perception.classifier, {"data": str(data_root)})
     enc_extra: dict[str, Any] = {"data": str(data_root)}
