@@ -80,7 +80,8 @@ def add_ablate(parser: argparse.ArgumentParser):
 
 def run_ablate(args: argparse.Namespace) -> int:
     from ..config_rules import parse_override
-    from .runner import make_plan, parse_sweeps, run_ablation
+    from .axes import parse_sweeps
+    from .plan import make_plan  # the arguments are checked before the runner's heavy imports
 
     try:
         sets = dict(parse_override(s) for s in args.sets)
@@ -94,6 +95,8 @@ def run_ablate(args: argparse.Namespace) -> int:
         for m in plan.methods:  # what a method file kept out of the preset, said before any work
             for note in plan.spec(m).preset_notes:
                 print(f"{m}: the preset's {note}")
+        from .runner import run_ablation
+
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("ablate", exc)
@@ -133,12 +136,14 @@ def add_demo(parser: argparse.ArgumentParser):
 
 def run_demo(args: argparse.Namespace) -> int:
     """The quick preset end to end on the embedded synthetic world."""
-    from .runner import make_plan, run_ablation
+    from .plan import make_plan  # the arguments are checked before the runner's heavy imports
 
     t0 = time.perf_counter()
     try:
         plan = make_plan(preset="quick", out=args.out, seeds=args.seeds, workers=args.workers,
                          device=args.device, recognizers=args.recognizers, use_zoo=args.use_zoo)
+        from .runner import run_ablation
+
         results = run_ablation(plan)
     except (ValueError, FileNotFoundError, UnknownComponentError) as exc:
         return _error("demo", exc)

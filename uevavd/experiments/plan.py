@@ -23,7 +23,7 @@ from ..config import (
 from ..config_rules import check_count, did_you_mean, thaw
 from ..data.splits import PER_BLOCK, TRAIN_PER_BLOCK
 from ..env.config import EnvConfig
-from ..perception.training.classifier import ClassifierRecipe
+from ..perception.training.recipe import ClassifierRecipe
 from ..presets import load_preset, preset_overrides
 from ..runtime import resolve_device, usable_cores
 from .axes import SB3_AGENTS as SB3_AGENTS
