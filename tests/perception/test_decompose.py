@@ -1,4 +1,4 @@
-"""Pre-decomposition invariants (DESIGN.md section 2)."""
+"""Pre-decomposition invariants (docs/perception.md, "Segmenters and pre-decomposition")."""
 
 from __future__ import annotations
 

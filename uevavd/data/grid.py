@@ -1,4 +1,4 @@
-"""The viewpoint grid and the action model of UEVAVD (DESIGN.md section 2).
+"""The viewpoint grid and the action model of UEVAVD (docs/environment.md).
 
 The target stands at the origin. The UAV stands on a regular grid of viewpoints:
 

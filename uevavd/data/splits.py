@@ -1,4 +1,4 @@
-"""Contexts and splits of UEVAVD (paper Table I with its typos corrected, DESIGN.md 2).
+"""Contexts and splits of UEVAVD (paper Table I with its typos corrected, as below).
 
 150 contexts, ids 1..150, in five blocks of 30, one block per target. Within block k
 (``base = 30 * k``): train = base+1..base+20, simple test = base+21..base+25, hard test

@@ -1,4 +1,4 @@
-"""The AOD environment layer: the CMDP of DESIGN.md section 2 over an observation table.
+"""The AOD environment layer: the CMDP of docs/environment.md over an observation table.
 
 Public API (kept stable for ``uevavd.state`` / ``uevavd.policy``):
 

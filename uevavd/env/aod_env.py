@@ -1,4 +1,4 @@
-"""``AODEnv``: the AOD CMDP over an observation table as a ``gymnasium.Env`` (DESIGN.md 2).
+"""``AODEnv``: the AOD CMDP over an observation table as a ``gymnasium.Env`` (docs/environment.md).
 
 One episode: start at a view of a context (scene) of the chosen split and observe it. At
 decision ``t = 0..T_max-1`` choose ``(type, range)``. ``stop`` ends the episode at the

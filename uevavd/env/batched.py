@@ -1,6 +1,6 @@
 """``BatchedAODEnv``: N AOD episodes in lockstep as torch tensors, on CPU or GPU.
 
-Same semantics as :class:`~uevavd.env.aod_env.AODEnv` (DESIGN.md 2), with automatic
+Same semantics as :class:`~uevavd.env.aod_env.AODEnv` (docs/environment.md), with automatic
 reset. Every step is a handful of tensor gathers over precomputed tensors; there is no
 Python loop over environments. API (stable; the DQN trainer builds on it)::
 

@@ -1,4 +1,4 @@
-"""Constants of the AOD episode and reward (DESIGN.md section 2), one frozen dataclass.
+"""Constants of the AOD episode and reward (docs/environment.md, "Episode and reward"), one frozen dataclass.
 
 A method's ``[env]`` TOML section is checked against the fields of :class:`EnvConfig`;
 unknown keys are an error listing these names.

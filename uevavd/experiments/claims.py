@@ -295,7 +295,7 @@ def diagnose(results: pd.DataFrame, claims: list[Claim]) -> list[str]:
 
 
 def _sanity(final: pd.DataFrame) -> list[str]:
-    """Checks that hold by construction (DESIGN.md section 2); a failure points to a bug."""
+    """Checks that hold by construction (the episode's rules, docs/environment.md); a failure points to a bug."""
     out = []
     bad = final[(final["path_m"] - STEP_M * final["path_steps"]).abs() > 1e-6 * (1 + final["path_m"].abs())]
     if len(bad):

@@ -118,7 +118,7 @@ LABELS: dict[str, str] = {
 #: different recognizers apart; ``seed // UNIT`` is the recognizer.
 UNIT = 1000
 SPLITS: tuple[str, ...] = ("train", "simple", "hard", "validation")
-#: The paper's defaults (DESIGN.md section 2), written once in EnvConfig.
+#: The paper's defaults (docs/environment.md), written once in EnvConfig.
 DEFAULT_THRE = EnvConfig.thre
 DEFAULT_C = EnvConfig.C
 METRICS: tuple[str, ...] = (

@@ -1,4 +1,4 @@
-"""Scene pre-decomposition (DESIGN.md section 2): keep the target, flatten the rest.
+"""Scene pre-decomposition (docs/perception.md, "Segmenters and pre-decomposition"): keep the target, flatten the rest.
 
 Target pixels stay as they are; every other segment is filled with one gray value drawn
 uniformly from [0, 1] (RGB ``(round(255 g),) * 3``); pixels no segment covers are filled

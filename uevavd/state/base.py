@@ -1,6 +1,6 @@
 """State estimators: from observations o_1..o_t to the state s_t the Q head reads.
 
-Every estimator starts with the same :class:`ObservationEncoder` (DESIGN.md section 2):
+Every estimator starts with the same :class:`ObservationEncoder` (docs/agents.md):
 g_t = [ReLU(Linear(D -> 512)) on the table feature, ReLU(Linear(4 -> 32)) on the box]
 (544-d). Estimators then map g_t (single view) or g_1..g_t (recurrent) to s_t.
 
