@@ -66,15 +66,15 @@ def main() -> None:
     from uevavd.env.baselines import reference_policies
     from uevavd.env.config import make_config
     from uevavd.env.evaluate import evaluate_policy
-    from uevavd.experiments.plan import DEFAULT_SETTING, make_plan, method_overrides
+    from uevavd.experiments.plan import DEFAULT_SETTING, make_plan, method_layers
     from uevavd.table import load_table
 
     with tempfile.TemporaryDirectory(prefix="ttq-plan-") as out:  # the plan writes nothing there
         plan = make_plan(preset="quick", out=out, methods=["map", "memo_map"], seeds=1, recognizers=1)
         table = load_table(args.table or _quick_table(plan))
         user = dict(parse_override(s) for s in args.set)
-        specs = {m: load_method(m, overrides={**method_overrides(plan, m, DEFAULT_SETTING), **user})
-                 for m in ("map", "memo_map")}
+        preset, explicit = method_layers(plan, DEFAULT_SETTING)
+        specs = {m: load_method(m, preset=preset, overrides={**explicit, **user}) for m in ("map", "memo_map")}
     env_cfg = make_config(dict(specs["map"].get("env") or {}))
     base = {name: evaluate_policy(table, "train", pol, env_cfg).summary()["mean_return"]
             for name, pol in reference_policies(table, env_cfg).items() if name in ("passive", "oracle")}

@@ -272,3 +272,15 @@ def test_a_simple_mistake_is_refused_before_torch_is_imported(argv, tmp_path):
                          text=True, timeout=120)
     assert out.stdout.split() == ["2", "False"], (out.stdout, out.stderr)
     assert len(out.stderr.strip().splitlines()) == 1 and "error:" in out.stderr
+
+
+def test_a_method_files_own_reward_constant_is_its_default_setting(tmp_path):
+    """env.thre set in a user's method file was replaced by the paper's 0.2 in every default run;
+    a sweep of thre still sets it (the command line wins)."""
+    path = tmp_path / "strict.toml"
+    path.write_text('name = "ibe_strict"\n_base_ = "ibe_map"\n[env]\nthre = 0.5\n')
+    plan = make_plan(preset="quick", out=tmp_path / "o", methods=[str(path)], sweeps=parse_sweeps(["thre=0.4"]),
+                     sweep_methods=[str(path)])
+    settings = dict(plan.settings("ibe_strict"))
+    assert plan.spec("ibe_strict").env.thre == 0.5
+    assert plan.spec("ibe_strict", settings["thre=0.4"]).env.thre == 0.4

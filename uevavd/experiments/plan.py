@@ -94,8 +94,8 @@ class Plan:
         cache = self.__dict__.setdefault("_specs", {})
         key = (method, json.dumps(dict(setting), sort_keys=True, default=str))
         if key not in cache:
-            cache[key] = load_method(self.method_files.get(method, method), preset=preset_overrides(self.preset),
-                                     overrides=method_overrides(self, method, setting))
+            preset, explicit = method_layers(self, setting)
+            cache[key] = load_method(self.method_files.get(method, method), preset=preset, overrides=explicit)
         return cache[key]
 
     def __getstate__(self) -> dict[str, Any]:  # a plan sent to a worker carries no resolved specs
@@ -242,7 +242,7 @@ def make_plan(
             hint = did_you_mean(section, SWEEP_SECTIONS) if "." in key else did_you_mean(key, list(SWEEPABLE))
             raise AblationError(f"sweep over {key!r}: expected thre, C or a dotted key of a method's env, train, state, "
                                 f"head or perception section{hint}")
-        if key in (sets or {}):
+        if SWEEPABLE.get(key, key) in (sets or {}):
             raise AblationError(f"--set {key} and --sweep {key} name the same key: sweep it, with the --set value "
                                 "among the sweep's values, or set it")
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
@@ -354,15 +354,19 @@ def default_workers() -> int:
 
 # -- stages ---------------------------------------------------------------------------------
 
-def method_overrides(plan: Plan, method: str, setting: dict[str, float]) -> dict[str, Any]:
-    """The command line's keys of a run: ``--set``, the setting's swept keys (thre and C as
-    env keys) and ``--episodes``; the preset's ``[overrides]`` are a lower layer
-    (:func:`uevavd.config_layers.layer_method`), applied by :meth:`Plan.spec`."""
-    over = dict(plan.sets)
-    over.update({SWEEPABLE.get(k, k): v for k, v in setting.items()})
+def method_layers(plan: Plan, setting: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(preset layer, command-line layer)`` of a run's method (:func:`uevavd.config_layers.layer_method`):
+    the preset's ``[overrides]`` with the paper's thre and C where the setting keeps them (so a
+    method file that sets its own keeps it), and ``--set``, the setting's swept keys (thre and C
+    as env keys) and ``--episodes``, which win."""
+    preset = preset_overrides(plan.preset)
+    explicit = dict(plan.sets)
+    for k, v in setting.items():
+        kept = k in SWEEPABLE and v == DEFAULT_SETTING[k]
+        (preset if kept else explicit)[SWEEPABLE.get(k, k)] = v
     if plan.episodes is not None:
-        over["train.episodes"] = int(plan.episodes)
-    return over
+        explicit["train.episodes"] = int(plan.episodes)
+    return preset, explicit
 
 
 def env_config(plan: Plan, setting: dict[str, float]):
