@@ -35,7 +35,11 @@ GROUPS = (
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
+    ("The paper's components, ablated", ("components-encoder", "components-factorial")),
 )
+#: Results whose arms are settings of one method: their tables give every setting's row.
+ARMS = ("components-encoder", "components-segmenter", "components-factorial")
+C = "uevavd ablate --preset quick --methods ibe_map --seeds 5 --recognizers 2"
 MACHINE = "2 CPU cores (the development VM, an AMD EPYC)"
 V = "--preset benchmarks/generalisation_validation.toml --seeds 3 --recognizers 1"
 S = "--preset benchmarks/generalisation_shift_validation.toml --seeds 3 --recognizers 1"
@@ -92,6 +96,10 @@ COMMANDS = {
                          "ibe_map_pose ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate "
                          "ibe_map_boxpose_gate ibe_map_boxpose_dagger_gate ibe_map_pose_pays ibe_map_boxpose_pays "
                          "--seeds 5 --recognizers 2 --sweep env.train_per_block=4",
+    "components-encoder": f"{C} --sweep 'perception.encoder={{name=\"resnet18\",weights=\"random\"}},"
+                          '{name="resnet50",weights="random"}\'',
+    "components-segmenter": f"uevavd train-sam-small W --threads 1 && {C} --sweep perception.segmenter.name=sam",
+    "components-factorial": f"{C} --sweep state.name=single_view,gru --sweep perception.decompose=false,true --cross",
 }
 ORDER = ("map", "memo_map", "ibe_map")
 REFERENCES = ("random", "passive", "box_gate", "pose_seek", "visibility_oracle", "oracle")
@@ -127,7 +135,10 @@ def anchor(section: str) -> str:
 
 def table(folder: str) -> list[str]:
     rows = list(csv.DictReader((RESULTS / folder / "summary.csv").open(encoding="utf-8")))
-    rows = [r for r in rows if r["setting"] == "default"]
+    if folder in ARMS:  # every setting of the learned method, named "method @ setting"
+        rows = [{**r, "method": r["method"] if r["setting"] == "default" else f"{r['method']} @ {r['setting']}"}
+                for r in rows if r["setting"] == "default" or r["method"] not in REFERENCES]
+    rows = [r for r in rows if r["setting"] == "default" or folder in ARMS]
     splits = [s for s in ("train", "validation", "simple", "hard") if any(r["split"] == s for r in rows)]
     methods = sorted({r["method"] for r in rows},
                      key=lambda m: (m in REFERENCES, REFERENCES.index(m) if m in REFERENCES else 0,

@@ -58,8 +58,8 @@ def paired_differences(final: pd.DataFrame, contexts: pd.DataFrame | None = None
         per = ctx.groupby(["method", "recognizer", "seed", "setting", "split", "terrain"], as_index=False)[
             [m for m in metrics if m in ctx.columns]].mean()
         per["seed"] = per["recognizer"].astype(np.int64) * UNIT + per["seed"].astype(np.int64)
-        if per["terrain"].nunique() > 1:  # one terrain is the split's own rows again
-            for (split, terrain), sel in per.groupby(["split", "terrain"], sort=True):
+        for (split, terrain), sel in per.groupby(["split", "terrain"], sort=True):
+            if per.loc[per["split"] == split, "terrain"].nunique() > 1:  # one terrain: the split's own rows
                 groups.append((str(split), str(terrain), sel))
     out = []
     for method in order_methods(runs["method"].unique()):
