@@ -35,7 +35,7 @@ GROUPS = (
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
-    ("The paper's components, ablated", ("components-encoder", "components-factorial")),
+    ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
 ARMS = ("components-encoder", "components-segmenter", "components-factorial")
