@@ -14,7 +14,7 @@ from typing import Any
 from ..atomic import atomic_write_json, is_temporary, write_sealed_json
 from ..config_rules import ConfigError
 from ..env.baselines import check_baselines
-from ..perception.prepare import check_decomposition
+from ..perception.decompose import check_decomposition
 from ..policy.contract import build_checked_network
 from .audit import audit_table, classifier_summary
 from .axes import parse_sweeps, resolved_value, value_label

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -78,3 +79,18 @@ def decompose_instances(image: np.ndarray, instance_map: np.ndarray, target_ids,
     gray = lut.take(instance_map)
     out = cv2.merge([gray, gray, gray])
     return cv2.copyTo(np.ascontiguousarray(image), is_target.take(instance_map).view(np.uint8), out)
+
+
+def check_decomposition(perception: Any, where: str) -> None:
+    """Refuse a decomposition a method's perception section (``PerceptionSection``) asks for but
+    cannot be made: no segmenter, or the ``none`` segmenter (every
+    view one flat gray); ``where`` names the method. Checked before any work by ``uevavd ablate``."""
+    if not perception.decompose:
+        return
+    if perception.segmenter is None:
+        raise ValueError(f"{where}: perception.decompose = true needs a perception.segmenter")
+    if perception.segmenter.name == "none":
+        raise ValueError(
+            f"{where}: perception.decompose = true with segmenter 'none' would turn "
+            "every view into one flat gray (no target mask); use segmenter 'gt' or 'sam', or set "
+            "perception.decompose = false")

@@ -35,7 +35,7 @@ from ..data.validate import segmentation_problem
 from ..hashing import json_digest, sha256_hex
 from ..paths import tables_dir
 from ..table import SCHEMA_VERSION, ObservationTable, TableError
-from .decompose import decompose, view_seed
+from .decompose import check_decomposition, decompose, view_seed
 from .images import Decoder
 from .shards import (
     SHARD_ARRAYS,
@@ -104,20 +104,6 @@ def dataset_fingerprint(manifest, scenes: list[tuple[str, list]]) -> str:
     """16-hex hash of the files and annotations the table reads: names, sizes and
     modification times of images and segmentations, boxes, visibility, categories."""
     return _fingerprints(manifest, scenes)[0]
-
-
-def check_decomposition(perception: PerceptionSection, where: str) -> None:
-    """Refuse a decomposition that cannot be made: no segmenter, or the ``none`` segmenter (every
-    view one flat gray); ``where`` names the method. Checked before any work by ``uevavd ablate``."""
-    if not perception.decompose:
-        return
-    if perception.segmenter is None:
-        raise ValueError(f"{where}: perception.decompose = true needs a perception.segmenter")
-    if perception.segmenter.name == "none":
-        raise ValueError(
-            f"{where}: perception.decompose = true with segmenter 'none' would turn "
-            "every view into one flat gray (no target mask); use segmenter 'gt' or 'sam', or set "
-            "perception.decompose = false")
 
 
 def build_components(perception: PerceptionSection, data_root: Path, classifier_path: str | None, *,
