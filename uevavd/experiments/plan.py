@@ -214,8 +214,8 @@ def make_plan(
     if data is None and "world" not in cfg:
         raise AblationError(f"preset {preset!r} has no [world] section: pass --data DATASET_ROOT")
     abl = cfg.get("ablation", {})
+    here = Path(preset).parent if str(preset).endswith(".toml") else Path.cwd()  # the preset's relative paths
     if not methods:  # the preset's, a method file's path read from the preset file's folder
-        here = Path(preset).parent if str(preset).endswith(".toml") else Path.cwd()
         methods = [str(here / m) if is_method_path(m) and not Path(m).is_absolute() else m
                    for m in abl.get("methods", ["map", "memo_map", "ibe_map"])]
     methods, method_files = method_names(methods)
@@ -247,7 +247,6 @@ def make_plan(
                                 "among the sweep's values, or set it")
     if sweep_methods is None:  # the preset's, among the methods run (none of them: no sweep)
         by_path = {p: n for n, p in method_files.items()}
-        here = Path(preset).parent if str(preset).endswith(".toml") else Path.cwd()
         named = [by_path.get(str((here / m).resolve()), m) if is_method_path(m) else m
                  for m in abl.get("sweep_methods", [methods[-1]])]
         sweep_methods = [m for m in named if m in methods]
