@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import signal
 import subprocess
 import sys
 
@@ -378,3 +379,56 @@ def test_a_pool_never_forks_a_process_that_imported_ray_or_jax():
         with_lib = subprocess.run([sys.executable, "-c", probe.format(imp=f"import {lib}; ")], capture_output=True,
                                   text=True, check=True).stdout.split()
         assert with_lib[1] == ("spawn" if with_lib[0] == "fork" else with_lib[0]), lib
+
+
+def _entry(*args: str, **kw) -> subprocess.Popen:
+    """The console script as installed: ``uevavd ARGS`` through :func:`uevavd.cli.entry`."""
+    return subprocess.Popen([sys.executable, "-c", "from uevavd.cli import entry; entry()", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+@pytest.mark.parametrize(("args", "code"), [(("--version",), 0), (("ablate", "--bogus"), 2),
+                                             (("report", "/nonexistent/uevavd-ablation"), 2),
+                                             (("validate", "/nonexistent/uevavd-root"), 1)])
+def test_the_console_script_keeps_each_exit_status(args, code):
+    """The console script skips the interpreter's teardown: the status it exits with is still
+    the command's (argparse's refusal 2, a bad path 2, problems found 1, success 0)."""
+    proc = _entry(*args)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == code, err
+    assert "Traceback" not in err
+
+
+def test_the_console_script_exits_1_on_an_uncaught_exception(tmp_path):
+    script = tmp_path / "boom.py"
+    script.write_text("import sys\nfrom uevavd.runtime import skip_teardown\nskip_teardown()\n"
+                      "print('before', flush=False)\nraise RuntimeError('boom')\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and out.stdout == "before\n" and "RuntimeError: boom" in out.stderr
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals")
+def test_sigterm_stops_a_main_process_stage_as_ctrl_c_does(ablation_world, tmp_path):
+    """A plain `kill` of a command busy in its own process (the recognizer's training here; a
+    worker pool was the only place that handled it) stops it in seconds, as Ctrl-C does:
+    exit 143, one line, no temporary file left, and nothing written in place of the result."""
+    import time
+
+    out = tmp_path / "recognizer.safetensors"
+    proc = _entry("train-classifier", str(ablation_world), "--out", str(out), "--epochs", "1000",
+                  "--batch-size", "8", "--init", "random", "--workers", "1",
+                  env={**os.environ, "UEVAVD_CACHE": str(tmp_path / "cache")})
+    # wait for the training to run (its first epoch's bar), then stop it
+    deadline = time.monotonic() + 120
+    seen = ""
+    while "epoch" not in seen and time.monotonic() < deadline:
+        seen += os.read(proc.stderr.fileno(), 4096).decode(errors="replace")
+    assert "epoch" in seen, seen
+    start = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    took = time.monotonic() - start
+    assert proc.returncode == 128 + signal.SIGTERM, seen + err
+    assert "terminated; finished work is kept and a rerun resumes" in err and "Traceback" not in err
+    assert took < 20  # the check is that it stops at all; it takes about a second
+    assert not out.exists() and list(tmp_path.glob("*.tmp*")) == list(tmp_path.glob(".*")) == []

@@ -7,7 +7,11 @@ import argparse
 import errno
 import importlib
 import os
+import signal
 import sys
+import threading
+
+from .runtime import exit_status, skip_teardown
 
 #: name -> ("module:function" that adds its arguments and returns the handler, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -92,6 +96,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """A ``SIGTERM`` (a plain ``kill``, a scheduler's stop): the command stops as on Ctrl-C."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -104,13 +116,19 @@ def main(argv: list[str] | None = None) -> int:
         name = argv[0]
         module, func = COMMANDS[name][0].split(":")
         sub = argparse.ArgumentParser(prog=f"uevavd {name}", description=COMMANDS[name][1])
+        # SIGTERM stops every stage as Ctrl-C does (its clean-up runs; a worker pool stops its
+        # jobs), in the main thread only and only where nothing else handles it
+        term = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+        if term:
+            signal.signal(signal.SIGTERM, _on_sigterm)
         try:  # building the parser may load plugins (a command's choices): a strict failure is one line too
             handler = getattr(importlib.import_module(module), func)(sub)
             args = sub.parse_args(argv[1:])
             return int(handler(args) or 0)
-        except KeyboardInterrupt:
-            print("interrupted; finished work is kept and a rerun resumes", file=sys.stderr)
-            return 130
+        except KeyboardInterrupt as exc:
+            how = "terminated" if isinstance(exc, Terminated) else "interrupted"
+            print(f"{how}; finished work is kept and a rerun resumes", file=sys.stderr)
+            return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
         except BrokenPipeError:  # the reader left (`uevavd info | head`): stop quietly, as cat does
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
             return 141
@@ -118,10 +136,24 @@ def main(argv: list[str] | None = None) -> int:
             if isinstance(exc, bad_input_types()) or os_fault(exc):
                 return error(name, exc)
             raise
+        finally:
+            if term:
+                signal.signal(signal.SIGTERM, signal.SIG_DFL)
     args = parser.parse_args(argv)
     parser.print_help()
     return 0 if args.command is None and not argv else 2
 
 
+def entry() -> None:
+    """The ``uevavd`` console script: :func:`main`, then an exit without the interpreter's teardown."""
+    skip_teardown()
+    try:
+        code = main()
+    except SystemExit as exc:  # argparse's refusals and --help
+        code = exc.code
+    exit_status(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+    entry()

@@ -19,6 +19,7 @@ stops at once on Ctrl-C or a failed job.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import ctypes.util
@@ -273,9 +274,55 @@ def _die_with_parent() -> None:
         os._exit(1)
 
 
+def skip_teardown() -> None:
+    """End this process, once its exit handlers have run, without the interpreter's teardown.
+
+    Python's exit collects and frees every object before the process ends: with torch,
+    the tables and a trained network in memory that took 2-4 s per process on 2 cores (a
+    stopped ablation's workers, then its parent), for memory the kernel frees at once.
+    Registered first, the handler runs after every other ``atexit`` handler (Ray's
+    shutdown, logging's flush; Python has joined the other threads before these), flushes
+    stdout and stderr and ends the process with the status given to :func:`exit_status`
+    (0 unless set; 1 after an uncaught exception). The same as Instagram's
+    ``atexit.register(os._exit, 0)`` for its web workers. Only for processes uevavd owns:
+    the CLI and its pool workers, never on import.
+    """
+    global _status
+    _status = 0
+    atexit.register(_exit_now)
+    hook = sys.excepthook
+
+    def excepthook(*exc: Any) -> None:
+        exit_status(1)
+        hook(*exc)
+
+    sys.excepthook = excepthook
+
+
+_status: int | None = None  # set by skip_teardown
+
+
+def exit_status(code: object) -> int:
+    """Record the status this process ends with (:func:`sys.exit`'s rules: None is 0, an
+    int itself, anything else 1) and return it."""
+    global _status
+    status = 0 if code is None else code if isinstance(code, int) else 1
+    if _status is not None:
+        _status = status
+    return status
+
+
+def _exit_now() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(_status or 0)
+
+
 def _worker_init(stop: Any, initializer: Callable[..., None] | None, initargs: tuple) -> None:
     global _stop_event
     _stop_event = stop
+    skip_teardown()  # a spawned worker ends through sys.exit, with the interpreter's full teardown
     _die_with_parent()
     signal.signal(signal.SIGINT, _worker_interrupt)
     # a forked worker inherits the parent's SIGTERM handler (the pool's own): terminate() must end it
