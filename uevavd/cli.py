@@ -27,7 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train-sam-small": ("uevavd.perception.training.sam.cli:add_train_small", "train the small SAM from scratch on a world's ground truth"),
     "finetune-sam": ("uevavd.perception.training.sam.cli:add_finetune", "fine-tune a SAM checkpoint's mask decoder on ground-truth target masks"),
     "zoo": ("uevavd.experiments.cli:add_zoo", "the model zoo: list, check or rebuild the shipped recognizer and policies"),
-    "export-minari": ("uevavd.policy.minari_export:add_export_minari",
+    "export-minari": ("uevavd.policy.cli:add_export_minari",
                       "a policy's episodes on a table's split as a portable Minari dataset (offline RL, imitation)"),
     "info": ("uevavd.info:add_info", "version, torch and device, components, config and cache paths"),
     "plugins": ("uevavd.plugins.cli:add_plugins", "list plugins and what each registered, by kind"),

@@ -168,8 +168,11 @@ def add_report(parser: argparse.ArgumentParser):
     _no_figures(parser)
 
     def handler(args: argparse.Namespace) -> int:
+        from .io import ABLATION_FILE, ablation_folder, read_ablation_meta
+
+        for folder in args.dir:  # before the report's imports (torch, matplotlib: seconds)
+            ablation_folder(folder)
         from .claims import check_claims
-        from .io import ABLATION_FILE, read_ablation_meta
         from .merge import merge_ablations
         from .report import write_report
         from .report_data import load_results

@@ -17,6 +17,13 @@ from ..hashing import file_sha256, is_sealed
 ABLATION_FILE = "ablation.json"
 
 
+def ablation_folder(path: str | os.PathLike[str]) -> Path:
+    """``path`` as a Path when it is a folder, else the one-line refusal of ``report``."""
+    if not (folder := Path(path)).is_dir():
+        raise FileNotFoundError(f"{folder} is not a directory; expected an ablation directory holding results.csv")
+    return folder
+
+
 def read_ablation_meta(path: str | os.PathLike[str]) -> dict[str, Any]:
     """An ablation's ``ablation.json``, checked against the digest written in it (one of an
     earlier version, without one, is read as it is); damaged, edited or not a JSON object is

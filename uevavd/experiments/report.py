@@ -29,7 +29,7 @@ from .arms import arm_label, write_arms
 from .audit import audit_markdown
 from .claims import Claim, check_claims, diagnose
 from .figures import figure_lines, plot_curves, plot_strips
-from .io import ABLATION_FILE, check_outputs, read_ablation_meta
+from .io import ABLATION_FILE, ablation_folder, check_outputs, read_ablation_meta
 from .report_contexts import contexts_section
 from .report_data import (
     DEFAULT_C,
@@ -353,8 +353,7 @@ def write_report(dir: Path, *, window: int | None = None, figures: bool = True) 
     default ``min(5, points // 3)`` (at least 1). ``figures=False``: the text and tables
     only, the same but for the figures (drawing them is most of a report's time).
     """
-    if not (ablation_dir := Path(dir)).is_dir():
-        raise FileNotFoundError(f"{ablation_dir} is not a directory; expected an ablation directory holding results.csv")
+    ablation_dir = ablation_folder(dir)
     results = load_results(ablation_dir / "results.csv")
     notes: list[str] = []
     meta_path = ablation_dir / ABLATION_FILE

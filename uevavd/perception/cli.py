@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 
 from ..config_rules import check_count
 from ..presets import PRESET_HELP, cli_layers
@@ -18,7 +19,7 @@ RECIPE_OPTIONS = ("arch", "init", "epochs", "batch_size", "lr", "val_fraction", 
 
 
 def add_train_classifier(p: argparse.ArgumentParser):
-    from .training.classifier import THREADS, ClassifierRecipe
+    from .training.recipe import THREADS, ClassifierRecipe
 
     d = ClassifierRecipe()
     p.add_argument("data", help="dataset root (UEVAVD layout) holding the train_605 scene")
@@ -52,15 +53,22 @@ def add_train_classifier(p: argparse.ArgumentParser):
     p.add_argument("--device", default="auto", help="where the network trains: auto (CUDA when present), cpu, cuda")
 
     def run(args) -> int:
+        from ..data.reader import read_dataset
         from ..presets import load_preset
-        from ..runtime import resolve_device
-        from .training.classifier import ClassifierRecipe, train_classifier
+        from .training.recipe import ClassifierRecipe
 
         given = {k: getattr(args, k) for k in RECIPE_OPTIONS if getattr(args, k) is not None}
         s = ClassifierRecipe.from_preset(load_preset(args.preset) if args.preset else {}, **given)  # before any work
         check_count("--threads", args.threads)
         check_count("--workers", args.workers)
+        if args.imagenet is not None and not os.path.isfile(args.imagenet):
+            raise FileNotFoundError(f"--imagenet {args.imagenet}: no such file; expected ResNet18 ImageNet weights "
+                                    "(torchvision's resnet18-f37072fd.pth), or leave it out to use torch's cache")
+        read_dataset(args.data)  # a wrong root is refused before torch is imported (about 3 s)
         _logging()
+        from ..runtime import resolve_device
+        from .training.classifier import train_classifier
+
         resolve_device(args.device)  # a bad or absent device is refused before any work
         path = train_classifier(args.data, args.out, settings=s, imagenet=args.imagenet, workers=args.workers,
                                 device=args.device, threads=args.threads)
@@ -94,6 +102,12 @@ def add_prepare(p: argparse.ArgumentParser):
             check_count("--threads", args.threads)
         if args.shards is not None:
             check_count("--shards", args.shards)
+        if args.classifier is not None and not os.path.isfile(args.classifier):
+            raise FileNotFoundError(f"--classifier {args.classifier}: no such file; expected a recognizer "
+                                    ".safetensors (uevavd train-classifier writes one), or leave it out")
+        from ..data.reader import read_dataset
+
+        read_dataset(args.data)  # a wrong root is refused before torch is imported (about 3 s)
         if args.threads:
             import torch
 

@@ -5,12 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any
 
 from ..atomic import atomic_write_json
+from ..cli import Terminated
 from ..cli import error as _error
+from ..config_rules import check_count, did_you_mean, parse_override
 from ..presets import PRESET_HELP, cli_layers, known_presets
 from ..runtime import usable_cores
 from .rundir import RunDir
@@ -103,8 +106,10 @@ def add_train(p: argparse.ArgumentParser):
         from ..config import load_method
         from ..config_rules import ConfigError
         from .rundir import RunDirError
-        from .trainer import train
 
+        problem = _table_problem(args.table)  # before the method, whose components import torch (about 3 s)
+        if problem:
+            return _error("train", problem)
         try:
             sets = [*args.set, *([f"train.threads={args.threads}"] if args.threads is not None else [])]
             preset, overrides = cli_layers(args.preset, sets)
@@ -114,9 +119,8 @@ def add_train(p: argparse.ArgumentParser):
         except (ConfigError, *BAD_INPUT) as exc:
             return _error("train", exc)
         was_done = RunDir(args.out).finished  # the same run again: nothing to do, not an error
-        problem = _table_problem(args.table)
-        if problem:
-            return _error("train", problem)
+        from .trainer import train  # torch: after the checks, so a mistake is refused at once
+
         try:
             out = train(spec, args.table, out=args.out, episodes=args.episodes, seed=args.seed,
                         device=args.device, progress=not args.no_progress, max_epochs=args.max_epochs)
@@ -193,8 +197,6 @@ def _evaluate_pretrained(args: argparse.Namespace) -> int:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from ..env.config import make_config
-    from .acting import load_policy
     from .rundir import read_settings
 
     if args.run_dir.is_file():
@@ -217,6 +219,9 @@ def _evaluate(args: argparse.Namespace) -> int:
     out = _json_path(args, args.run_dir / f"eval_{args.split}.json")
     if isinstance(out, str):
         return _error("evaluate", out)
+    from ..env.config import make_config
+    from .acting import load_policy
+
     policy = load_policy(args.run_dir, device=args.device)
     return _print_beside_baselines(args, table, settings["method"], policy, make_config(settings["env"]), out)
 
@@ -317,3 +322,47 @@ def _print_rows(rows: dict[str, dict[str, float]], cols: list[str]) -> None:
     print(f"{'policy':<18}" + "".join(f"{c:>18}" for c in cols))
     for n, row in rows.items():
         print(f"{n:<18}" + "".join(f"{row[c]:>18.4f}" if row[c] == row[c] else f"{'-':>18}" for c in cols))
+
+
+def add_export_minari(p: argparse.ArgumentParser):
+    p.add_argument("table", help="an observation table's folder (`uevavd prepare` writes it)")
+    p.add_argument("--split", default="hard", help="train, simple, hard or test (default: hard)")
+    p.add_argument("--policy", default="oracle",
+                   help="a baseline's name (any that `uevavd evaluate` shows beside a run: random, passive, box_gate, "
+                        "pose_seek, the oracles, a plugin's) or a trained run's folder (default: oracle)")
+    p.add_argument("--episodes", type=int, default=1000, help="episodes to record (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the starts (and of the random policy)")
+    p.add_argument("--id", required=True, dest="dataset_id", help="Minari dataset id, e.g. uevavd/quick-hard-oracle-v0")
+    p.add_argument("--out", default=None, help="datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
+    p.add_argument("--set", action="append", default=[], metavar="env.KEY=VALUE",
+                   help="an env setting the episodes are recorded under, e.g. env.thre=0.4 or env.C=0 (default: a "
+                        "trained run's own env config, the paper's for a baseline)")
+
+    def run(args) -> int:
+        check_count("--episodes", args.episodes)
+        check_count("--seed", args.seed, low=0)
+        try:
+            import minari  # noqa: F401
+        except ImportError:
+            raise ValueError("export-minari needs minari: pip install \"uevavd[clients]\"") from None
+        env = {}
+        for text in args.set:
+            key, value = parse_override(text)
+            if not key.startswith("env."):
+                raise ValueError(f"--set {text}: export-minari takes env settings only (env.thre=0.4, env.C=0, ...)"
+                                 + did_you_mean(key.split(".", 1)[0], ["env"]))
+            env[key[len("env."):]] = value
+        from .minari_export import export_minari, policy_env_config  # torch: after the checks
+
+        config = policy_env_config(args.policy, env)
+        try:
+            ds = export_minari(args.table, args.split, args.policy, args.dataset_id, episodes=args.episodes,
+                               seed=args.seed, out=args.out, config=config)
+        except KeyboardInterrupt as exc:  # the dataset is put in place whole or not at all
+            how = "terminated" if isinstance(exc, Terminated) else "interrupted"
+            print(f"{how}; no dataset was written under that id: a rerun starts the export over", file=sys.stderr)
+            return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+        print(f"wrote {ds.spec.dataset_id}: {ds.total_episodes} episodes, {ds.total_steps} steps")
+        return 0
+
+    return run

@@ -8,8 +8,6 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from ..config_rules import ConfigError
-from .network import STOP_GATES
-from .replay import SAMPLINGS
 
 #: ``TrainConfig.gamma``'s default; at this value it follows ``env.gamma``.
 DEFAULT_GAMMA = 0.9
@@ -30,6 +28,17 @@ LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", 
 IMITATIONS = ("none", "visibility_oracle")
 #: How training picks each new episode's context (``train.context_sampling``).
 CONTEXT_SAMPLINGS = ("uniform", "level_replay")
+#: ``train.stop_gate``: where the policy may only stop. "none"; "box", wherever the observed
+#: target box is non-empty, in training (acting and TD targets) and in acting; "learned",
+#: wherever a stop probe on s_t predicts that the recognizer recognises the current view with
+#: probability above ``train.stop_threshold``, in greedy acting only; "pays", the box gate
+#: opened where a flight pays: in training where the oracle's best reachable return from the
+#: view beats stopping there, in greedy acting where a probe on s_t, trained on that answer
+#: over the box-visible views, predicts it with probability above ``train.stop_threshold``.
+STOP_GATES = ("none", "box", "learned", "pays")
+#: How a buffer can draw its batches (``TrainConfig.replay_sampling``; see
+#: :class:`uevavd.policy.replay.EpisodeReplay`).
+SAMPLINGS = ("portable", "vectorised")
 
 
 @dataclass(frozen=True)
@@ -119,7 +128,7 @@ class TrainConfig:
     """An auxiliary objective: the weight of a linear probe's loss predicting, from the state,
     whether the recognizer recognises the current view (0 = none)."""
     stop_gate: Literal["none", "box", "learned", "pays"] = "none"
-    """Where the agent may only stop (:data:`uevavd.policy.network.STOP_GATES`): "none"; "box",
+    """Where the agent may only stop (:data:`STOP_GATES`): "none"; "box",
     wherever the observed target box is non-empty, in training (its actions and its TD targets)
     and in acting, so its values are learned on the decisions where the target is hidden;
     "learned", wherever a stop probe on the state, trained beside the Q network on whether the

@@ -26,7 +26,6 @@ import errno
 import os
 import re
 import shutil
-import sys
 import tempfile
 import warnings
 from contextlib import contextmanager
@@ -37,7 +36,6 @@ import numpy as np
 import torch
 
 from ..atomic import folder_lock, remove_temporaries
-from ..config_rules import check_count, did_you_mean, parse_override
 from ..env import ENV_ID
 from ..env.aod_env import AODEnv
 from ..env.baselines import baseline_entries, baseline_names
@@ -272,45 +270,3 @@ def _dataset_folder(dataset_id: str, out: str | os.PathLike[str] | None):
             os.replace(tmp / dataset_id, final)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-
-
-def add_export_minari(p: Any):
-    p.add_argument("table", help="an observation table's folder (`uevavd prepare` writes it)")
-    p.add_argument("--split", default="hard", help="train, simple, hard or test (default: hard)")
-    p.add_argument("--policy", default="oracle",
-                   help="a baseline's name (any that `uevavd evaluate` shows beside a run: random, passive, box_gate, "
-                        "pose_seek, the oracles, a plugin's) or a trained run's folder (default: oracle)")
-    p.add_argument("--episodes", type=int, default=1000, help="episodes to record (default 1000)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the starts (and of the random policy)")
-    p.add_argument("--id", required=True, dest="dataset_id", help="Minari dataset id, e.g. uevavd/quick-hard-oracle-v0")
-    p.add_argument("--out", default=None, help="datasets folder (default: $MINARI_DATASETS_PATH or ~/.minari/datasets)")
-    p.add_argument("--set", action="append", default=[], metavar="env.KEY=VALUE",
-                   help="an env setting the episodes are recorded under, e.g. env.thre=0.4 or env.C=0 (default: a "
-                        "trained run's own env config, the paper's for a baseline)")
-
-    def run(args) -> int:
-        check_count("--episodes", args.episodes)
-        check_count("--seed", args.seed, low=0)
-        try:
-            import minari  # noqa: F401
-        except ImportError:
-            raise ValueError("export-minari needs minari: pip install \"uevavd[clients]\"") from None
-        env = {}
-        for text in args.set:
-            key, value = parse_override(text)
-            if not key.startswith("env."):
-                raise ValueError(f"--set {text}: export-minari takes env settings only (env.thre=0.4, env.C=0, ...)"
-                                 + did_you_mean(key.split(".", 1)[0], ["env"]))
-            env[key[len("env."):]] = value
-        config = policy_env_config(args.policy, env)
-        try:
-            ds = export_minari(args.table, args.split, args.policy, args.dataset_id, episodes=args.episodes,
-                               seed=args.seed, out=args.out, config=config)
-        except KeyboardInterrupt:  # the dataset is put in place whole or not at all
-            print("interrupted; no dataset was written under that id: a rerun starts the export over",
-                  file=sys.stderr)
-            return 130
-        print(f"wrote {ds.spec.dataset_id}: {ds.total_episodes} episodes, {ds.total_steps} steps")
-        return 0
-
-    return run

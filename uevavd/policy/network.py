@@ -10,15 +10,7 @@ from torch import nn
 from ..config import Component
 from ..data.grid import DEFAULT_MAX_RANGE, N_TYPES, STOP
 from ..env.gate import gate_mask
-
-#: ``train.stop_gate``: where the policy may only stop. "none"; "box", wherever the observed
-#: target box is non-empty, in training (acting and TD targets) and in acting; "learned",
-#: wherever a stop probe on s_t predicts that the recognizer recognises the current view with
-#: probability above ``train.stop_threshold``, in greedy acting only; "pays", the box gate
-#: opened where a flight pays: in training where the oracle's best reachable return from the
-#: view beats stopping there, in greedy acting where a probe on s_t, trained on that answer
-#: over the box-visible views, predicts it with probability above ``train.stop_threshold``.
-STOP_GATES = ("none", "box", "learned", "pays")
+from .config import STOP_GATES
 
 
 class QNetwork(nn.Module):

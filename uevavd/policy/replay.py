@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import torch
 
+from .config import SAMPLINGS
+
 
 @dataclass
 class EpisodeBatch:
@@ -32,9 +34,6 @@ class EpisodeBatch:
     index: torch.Tensor
     weight: torch.Tensor
 
-
-#: How a buffer can draw its batches (``TrainConfig.replay_sampling``; see :class:`EpisodeReplay`).
-SAMPLINGS = ("portable", "vectorised")
 
 
 class EpisodeReplay:

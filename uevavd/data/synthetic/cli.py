@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
+from ...cli import error
 from ...config_rules import check_count
 from ..splits import N_CONTEXTS, check_context
 
@@ -71,8 +71,7 @@ def _run(args: argparse.Namespace) -> int:
             include_unoccluded=not args.no_unoccluded, progress=not args.quiet,
         )
     except (ValueError, FileNotFoundError) as err:
-        print(f"uevavd synth: {err}", file=sys.stderr)
-        return 2
+        return error("synth", err)
     print(f"wrote {len(contexts)} contexts at {size} px (seed {seed}) to {out} in {time.perf_counter() - t0:.1f} s")
     from .quality import format_rows, read_visible, split_rows
     from .world import VALIDITY

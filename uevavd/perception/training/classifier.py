@@ -39,16 +39,11 @@ from ..weights import (
     state_dict_hash,
 )
 from .recipe import ARCHS as ARCHS
+from .recipe import THREADS as THREADS
 from .recipe import ClassifierRecipe as ClassifierRecipe
 from .report import visibility_report
 
 log = logging.getLogger(__name__)
-
-
-#: torch CPU threads the recognizer trains on. Its float sums are split between threads and
-#: round differently with another count (not with another number of cores), so the count is
-#: fixed: any machine trains the model zoo's recognizer (trained on 2) weight for weight.
-THREADS = 2
 
 
 def split_views(n_views: int, val_fraction: float, seed: int) -> np.ndarray:

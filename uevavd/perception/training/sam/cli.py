@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 
 def _common(p: argparse.ArgumentParser, *, steps: int, lr: float, points: int) -> None:
@@ -21,6 +22,15 @@ def _common(p: argparse.ArgumentParser, *, steps: int, lr: float, points: int) -
     p.add_argument("--threads", type=int, default=1,
                    help="torch CPU threads (default 1: on a shared machine more threads can be much slower)")
     p.add_argument("--fresh", action="store_true", help="ignore an interrupted run's snapshot and start over")
+
+
+def _check_data(a) -> None:
+    """The dataset root and the counts, refused before torch is imported (about 3 s)."""
+    from ....config_rules import check_count
+    from ....data.reader import read_dataset
+
+    check_count("--threads", a.threads)
+    read_dataset(a.data)
 
 
 def _args(a):
@@ -46,6 +56,7 @@ def add_train_small(p: argparse.ArgumentParser):
     p.add_argument("--heads", type=int, default=3)
 
     def run(a) -> int:
+        _check_data(a)
         import torch
 
         from ...sam.model import SmallConfig, default_small_path
@@ -73,6 +84,10 @@ def add_finetune(p: argparse.ArgumentParser):
     p.add_argument("--device", default="auto", help="auto (CUDA when available) / cpu / cuda")
 
     def run(a) -> int:
+        _check_data(a)
+        if not Path(a.checkpoint).is_file():
+            raise FileNotFoundError(f"--checkpoint {a.checkpoint}: no such file; expected a SAM checkpoint (.pth) or "
+                                    "a uevavd .safetensors one (uevavd train-sam-small writes one)")
         import torch
 
         from .data import split_heldout
