@@ -25,7 +25,10 @@ def _vec(table, n=6, **kw):
 def test_make_vec_is_the_batched_env_step_for_step(table):
     venv = _vec(table, n=6, split="train", config=EnvConfig(t_max=3), autoreset_mode="same_step")
     assert isinstance(venv, AODVectorEnv) and venv.num_envs == 6
-    ref = BatchedAODEnv(table, "train", 6, EnvConfig(t_max=3), seed=5)
+    ref = BatchedAODEnv(table, "train", 6, EnvConfig(t_max=3))
+    twin = _vec(table, n=6, split="train", config=EnvConfig(t_max=3)).unwrapped
+    twin._rngs = [gym.utils.seeding.np_random(5 + i)[0] for i in range(6)]  # what reset(seed=5) seeds
+    ref.start_sampler = twin._draw_starts  # the vector env's starts: its per-env generators, seeded alike
     obs, _ = venv.reset(seed=5)
     robs = ref.reset()
     rng = np.random.default_rng(0)
@@ -235,6 +238,7 @@ def test_the_vector_env_follows_gymnasium_1_conventions_like_the_single_env(tabl
         return venv.unwrapped._batched._view.tolist()
 
     assert first_views([1, 2, 3, 4]) == first_views([1, 2, 3, 4]) != first_views([1, 2, 3, 5])
+    assert first_views([1, 2, 3, 4])[:3] == first_views([1, 2, 3, 5])[:3]  # one generator per env
     with pytest.raises(ValueError, match="a list of 4"):
         venv.reset(seed=[1, 2])
     fresh = [_vec(table, n=8, split="train", config=cfg) for _ in range(2)]
@@ -381,8 +385,47 @@ def test_sb3_vec_env_asks_for_same_step_autoreset_itself(table):
         _vec(table, n=2, split="train", autoreset_mode="every_step")
 
 
-def test_a_seed_past_64_bits_is_named(table):
+@pytest.mark.parametrize("seed", [-1, 1.5, True, "3", [1, -2]])
+def test_a_seed_that_is_not_one_is_named(table, seed):
     venv = _vec(table, n=2, split="train")
-    with pytest.raises(ValueError, match=r"reset\(seed=18446744073709551616\): expected an int in 0..2\*\*64 - 1"):
-        venv.reset(seed=2**64)
-    venv.reset(seed=2**64 - 1)
+    with pytest.raises(ValueError, match=r"reset\(seed=.*\): expected an int >= 0, or a list of 2 of them"):
+        venv.reset(seed=seed)
+    venv.reset(seed=2**64)  # numpy's seeding takes any size, as the single env's
+
+
+@pytest.mark.parametrize("mode", ["next_step", "same_step"])
+def test_env_i_of_a_vector_env_seeded_s_is_the_single_env_seeded_s_plus_i(table, mode):
+    """Gymnasium's convention (its SyncVectorEnv's): env i of a vector env reset with seed=s
+    behaves as gym.make(...) reset with seed=s + i, and then, episode after episode, as that
+    env reset without a seed. The vector env's envs used to share one stream."""
+    cfg = EnvConfig(t_max=3)
+    n = 3
+    venv = _vec(table, n=n, split="train", config=cfg, autoreset_mode=mode)
+    singles = [gym.make(ENV_ID, table=table, split="train", config=cfg) for _ in range(n)]
+    obs, _ = venv.reset(seed=7)
+    sobs = [env.reset(seed=7 + i)[0] for i, env in enumerate(singles)]
+    rng = np.random.default_rng(0)
+    restart = np.zeros(n, bool)  # next-step: the vector env's next step is env i's reset
+    episodes = 0
+    for _ in range(25):
+        for i in range(n):
+            for key in ("features", "box", "t", "action_mask"):
+                np.testing.assert_array_equal(obs[key][i], sobs[i][key], err_msg=f"env {i}, {key}")
+        actions = np.stack([rng.integers(0, 7, n), rng.integers(0, 4, n)], 1)
+        obs, _, term, _, infos = venv.step(actions)
+        for i, env in enumerate(singles):
+            if restart[i]:
+                sobs[i], _ = env.reset()
+                restart[i] = False
+                continue
+            sobs[i], _, done, _, _ = env.step(actions[i])
+            if done:
+                episodes += 1
+                if mode == "same_step":
+                    np.testing.assert_array_equal(infos["final_obs"][i]["features"], sobs[i]["features"])
+                    sobs[i], _ = env.reset()
+                else:
+                    restart[i] = True
+    assert episodes >= 6
+    assert [venv.reset(seed=[7, None, 9])[0]["features"][i].tolist() for i in (0, 2)] == [
+        singles[0].reset(seed=7)[0]["features"].tolist(), singles[2].reset(seed=9)[0]["features"].tolist()]

@@ -25,6 +25,7 @@ For done envs ``obs`` already shows the first view of the next episode; ``info``
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -195,9 +196,16 @@ class BatchedAODEnv:
         #: (S',) probabilities of the split's scenes for new episodes (None: uniform); a
         #: context sampler (train.context_sampling) sets it before each step
         self.scene_weights: torch.Tensor | None = None
+        #: draws new episodes' starts instead of :attr:`generator` where set: called with the
+        #: (N,) bool envs that start one (None: all, at reset), it returns (N,) local scene
+        #: indices and views (those of other envs are not read). The vector env's per-env
+        #: generators, Gymnasium's seeding convention.
+        self.start_sampler: Callable[[torch.Tensor | None], tuple[torch.Tensor, torch.Tensor]] | None = None
 
     # -- starts -----------------------------------------------------------------------------
-    def _sample_starts(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def _sample_starts(self, where: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.start_sampler is not None:
+            return self.start_sampler(where)
         n, g, dev = self.n_envs, self.generator, self.device
         if self.scene_weights is None:
             scene = torch.randint(len(self.tensors.scenes), (n,), generator=g, device=dev)
@@ -264,7 +272,7 @@ class BatchedAODEnv:
             "reward64": out["reward"],  # the reward before the float32 cast (the vector env's, as sync mode's)
         }
         # auto-reset: sample for all (keeps RNG use independent of `done`), keep where not done
-        scene, view = self._sample_starts()
+        scene, view = self._sample_starts(done)
         self._scene = torch.where(done, scene, self._scene)
         self._view = torch.where(done, view, self._view)
         self._t = torch.where(done, 0, self._t)

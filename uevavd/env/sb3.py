@@ -49,8 +49,8 @@ class SB3VecEnv(VecEnv):
         self._actions: np.ndarray | None = None
 
     def reset(self):
-        seed = self._seeds[0]
-        obs, _ = self.venv.reset(seed=seed)
+        # SB3's seed(s) gives env i the seed s + i, as Gymnasium's vector envs do with reset(seed=s)
+        obs, _ = self.venv.reset(seed=list(self._seeds))
         self._reset_seeds()
         self._reset_options()
         return obs

@@ -31,9 +31,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
+from gymnasium.utils import seeding
 from gymnasium.vector.utils import batch_space
 
-from ..data.grid import N_TYPES, STOP
+from ..data.grid import N_TYPES, N_VIEWS, STOP
 from .aod_env import integral_actions
 from .batched import BatchedAODEnv
 from .config import EnvConfig, make_config
@@ -59,21 +60,21 @@ STEP_INFO = {"view": "final_view", "scene": "final_scene", "t": "final_decisions
              "steps": "final_steps", "distance_m": "final_distance_m"}
 
 
-def _one_seed(seed: Any, n: int) -> int | None:
-    """The shared generator's seed from ``reset(seed=...)``: None, an int, or a list of ``n``
-    ints (or Nones: all None is no seed) combined by numpy's SeedSequence."""
+def env_seeds(seed: Any, n: int) -> list[int | None] | None:
+    """Each env's seed from ``reset(seed=...)``, Gymnasium's convention (its ``SyncVectorEnv``):
+    an int ``s`` gives env ``i`` the seed ``s + i``, a list of ``n`` ints (or Nones) one each;
+    None where none is given."""
     if seed is None:
         return None
-    if isinstance(seed, list | tuple | np.ndarray):
-        seeds = list(seed)
-        if all(s is None for s in seeds):
-            return None
-        if len(seeds) != n or not all(isinstance(s, int | np.integer) and s >= 0 for s in seeds):
-            raise ValueError(f"reset(seed={seeds!r}): expected an int >= 0, or a list of {n} of them")
-        return int(np.random.SeedSequence([int(s) for s in seeds]).generate_state(1, np.uint64)[0] >> 1)
-    if not isinstance(seed, int | np.integer) or not 0 <= seed < 2**64:  # torch's generator takes 64 bits
-        raise ValueError(f"reset(seed={seed!r}): expected an int in 0..2**64 - 1, or a list of {n} of them")
-    return int(seed)
+    seeds = list(seed) if isinstance(seed, list | tuple | np.ndarray) else None
+    if seeds is None:
+        if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+            raise ValueError(f"reset(seed={seed!r}): expected an int >= 0, or a list of {n} of them")
+        return [int(seed) + i for i in range(n)]
+    if len(seeds) != n or not all(s is None or (isinstance(s, int | np.integer) and not isinstance(s, bool)
+                                                and s >= 0) for s in seeds):
+        raise ValueError(f"reset(seed={seeds!r}): expected an int >= 0, or a list of {n} of them (or Nones)")
+    return [None if s is None else int(s) for s in seeds]
 
 
 def _autoreset_mode(mode: Any) -> str:
@@ -114,25 +115,25 @@ class AODVectorEnv(gym.vector.VectorEnv):
         self.config = cfg
         self.table = self._batched.table
         self._obs: dict[str, torch.Tensor] | None = None
-        self._seeded = False
+        self._rngs: list[np.random.Generator] | None = None  # one per env, as the single env's np_random
+        self._batched.start_sampler = self._draw_starts
         self._held = np.zeros(num_envs, bool)  # next-step: the envs whose next step is their reset
 
     # -- gymnasium API ------------------------------------------------------------------------
     def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):
-        """New episodes everywhere. ``seed`` reseeds the start sampler, which the envs share: an
-        int seeds it with itself, a list of ``num_envs`` ints with all of them (numpy's
-        ``SeedSequence`` of the list: ``[1, 2]`` and ``[1, 3]`` sample other episodes; the
-        envs draw from one stream, not one each). Without a seed the first reset seeds it
-        from the OS's entropy, as Gymnasium's envs do (it used to be seed 0 every time).
-        ``options`` may give ``scenes`` (table scene indices) and ``views`` (N,) as
+        """New episodes everywhere. Each env draws its starts from its own generator, as the
+        single env does, seeded by Gymnasium's convention: ``seed=s`` gives env ``i`` the seed
+        ``s + i`` (it then starts, and restarts after each episode, as ``gym.make(...)`` reset
+        with ``seed=s + i`` and then without one), a list of ``num_envs`` seeds one each.
+        Without a seed the first reset seeds them from the OS's entropy, as Gymnasium's envs
+        do. ``options`` may give ``scenes`` (table scene indices) and ``views`` (N,) as
         BatchedAODEnv.reset does."""
         self._check_open("reset")
-        seed = _one_seed(seed, self.num_envs)
-        if seed is None and not self._seeded:
-            seed = int(np.random.SeedSequence().generate_state(1, np.uint64)[0] >> 1)
-        if seed is not None:
-            self._batched.generator.manual_seed(seed)
-            self._seeded = True
+        seeds = env_seeds(seed, self.num_envs) or [None] * self.num_envs
+        if self._rngs is None:  # the first reset: from the OS's entropy where no seed is given
+            self._rngs = [seeding.np_random(s)[0] for s in seeds]
+        else:  # a seed reseeds its env; None keeps the env's generator going, as the single env's reset()
+            self._rngs = [rng if s is None else seeding.np_random(s)[0] for rng, s in zip(self._rngs, seeds, strict=True)]
         options = dict(options or {})
         unknown = sorted(set(options) - {"scenes", "views"})
         if unknown:
@@ -140,6 +141,23 @@ class AODVectorEnv(gym.vector.VectorEnv):
         self._obs = self._batched.reset(**options)
         self._held[:] = False
         return self._numpy(self._obs), {}
+
+    def _draw_starts(self, where: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """New episodes' starts, drawn as the single env draws them (a scene of the split, then
+        a view unless ``config.start_view`` fixes it), each env from its own generator, only
+        for the envs that start one: env ``i`` then follows ``gym.make`` seeded with its seed.
+        Not for the envs held for a next-step reset: their episode was drawn when the last one
+        ended, and the stop they take in its place is put back."""
+        n = self.num_envs
+        starting = range(n) if where is None else np.flatnonzero(where.cpu().numpy() & ~self._held)
+        scene, view = np.zeros(n, np.int64), np.zeros(n, np.int64)
+        fixed = self.config.start_view
+        for i in starting:
+            rng = self._rngs[i]
+            scene[i] = rng.integers(len(self._batched.tensors.scenes))
+            view[i] = fixed if fixed is not None else rng.integers(N_VIEWS)
+        dev = self._batched.device
+        return torch.as_tensor(scene, device=dev), torch.as_tensor(view, device=dev)
 
     def step(self, actions: Any):
         """One (type, range) action per env, (num_envs, 2) int; returns the batched (observations,
