@@ -73,13 +73,14 @@ def test_cleanrls_dqn_loop_trains_through_the_flat_env_and_scores_with_flat_poli
     opt = torch.optim.Adam(q.parameters(), lr=1e-3)
     buf: list[tuple] = []
     obs, _ = envs.reset(seed=0)
+    envs.single_action_space.seed(0)
     forbidden, ended = 0, np.zeros(4, bool)
     for step in range(400):
         mask = obs[:, -K:] > 0
         with torch.no_grad():
             greedy = q(torch.as_tensor(obs)).masked_fill(~torch.as_tensor(mask), -torch.inf).argmax(1).numpy()
         explore = rng.random(4) < max(0.05, 1 - step / 200)
-        random = np.array([rng.choice(np.flatnonzero(m)) for m in mask])
+        random = np.array([envs.single_action_space.sample(mask=m) for m in mask.astype(np.int8)])  # as the docs
         actions = np.where(explore, random, greedy)
         forbidden += int((~mask[np.arange(4), actions]).sum())
         nxt, reward, term, trunc, _ = envs.step(actions)

@@ -88,6 +88,86 @@ def test_a_minari_export_records_the_pose(table, tmp_path, monkeypatch):
     ep = next(iter(data.iterate_episodes()))
     assert ep.observations["pose"].shape == (len(ep.rewards) + 1, 3)
     assert set(ep.observations["pose"][:, 2]) <= {60.0, 70.0, 80.0, 90.0, 100.0}
+    from uevavd.env import flat_dataset
+
+    flat = flat_dataset(data)  # the flat view carries its parts, and its policy their width
+    assert flat.parts == ("features", "box", "pose", "t", "action_mask")
+    policy = flat.policy(lambda x: np.full(len(x), 6 * 4))
+    assert policy.width == flat.observations.shape[1] and policy.max_range == 4
+    with pytest.raises(ValueError, match=r"evaluate with EnvConfig\(pose=True\)"):
+        evaluate_policy(folder, "train", policy, EnvConfig())
+
+
+def _flat_routes(table, config):
+    """The same state's flat vector through every flat route: the env's observation="flat",
+    MaskedFlatObservation (Tianshou), observation="masked" (RLlib) and the flat view of the
+    batched interface (FlatPolicy, flat_dataset)."""
+    from uevavd.env import MaskedFlatObservation
+
+    kw = {"table": table, "split": "train", "config": config}
+    flat = gym.make(ENV_ID, observation="flat", actions="flat", **kw)
+    masked = MaskedFlatObservation(gym.make(ENV_ID, **kw))
+    rllib = gym.make(ENV_ID, observation="masked", actions="flat", **kw)
+    start = {"options": {"scene": 1, "view": 302}}
+    out = {"flat": flat.reset(**start)[0], "tianshou": masked.reset(**start)[0]["obs"],
+           "rllib": rllib.reset(**start)[0]["observations"]}
+    batched = BatchedAODEnv(table, "train", 1, config)
+    out["flat_policy"] = flat_observation(batched.reset(scenes=[1], views=[302]))[0]
+    widths = {"flat": flat.observation_space.shape[0], "tianshou": masked.observation_space["obs"].shape[0],
+              "rllib": rllib.observation_space["observations"].shape[0]}
+    return out, widths
+
+
+@pytest.mark.parametrize("config", [EnvConfig(t_max=3), POSE], ids=["paper", "pose"])
+def test_every_flat_route_gives_one_vector_for_one_state(table, config):
+    """One flat layout: Tianshou's masked wrapper gave Gymnasium's flatten (mask first, t one-hot:
+    1,318 floats on the quick table against 1,313), so a network trained through it could not be
+    scored through FlatPolicy. Every route now gives [features, box, (pose,) t, mask]."""
+    vectors, widths = _flat_routes(table, config)
+    d, extra = table.feature_dim, (3 if config.pose else 0)
+    assert set(widths.values()) == {d + 4 + extra + 1 + 7 * config.max_range}
+    for name, vector in vectors.items():
+        assert vector.dtype == np.float32, name
+        np.testing.assert_array_equal(vector, vectors["flat"], err_msg=name)
+
+
+def test_a_flat_policy_built_with_the_pose_is_refused_without_it_by_name(table):
+    """A network trained with pose=True and scored by evaluate_policy(table, split, FlatPolicy(...))
+    failed inside torch (mat1 and mat2 shapes cannot be multiplied). A FlatPolicy given its width
+    (FlatTransitions.policy gives it) refuses the other layout in one line naming the setting."""
+    from uevavd.env import FlatPolicy
+    from uevavd.env.spaces import flat_observation_space
+
+    width = flat_observation_space(table.feature_dim, POSE).shape[0]
+    stop = 6 * 4  # the flat index of stop, range 0
+
+    def act(x):
+        assert x.shape[1] == width  # never called with the other layout
+        return np.full(len(x), stop)
+
+    policy = FlatPolicy(act, max_range=4, width=width)
+    with pytest.raises(ValueError, match=r"built with the pose \(3 floats\) and this env has none; evaluate with "
+                                         r"EnvConfig\(pose=True\)"):
+        evaluate_policy(table, "hard", policy, EnvConfig(t_max=3))
+    assert evaluate_policy(table, "hard", policy, POSE).stopped.all()
+    plain = FlatPolicy(act, max_range=4, width=width - 3)
+    with pytest.raises(ValueError, match=r"built without the pose .* EnvConfig\(pose=False\)"):
+        evaluate_policy(table, "hard", plain, POSE)
+    with pytest.raises(ValueError, match="another encoder"):
+        evaluate_policy(table, "hard", FlatPolicy(act, max_range=4, width=width + 5), POSE)
+    space = gym.make(ENV_ID, table=table, config=POSE, observation="flat", actions="flat").observation_space
+    assert FlatPolicy(act, max_range=4, width=space).width == width  # an observation space gives its width
+
+
+def test_an_sb3_model_of_the_pose_is_refused_without_it_by_name(table):
+    sb3 = pytest.importorskip("stable_baselines3")
+    from uevavd.env import DiscreteActions
+    from uevavd.env.sb3 import SB3Policy
+
+    model = sb3.DQN("MultiInputPolicy", DiscreteActions(gym.make(ENV_ID, table=table, config=POSE)), device="cpu")
+    with pytest.raises(ValueError, match=r"SB3 model: it was built with the pose .* EnvConfig\(pose=True\)"):
+        evaluate_policy(table, "hard", SB3Policy(model, 4), EnvConfig(t_max=3))
+    assert len(evaluate_policy(table, "hard", SB3Policy(model, 4), POSE).ret) > 0
 
 
 # -- pose_seek -------------------------------------------------------------------------------------

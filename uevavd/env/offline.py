@@ -11,7 +11,7 @@ flat policy back into one the evaluation runs::
                                      action_size=flat.n_actions)
     bc = d3rlpy.algos.DiscreteBCConfig().create(device="cpu:0")
     bc.fit(data, n_steps=2000)
-    evaluate_policy(table, "hard", FlatPolicy(bc.predict, max_range=flat.max_range))
+    evaluate_policy(table, "hard", flat.policy(bc.predict))  # FlatPolicy on the dataset's layout
 
 The flat observation is ``[features (D), box (4), t (1), action_mask (7 * A)]`` as float32
 (:func:`flat_observation`), with the pose (3, metres) after the box where the data has it
@@ -36,7 +36,7 @@ from ..data.episodes import STEP_KEYS, EpisodeError, check_episode, check_worker
 from ..data.grid import N_TYPES
 from .aod_env import integral_actions
 from .gate import fit_to_mask
-from .spaces import FLAT_PARTS, flatten_observation
+from .spaces import FLAT_PARTS, OPTIONAL_PARTS, flatten_observation, parts_mismatch
 
 
 def flat_observation(obs: dict[str, Any]) -> np.ndarray:
@@ -60,10 +60,18 @@ class FlatTransitions:
     timeouts: np.ndarray
     masks: np.ndarray
     max_range: int
+    #: the observation parts the rows hold (:data:`~uevavd.env.spaces.FLAT_PARTS` with or without the pose)
+    parts: tuple[str, ...] = tuple(k for k in FLAT_PARTS if k not in OPTIONAL_PARTS)
 
     @property
     def n_actions(self) -> int:
         return N_TYPES * self.max_range
+
+    def policy(self, act: Callable[[np.ndarray], Any], *, masked: bool = True) -> FlatPolicy:
+        """``act`` (a learner's ``predict``, or a network's scores) as a :class:`FlatPolicy` on
+        these rows' layout: their action space, and their width, checked against the env it is
+        evaluated on (a policy learnt with the pose refused on an env without it, by name)."""
+        return FlatPolicy(act, max_range=self.max_range, masked=masked, width=self.observations.shape[1])
 
 
 def flat_dataset(*datasets: Iterable[Any], workers: int | None = None) -> FlatTransitions:
@@ -94,7 +102,8 @@ def flat_dataset(*datasets: Iterable[Any], workers: int | None = None) -> FlatTr
     a = data["actions"].reshape(-1, 2).astype(np.int64)
     return FlatTransitions(observations, a[:, 0] * max_range + a[:, 1], data["rewards"].astype(np.float32),
                            data["terminations"].astype(bool), data["truncations"].astype(bool),
-                           observations[:, -N_TYPES * max_range:] > 0, int(max_range))
+                           observations[:, -N_TYPES * max_range:] > 0, int(max_range),
+                           tuple(k for k in FLAT_PARTS if k in data))
 
 
 def _arrays(dataset: Any, name: str, workers: int | None) -> dict[str, np.ndarray] | None:
@@ -158,17 +167,30 @@ class FlatPolicy:
     agents do: from scores, the best allowed action; an index of a move the mask forbids (one
     the grid's edge would clamp) becomes the longest allowed range of its type, or stop where
     none is allowed (the scripted box gate's edge rule). ``masked=False`` takes the indices as
-    they are (clamped moves are legal, and cost their requested range)."""
+    they are (clamped moves are legal, and cost their requested range).
+
+    ``width``, the flat observation's length the policy was built on (an int, or the
+    observation space: ``envs.single_observation_space``, Tianshou's ``["obs"]``), refuses an
+    env of another layout by name before the policy acts (a network trained with the pose on
+    an env without it: "evaluate with EnvConfig(pose=True)"); :meth:`FlatTransitions.policy`
+    sets it."""
 
     needs_features = True
 
-    def __init__(self, act: Callable[[np.ndarray], Any], *, max_range: int, masked: bool = True) -> None:
+    def __init__(self, act: Callable[[np.ndarray], Any], *, max_range: int, masked: bool = True,
+                 width: int | spaces.Space | None = None) -> None:
         if isinstance(max_range, bool) or not isinstance(max_range, int | np.integer) or max_range < 1:
             raise ValueError(f"FlatPolicy(max_range={max_range!r}): expected the dataset's number of ranges, an "
                              "integer >= 1 (flat_dataset(...).max_range)")
         self._act = act
         self.max_range = int(max_range)
         self.masked = bool(masked)
+        if isinstance(width, spaces.Space):
+            width = int(np.prod(width.shape))
+        if width is not None and (isinstance(width, bool) or not isinstance(width, int | np.integer) or width < 1):
+            raise ValueError(f"FlatPolicy(width={width!r}): expected the flat observation's length, an integer >= 1 "
+                             "(or its observation space)")
+        self.width = None if width is None else int(width)
 
     def reset(self, n: int) -> None:
         """Nothing to clear: the flat policy has no memory."""
@@ -183,7 +205,13 @@ class FlatPolicy:
                              "and env config of the same action space")
         n, k = len(obs["t"]), N_TYPES * self.max_range
         allowed = torch.as_tensor(mask).cpu().numpy().astype(bool).reshape(n, N_TYPES, self.max_range)
-        raw = self._act(flat_observation(obs))
+        flat_obs = flat_observation(obs)
+        if self.width is not None:
+            problem = parts_mismatch("the flat policy", self.width, flat_obs.shape[-1],
+                                     tuple(k for k in FLAT_PARTS if k in obs or (k == "action_mask" and "mask" in obs)))
+            if problem:
+                raise ValueError(problem)
+        raw = self._act(flat_obs)
         if np.ndim(raw) == 2 and np.shape(raw) == (n, k):  # scores: the best (allowed) action
             scores = np.array(raw, dtype=np.float64)
             if self.masked:

@@ -22,10 +22,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
+from .spaces import FLAT_PARTS, parts_differ
 from .vector import AODVectorEnv
 
 
@@ -120,6 +122,12 @@ class SB3Policy:
                    "t": t.numpy()}
         if "pose" in obs:  # a model trained with EnvConfig.pose
             sb3_obs["pose"] = torch.as_tensor(obs["pose"]).float().cpu().numpy()
+        space = getattr(self.model, "observation_space", None)
+        if isinstance(space, gym.spaces.Dict):  # a model of another env config: refused by name, not by SB3's shapes
+            problem = parts_differ("the SB3 model", tuple(k for k in FLAT_PARTS if k in space.spaces),
+                                   tuple(k for k in FLAT_PARTS if k in sb3_obs))
+            if problem:
+                raise ValueError(problem)
         if self.recurrent:
             flat, self.state = self.model.predict(sb3_obs, state=self.state, episode_start=(t == 0).numpy(),
                                                   deterministic=True)

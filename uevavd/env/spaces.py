@@ -23,6 +23,8 @@ from .config import EnvConfig
 F16_MAX = float(np.finfo(np.float16).max)
 #: The parts of the flat observation, in order ("pose" only where the observation has it).
 FLAT_PARTS = ("features", "box", "pose", "t", "action_mask")
+#: The optional parts of the observation: the EnvConfig field that adds each, and its width in the flat vector.
+OPTIONAL_PARTS = {"pose": ("pose", 3)}
 #: The observation forms: the Dict of the paper's parts; one flat float32 vector; or that
 #: vector as ``"observations"`` beside the joint mask as ``"action_mask"`` (float32), the
 #: convention of RLlib's action-masking modules.
@@ -48,6 +50,42 @@ def flatten_observation(obs: dict[str, Any]) -> np.ndarray:
     return np.concatenate(parts, axis=-1)
 
 
+def observation_parts(config: EnvConfig) -> tuple[str, ...]:
+    """The parts of the observation under ``config``, in the flat vector's order."""
+    return tuple(k for k in FLAT_PARTS if k not in OPTIONAL_PARTS or getattr(config, OPTIONAL_PARTS[k][0]))
+
+
+def parts_mismatch(who: str, width: int, have_width: int, have_parts: tuple[str, ...]) -> str | None:
+    """Why ``who``, built on flat observations of ``width`` floats, cannot act on an env whose
+    flat observations have ``have_width`` floats and the parts ``have_parts``, naming the part
+    that differs and the setting that adds it; None where the widths agree."""
+    if width == have_width:
+        return None
+    head = f"{who} takes observations of {width} floats, this env's have {have_width}"
+    for part, (_, n) in OPTIONAL_PARTS.items():
+        if width - have_width == (n if part not in have_parts else -n):
+            return f"{head}: {_part_advice(part, part not in have_parts)}"
+    return (f"{head} ({', '.join(have_parts)}): a table of another encoder (features) or an env of another "
+            "max_range (the mask); evaluate on the table and env config it was trained on")
+
+
+def parts_differ(who: str, parts: tuple[str, ...], have_parts: tuple[str, ...]) -> str | None:
+    """Why ``who``, built on observations of ``parts``, cannot act on an env whose observations
+    have ``have_parts``, naming the setting; None where they agree."""
+    for part in OPTIONAL_PARTS:
+        if (part in parts) != (part in have_parts):
+            return f"{who}: {_part_advice(part, part in parts)}"
+    return None
+
+
+def _part_advice(part: str, built_with: bool) -> str:
+    field, n = OPTIONAL_PARTS[part]
+    if built_with:
+        return (f"it was built with the {part} ({n} floats) and this env has none; evaluate with "
+                f"EnvConfig({field}=True) (env.{field} = true)")
+    return f"it was built without the {part} ({n} floats) and this env has it; evaluate with EnvConfig({field}=False)"
+
+
 def observation_space(feature_dim: int, config: EnvConfig, *, actions: str = "multi") -> spaces.Dict:
     """One env's observation space (``actions="flat"``: the joint mask flattened, 7 x A)."""
     a = config.max_range
@@ -68,7 +106,14 @@ def observation_space(feature_dim: int, config: EnvConfig, *, actions: str = "mu
 def flat_observation_space(feature_dim: int, config: EnvConfig) -> spaces.Box:
     """The ``observation="flat"`` form's space: float32 ``[features, box, (pose,) t, mask]``,
     each part's bounds as in the Dict form (t in 0..T_max, the joint mask in {0, 1})."""
-    parts = observation_space(feature_dim, config, actions="flat").spaces
+    return flat_space(observation_space(feature_dim, config, actions="flat"))
+
+
+def flat_space(space: spaces.Dict) -> spaces.Box:
+    """The Box of :func:`flatten_observation` over observations of the Dict ``space`` (the
+    env's, or :class:`~uevavd.env.wrappers.DiscreteActions`' with its joint mask): every flat
+    route's one layout."""
+    parts = space.spaces
     low, high = [], []
     for key in FLAT_PARTS:
         if key not in parts:

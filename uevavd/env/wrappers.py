@@ -9,7 +9,7 @@ import numpy as np
 from gymnasium import spaces
 
 from ..data.grid import N_TYPES, unflat_action
-from .spaces import action_masks
+from .spaces import action_masks, flat_space, flatten_observation
 
 
 class DiscreteActions(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -63,23 +63,22 @@ class MaskedFlatObservation(gym.ObservationWrapper, gym.utils.RecordConstructorA
     """The observation as ``{"obs": flat float32 vector, "mask": (7 * A,) bool}`` over one
     action index (:class:`DiscreteActions` is applied where the env has the joint action):
     the convention of libraries that read an action mask from ``obs.mask`` (Tianshou's DQN
-    family masks its Q-values and its exploration with it). ``"obs"`` is Gymnasium's
-    ``flatten`` of the wrapped observation, the mask included, as
-    ``FlattenObservation(DiscreteActions(env))`` gives it."""
+    family masks its Q-values and its exploration with it). ``"obs"`` is every flat route's
+    vector, ``[features, box, (pose,) t, action_mask]`` (:func:`~uevavd.env.spaces.flatten_observation`:
+    the env's ``observation="flat"``, :func:`~uevavd.env.offline.flat_dataset` and
+    :class:`~uevavd.env.offline.FlatPolicy`), so a network trained here scores through any of them."""
 
     def __init__(self, env: gym.Env) -> None:
         gym.utils.RecordConstructorArgs.__init__(self)
         if isinstance(env.action_space, spaces.MultiDiscrete):
             env = DiscreteActions(env)
         gym.ObservationWrapper.__init__(self, env)
-        self._inner = env.observation_space
-        flat = spaces.flatten_space(self._inner)  # float64 (the one-hot of t): float32, as networks take it
         self.observation_space = spaces.Dict({
-            "obs": spaces.Box(flat.low.astype(np.float32), flat.high.astype(np.float32), dtype=np.float32),
+            "obs": flat_space(env.observation_space),
             "mask": spaces.MultiBinary(int(env.action_space.n)),
         })
 
     def observation(self, observation: dict[str, Any]) -> dict[str, Any]:
         """The env's dict observation -> ``{"obs": float32 vector, "mask": bool action mask}``."""
-        return {"obs": spaces.flatten(self._inner, observation).astype(np.float32),
-                "mask": np.asarray(observation["action_mask"], dtype=bool)}
+        return {"obs": flatten_observation(observation),
+                "mask": np.asarray(observation["action_mask"], dtype=bool).reshape(-1)}
