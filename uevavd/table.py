@@ -304,6 +304,7 @@ class ObservationTable:
         return self.probs.argmax(-1) == self.targets[:, None]
 
     def describe(self) -> str:
+        """One line: the key, the scenes per split, the feature width and the perception config."""
         counts = {s: sum(1 for x in self.splits if x == s) for s in SPLITS}
         return (
             f"ObservationTable {self.key}: {len(self)} scenes {counts}, features "

@@ -87,9 +87,11 @@ class BoxGatePolicy:
         self.a_type, self.a_range = int(a_type), int(a_range)
 
     def reset(self, n: int) -> None:
-        pass
+        """Nothing to clear: the rule reads only the current observation."""
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Stop where the target's box is in view, else the fixed move, fitted to the mask (the
+        longest allowed range of its type, or stop where none is allowed)."""
         mask = obs["mask"]
         n = mask.shape[0]
         a_type, a_range = fit_to_mask(mask, torch.full((n,), self.a_type, device=mask.device),
@@ -155,9 +157,11 @@ class PoseSeekPolicy:
         self._pose: torch.Tensor | None = None
 
     def reset(self, n: int) -> None:
-        pass
+        """Nothing to clear: the rule reads only the current observation."""
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rule of the class docstring, one action per episode: stop, or the horizontal move
+        toward the target's column."""
         view = obs["view"]
         if self._pose is None or self._pose.device != view.device:
             self._pose = torch.as_tensor(view_coords(np.arange(N_VIEWS)), dtype=torch.float64, device=view.device)

@@ -115,6 +115,7 @@ class EnvTensors:
         return obs
 
     def check_actions(self, a_type: torch.Tensor, a_range: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(a_type, a_range)`` as (n,) int64 tensors on this device, or a ValueError naming the shape, dtype or value the env refuses."""
         a_type = torch.as_tensor(a_type, device=self.device)
         a_range = torch.as_tensor(a_range, device=self.device)
         if a_type.shape != (n,) or a_range.shape != (n,):

@@ -65,9 +65,11 @@ class StopGate:
         return getattr(self.policy, "features_key", None)
 
     def reset(self, n: int) -> None:
+        """Reset the gated policy for ``n`` new episodes."""
         self.policy.reset(n)
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The gated policy's action, replaced by stop wherever the gate is open (the box in view)."""
         a_type, a_range = self.policy.act(obs)
         a_type = torch.as_tensor(a_type, device=obs["box"].device)
         a_range = torch.as_tensor(a_range, device=obs["box"].device)

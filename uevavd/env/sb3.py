@@ -51,6 +51,7 @@ class SB3VecEnv(VecEnv):
         self._actions: np.ndarray | None = None
 
     def reset(self):
+        """New episodes everywhere, with the seeds SB3's ``seed()`` set (env i: seed + i); returns the observations."""
         # SB3's seed(s) gives env i the seed s + i, as Gymnasium's vector envs do with reset(seed=s)
         obs, _ = self.venv.reset(seed=list(self._seeds))
         self._reset_seeds()
@@ -58,9 +59,11 @@ class SB3VecEnv(VecEnv):
         return obs
 
     def step_async(self, actions: np.ndarray) -> None:
+        """Keep the actions for :meth:`step_wait` (SB3's two-part step)."""
         self._actions = np.asarray(actions)
 
     def step_wait(self):
+        """Step every env: (observations, float32 rewards, dones, one info dict per env with the ended episodes' ``terminal_observation`` and ``final_*`` fields)."""
         obs, reward, terminated, truncated, infos = self.venv.step(self._actions)
         done = terminated | truncated
         out: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
@@ -74,13 +77,16 @@ class SB3VecEnv(VecEnv):
         return obs, reward.astype(np.float32), done, out
 
     def close(self) -> None:
+        """Close the vector env."""
         self.venv.close()
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        """The vector env's attribute, once per env asked for."""
         value = getattr(self.venv, attr_name)  # AttributeError where absent, as SB3 expects
         return [value for _ in self._get_indices(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        """Set the attribute on the vector env (all envs share it)."""
         setattr(self.venv, attr_name, value)
 
     def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
@@ -93,9 +99,11 @@ class SB3VecEnv(VecEnv):
         return [result for _ in idx]
 
     def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
+        """False for every env: the vector env is not a stack of wrapped single envs."""
         return [False for _ in self._get_indices(indices)]
 
     def get_images(self) -> Sequence[np.ndarray | None]:
+        """No images (one None per env): render with the vector env's ``render()``."""
         return [None for _ in range(self.num_envs)]
 
 
@@ -111,9 +119,11 @@ class SB3Policy:
         self.state = None
 
     def reset(self, n: int) -> None:
+        """Forget a recurrent model's state for ``n`` new episodes."""
         self.state = None
 
     def act(self, obs: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The model's deterministic action per episode, on the observations it was trained on; a model of another env config (the pose) is refused by name."""
         t = torch.as_tensor(obs["t"]).cpu()
         n = len(t)
         sb3_obs = {"features": torch.as_tensor(obs["features"]).float().cpu().numpy(),

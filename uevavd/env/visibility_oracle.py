@@ -152,9 +152,11 @@ class VisibilityOraclePolicy:
         self._start: torch.Tensor | None = None
 
     def reset(self, n: int) -> None:
+        """Forget the episodes' starts: the next act plans from the views it is given."""
         self._start = None
 
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The next action of each episode's plan from its start (:func:`visibility_plans`)."""
         view, t, scene = obs["view"], obs["t"], obs["scene"]
         if self._dev != view.device:
             self._type_t = torch.as_tensor(self.a_type, device=view.device)
