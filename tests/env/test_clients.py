@@ -105,7 +105,29 @@ def test_cleanrls_dqn_loop_trains_through_the_flat_env_and_scores_with_flat_poli
     assert res.summary()["episodes"] == 2 * 605 and np.isfinite(res.ret).all()
 
 
-def test_skrls_dqn_trains_on_the_flat_vector_env(table):
+class _Forbidden(gym.vector.VectorWrapper):
+    """Counts the actions a client sends that the observation it acted on forbids."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.count = 0
+
+    def reset(self, **kwargs):
+        self.obs, info = self.env.reset(**kwargs)
+        return self.obs, info
+
+    def step(self, actions):
+        a = np.asarray(actions).reshape(-1).astype(int)
+        self.count += int((self.obs[:, -K:][np.arange(len(a)), a] == 0).sum())
+        self.obs, *rest = self.env.step(actions)
+        return (self.obs, *rest)
+
+
+@pytest.mark.parametrize("masked", [True, False])
+def test_skrls_dqn_trains_on_the_flat_vector_env_and_keeps_to_the_mask(table, masked):
+    """skrl's DQN draws its random actions from the model's random_act and its greedy ones and
+    TD targets from compute: a Q model that masks both with the observation's last 7 x A
+    entries (docs/environment.md's lines) takes no forbidden action; skrl's default takes some."""
     pytest.importorskip("skrl", reason="skrl is not installed (pip install skrl)")
     from skrl.agents.torch.dqn import DQN
     from skrl.envs.wrappers.torch import wrap_env
@@ -123,11 +145,23 @@ def test_skrls_dqn_trains_on_the_flat_vector_env(table):
         def compute(self, inputs, role=""):
             return self.net(inputs["observations"]), {}
 
-    env = wrap_env(gym.make_vec(uevavd.env.ENV_ID, num_envs=4, vectorization_mode="vector_entry_point", table=table,
-                                actions="flat", observation="flat"))
+    class MaskedQNet(QNet):  # the mask is the observation's last 7 * A entries
+        def compute(self, inputs, role=""):
+            x, n = inputs["observations"], self.action_space.n
+            return self.net(x).masked_fill(x[:, -n:] == 0, torch.finfo(x.dtype).min), {}
+
+        def random_act(self, inputs, *, role=""):
+            x, n = inputs["observations"], self.action_space.n
+            return torch.multinomial((x[:, -n:] > 0).float(), 1), {}
+
+    torch.manual_seed(0)
+    counted = _Forbidden(gym.make_vec(uevavd.env.ENV_ID, num_envs=4, vectorization_mode="vector_entry_point",
+                                      table=table, actions="flat", observation="flat"))
+    env = wrap_env(counted)
     assert env.observation_space.dtype == np.float32
-    models = {"q_network": QNet(env.observation_space, env.action_space, env.device),
-              "target_q_network": QNet(env.observation_space, env.action_space, env.device)}
+    net_class = MaskedQNet if masked else QNet
+    models = {"q_network": net_class(env.observation_space, env.action_space, env.device),
+              "target_q_network": net_class(env.observation_space, env.action_space, env.device)}
     agent = DQN(models=models, memory=RandomMemory(memory_size=500, num_envs=4, device=env.device),
                 cfg={"learning_starts": 20, "discount_factor": 0.9, "batch_size": 32},
                 observation_space=env.observation_space, action_space=env.action_space, device=env.device)
@@ -136,7 +170,9 @@ def test_skrls_dqn_trains_on_the_flat_vector_env(table):
                       agents=agent).train()
     net = models["q_network"].net
     assert any(not torch.equal(a, b) for a, b in zip(before, net.parameters(), strict=True))  # it learned
-    res = evaluate_policy(table, "hard", FlatPolicy(lambda x: net(torch.as_tensor(x)).detach().numpy(), max_range=A))
+    assert (counted.count == 0) if masked else (counted.count > 0), counted.count
+    res = evaluate_policy(table, "hard", FlatPolicy(lambda x: net(torch.as_tensor(x)).detach().numpy(), max_range=A,
+                                                    width=counted.single_observation_space))
     assert np.isfinite(res.ret).all()
 
 

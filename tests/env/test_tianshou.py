@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from gymnasium.wrappers import FlattenObservation
 
-from uevavd.env import AODEnv, DiscreteActions, MaskedFlatObservation
+from uevavd.env import AODEnv, DiscreteActions, FlatPolicy, MaskedFlatObservation, evaluate_policy
 from uevavd.testing.policy import toy_table
 
 ts = pytest.importorskip("tianshou", reason="Tianshou is not installed: pip install -e '.[tianshou]' (it holds "
@@ -74,3 +75,10 @@ def test_tianshou_dqn_collects_and_learns_through_its_collector(table, wrap):
     returns = test.collect(n_episode=6).returns
     assert len(returns) == 6 and np.isfinite(returns).all()
     assert (np.asarray(returns) <= 1.0 + 1e-6).all()  # at most the recognition reward xi1
+    if wrap == "masked":  # one flat layout: the network trained here scores through FlatPolicy as it is
+        net = algo.policy.model
+        n_actions = int(probe.action_space.n)
+        policy = FlatPolicy(lambda x: net(torch.as_tensor(x))[0].detach().numpy(), max_range=n_actions // 7,
+                            width=probe.observation_space["obs"])
+        res = evaluate_policy(table, "hard", policy)
+        assert np.isfinite(res.ret).all() and len(res.ret) == len(table.scene_indices("hard")) * 605
