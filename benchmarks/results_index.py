@@ -162,12 +162,12 @@ def table(folder: str) -> list[str]:
 
 
 def measurements() -> list[str]:
-    """The index of the speed and cost measurements: each page's closing "Measurements" section
-    (and its subsections), with the commands that measure them."""
+    """The index of the speed and cost measurements: each page's "Measurements" sections (those of
+    measurements.md) and their subsections, with the commands that measure them."""
     out = ["## Measurements", "",
-           "Speed and cost, each on its topic page's last section under the command that measures it",
-           "(a script in `benchmarks/` printing figures and ratios against a baseline measured in the same",
-           "run), with its machine and date there:", "", "| page | section | measured by |", "|---|---|---|"]
+           "Speed and cost, each under the command that measures it (a script in `benchmarks/` printing",
+           "figures and ratios against a baseline measured in the same run), with its machine and date",
+           "there:", "", "| page | section | measured by |", "|---|---|---|"]
     for page in sorted(DOCS.glob("*.md")):
         if page.name == "results.md":
             continue
@@ -198,8 +198,8 @@ def render() -> str:
         "recognizers, then seeds; a deterministic policy's value alone), from the folder's",
         "`summary.csv`. Above each table: the command (as its topic page gives it), the commit that",
         "published it and the machine; below it, the folder (the full report, figures, `results.csv`",
-        "and `contexts.csv`) and the section that discusses it. The topic pages' last sections hold",
-        "their speed measurements, each under its command. This page is written by",
+        "and `contexts.csv`) and the section that discusses it. Speed and cost are in",
+        "[measurements.md](measurements.md), each under its command. This page is written by",
         "`python benchmarks/results_index.py`; a test checks it is current.",
         "",
     ]

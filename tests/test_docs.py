@@ -175,3 +175,49 @@ def test_every_name_a_page_imports_or_calls_is_in_the_api_reference():
                 and name not in _reference():
             missing.append(f"{name} ({sorted(paths)[0]}; {', '.join(sorted(pages))})")
     assert not missing, f"names the docs use that the API reference (docs/api/) lacks: {missing}"
+
+
+def _minutes(page: Path) -> float:
+    """Reading time at 240 words a minute (58,000 words in about four hours), code left out."""
+    return len(re.sub(r"```.*?```", "", page.read_text(encoding="utf-8"), flags=re.S).split()) / 240
+
+
+def test_the_docs_map_lists_every_page_and_the_main_path_reads_in_20_minutes():
+    text = (DOCS / "README.md").read_text(encoding="utf-8")
+    unlisted = [p.name for p in DOCS.glob("*.md") if p.name != "README.md" and f"]({p.name}" not in text]
+    assert not unlisted, f"docs/README.md does not list {unlisted}"
+    path = text.split("## The main path", 1)[1].split("\n## ", 1)[0]
+    pages = [DOCS / target for target in re.findall(r"\]\(([^)#]+\.md)\)", path)]
+    assert len(pages) >= 3 and sum(_minutes(p) for p in pages) <= 20, [(p.name, _minutes(p)) for p in pages]
+
+
+def test_no_page_names_a_file_the_repository_does_not_have():
+    """A page's `benchmarks/x.py`, `tests/...::test`, `docs/x.md`, `uevavd/...` or `model_zoo/...`
+    file exists: pages pointed to a DESIGN.md the repository lacks, and to a test file renamed."""
+    missing = []
+    for page in [ROOT / "README.md", *DOCS.glob("*.md"), *(DOCS / "api").glob("*.md")]:
+        for path in re.findall(r"`((?:benchmarks|tests|docs|uevavd|model_zoo)/[\w./-]+?)(?:::\w+)?`",
+                               page.read_text(encoding="utf-8")):
+            if "*" not in path and "." in path.rsplit("/", 1)[-1] and not (ROOT / path).exists():  # a file
+                missing.append(f"{page.relative_to(ROOT)}: {path}")
+    assert not missing, f"pages name files the repository does not have: {missing}"
+
+
+def _anchors(page: Path) -> set[str]:
+    """GitHub's anchors of a page's headings: lower case, punctuation dropped, spaces as hyphens."""
+    text = re.sub(r"```.*?```", "", page.read_text(encoding="utf-8"), flags=re.S)
+    return {re.sub(r"[^\w\- ]", "", line.lstrip("#").strip().lower()).replace(" ", "-")
+            for line in text.splitlines() if line.startswith("#")}
+
+
+def test_every_link_to_a_section_finds_it():
+    """Sections moved between pages (results and measurements out of the how-to pages) leave no
+    link pointing at a heading that is gone."""
+    broken = []
+    for page in [ROOT / "README.md", *DOCS.glob("*.md")]:
+        text = re.sub(r"`[^`\n]*`", "", re.sub(r"```.*?```", "", page.read_text(encoding="utf-8"), flags=re.S))
+        for target, fragment in re.findall(r"\]\(([^)#:\s]*)#([^)\s]+)\)", text):
+            dest = page.parent / target if target else page
+            if dest.suffix == ".md" and dest.is_file() and fragment not in _anchors(dest):
+                broken.append(f"{page.relative_to(ROOT)} -> {target}#{fragment}")
+    assert not broken, f"links to sections that do not exist: {broken}"
