@@ -83,7 +83,7 @@ def test_d3rlpy_discrete_bc_trains_on_the_flat_view_and_is_evaluated(table, orac
     d3rlpy = pytest.importorskip("d3rlpy", reason="the d3rlpy extra: pip install -e '.[d3rlpy]' (it pins gymnasium "
                                                   "1.0, which TorchRL refuses, so the test extra leaves it out)")
     from uevavd.env import EnvConfig, OraclePolicy, RandomPolicy, evaluate_policy
-    from uevavd.env.offline import FlatPolicy, flat_dataset
+    from uevavd.env.offline import flat_dataset
 
     flat = flat_dataset(oracle_dataset)
     data = d3rlpy.dataset.MDPDataset(flat.observations, flat.actions[:, None], flat.rewards, flat.terminals,
@@ -97,7 +97,7 @@ def test_d3rlpy_discrete_bc_trains_on_the_flat_view_and_is_evaluated(table, orac
     agree = float((bc.predict(flat.observations) == flat.actions).mean())
     assert agree > 0.6, agree
     cfg = EnvConfig()
-    cloned = evaluate_policy(table, "train", FlatPolicy(bc.predict, max_range=flat.max_range), cfg).summary()
+    cloned = evaluate_policy(table, "train", flat.policy(bc.predict), cfg).summary()  # as the docs score it
     random = evaluate_policy(table, "train", RandomPolicy(0), cfg).summary()
     oracle = evaluate_policy(table, "train", OraclePolicy(table, cfg), cfg).summary()
     assert random["mean_return"] < cloned["mean_return"] <= oracle["mean_return"] + 1e-9, (cloned, random, oracle)
