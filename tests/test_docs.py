@@ -221,3 +221,15 @@ def test_every_link_to_a_section_finds_it():
             if dest.suffix == ".md" and dest.is_file() and fragment not in _anchors(dest):
                 broken.append(f"{page.relative_to(ROOT)} -> {target}#{fragment}")
     assert not broken, f"links to sections that do not exist: {broken}"
+
+
+def test_the_config_reference_holds_every_section_and_built_in_component():
+    """Every config key with its default: the training and perception sections, and every
+    built-in component's builder (whose arguments are its section's keys)."""
+    from uevavd.plugins.manager import manager
+
+    documented = set(_reference().values())
+    want = {"uevavd.policy.config.TrainConfig", "uevavd.config.PerceptionSection", "uevavd.env.config.EnvConfig"}
+    for kind in ("segmenter", "encoder", "classifier", "state", "head"):
+        want |= {e.target.replace(":", ".") for e in manager.registry.in_order(kind) if e.plugin.startswith("uevavd")}
+    assert not want - documented, f"the API reference lacks {sorted(want - documented)}"

@@ -234,15 +234,18 @@ class TrainConfig:
         )
 
     def replace(self, **changes: Any) -> TrainConfig:
+        """A copy with ``changes`` (checked as the constructor checks them)."""
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
+        """The settings as a plain dict (what a run's ``settings.json`` records)."""
         d = dataclasses.asdict(self)
         d["eval_splits"] = list(self.eval_splits)
         return d
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        """The settings of :meth:`to_dict`'s dict; an unknown key is refused by name."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - names)
         if unknown:
@@ -264,5 +267,7 @@ class TrainConfig:
         return self.imitation != "none" and episodes_done < self.imitation_fraction * self.episodes
 
     def beta(self, episodes_done: int, total: int | None = None) -> float:
+        """The importance-sampling exponent after ``episodes_done`` of ``total`` episodes:
+        ``per_beta`` annealed linearly to 1."""
         total = total or self.episodes
         return min(1.0, self.per_beta + (1.0 - self.per_beta) * episodes_done / max(1, total))
