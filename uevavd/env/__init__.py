@@ -48,6 +48,9 @@ _LAZY = {
     "FlatPolicy": "offline",
     "oracle_values": "oracle",
     "flight_pays": "oracle",
+    "rule_values": "rule_values",
+    "departure_ceiling": "rule_values",
+    "RuleSolution": "rule_values",
 }
 
 __all__ = ["ENV_ID", "IMPORTABLE_ID", "EnvConfig", "EnvConfigError", "register", *_LAZY]
