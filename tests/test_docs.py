@@ -233,3 +233,22 @@ def test_the_config_reference_holds_every_section_and_built_in_component():
     for kind in ("segmenter", "encoder", "classifier", "state", "head"):
         want |= {e.target.replace(":", ".") for e in manager.registry.in_order(kind) if e.plugin.startswith("uevavd")}
     assert not want - documented, f"the API reference lacks {sorted(want - documented)}"
+
+
+def test_the_install_notes_and_the_demos_output_are_where_a_new_user_needs_them():
+    """A plain install resolved pandas 3 with rliable's arch, which fails to import: the README
+    names the [rliable] extra; it names the venv's size and the CPU-only torch route; the demo's
+    default output folder, written into the current folder, is ignored by git."""
+    import argparse
+
+    from uevavd.experiments.cli import add_demo
+
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert '.[rliable]' in readme and "download.pytorch.org/whl/cpu" in readme and "6 GB" in readme
+    parser = argparse.ArgumentParser()
+    add_demo(parser)
+    out = parser.parse_args([]).out
+    ignored = subprocess.run(["git", "check-ignore", "-q", f"{out}/report.md"], cwd=ROOT)
+    if ignored.returncode == 128:
+        pytest.skip("not a git checkout")
+    assert ignored.returncode == 0, f"the demo's default output {out}/ is not ignored by git"
