@@ -205,6 +205,18 @@ def offline(root: Path) -> None:
     api_case("Minari: an emptied file", lambda: flat_dataset(minari.load_dataset("uevavd/audit-v0")), "main_data")
     path.write_bytes(pristine)
     loaded = minari.load_dataset("uevavd/audit-v0")
+    holder = subprocess.Popen([sys.executable, "-c", "import h5py, sys, time; f = h5py.File(sys.argv[1], 'r+'); "
+                               "print('held', flush=True); time.sleep(60)", str(path)], stdout=subprocess.PIPE, text=True)
+    try:  # another process writing the file holds HDF5's lock
+        holder.stdout.readline()
+        api_case("Minari: a file another process holds open for writing", lambda: flat_dataset(loaded), "main_data")
+    finally:
+        holder.kill()
+        holder.wait()
+    other = export_minari(folder, "train", "passive", "uevavd/audit-other-v0", episodes=3, progress=False)
+    shutil.copyfile(Path(other.storage.data_path) / "main_data.hdf5", path)  # swapped under the loaded dataset
+    api_case("Minari: the file swapped under a loaded dataset", lambda: flat_dataset(loaded), "main_data")
+    path.write_bytes(pristine)
     for workers in ("2", 2.5, 0, -1):
         api_case(f"flat_dataset(workers={workers!r})", lambda w=workers: flat_dataset(loaded, workers=w), "workers")
     api_case("flat_dataset([{'a': 1}])", lambda: flat_dataset([{"a": 1}]), "episode")
