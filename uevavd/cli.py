@@ -104,6 +104,14 @@ def _on_sigterm(signum: int, frame: object) -> None:
     raise Terminated
 
 
+def stopped(exc: KeyboardInterrupt) -> tuple[str, int]:
+    """How a command was stopped and its exit status: ("terminated", 143) for SIGTERM,
+    ("interrupted", 130) for Ctrl-C."""
+    if isinstance(exc, Terminated):
+        return "terminated", 128 + signal.SIGTERM
+    return "interrupted", 128 + signal.SIGINT
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -126,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
             args = sub.parse_args(argv[1:])
             return int(handler(args) or 0)
         except KeyboardInterrupt as exc:
-            how = "terminated" if isinstance(exc, Terminated) else "interrupted"
+            how, code = stopped(exc)
             print(f"{how}; finished work is kept and a rerun resumes", file=sys.stderr)
-            return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+            return code
         except BrokenPipeError:  # the reader left (`uevavd info | head`): stop quietly, as cat does
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit
             return 141

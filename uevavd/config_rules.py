@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import inspect
+import os
 import tomllib
 import types
 import typing
@@ -55,6 +56,14 @@ def check_count(option: str, value: Any, low: int = 1, high: int | None = None, 
         want = f"an integer in {low}..{high}" if high is not None else f"at least {low}"
         raise exc(f"{option} {value}: expected {want}")
     return value
+
+
+def check_file(option: str, value: Any, expected: str) -> None:
+    """A command-line file that must exist (``--imagenet``, ``--classifier``, ``--checkpoint``),
+    refused before any work with a FileNotFoundError naming the option, the path and what is
+    expected there; None (the option left out) passes."""
+    if value is not None and not os.path.isfile(value):
+        raise FileNotFoundError(f"{option} {value}: no such file; expected {expected}")
 
 
 def check_widths(section: str, **widths: Any) -> None:

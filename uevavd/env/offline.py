@@ -36,7 +36,7 @@ from ..data.episodes import STEP_KEYS, EpisodeError, check_episode, check_worker
 from ..data.grid import N_TYPES
 from .aod_env import integral_actions
 from .gate import fit_to_mask
-from .spaces import FLAT_PARTS, OPTIONAL_PARTS, flatten_observation, parts_mismatch
+from .spaces import FLAT_PARTS, OPTIONAL_PARTS, flatten_observation, parts_mismatch, present_parts
 
 
 def flat_observation(obs: dict[str, Any]) -> np.ndarray:
@@ -207,8 +207,7 @@ class FlatPolicy:
         allowed = torch.as_tensor(mask).cpu().numpy().astype(bool).reshape(n, N_TYPES, self.max_range)
         flat_obs = flat_observation(obs)
         if self.width is not None:
-            problem = parts_mismatch("the flat policy", self.width, flat_obs.shape[-1],
-                                     tuple(k for k in FLAT_PARTS if k in obs or (k == "action_mask" and "mask" in obs)))
+            problem = parts_mismatch("the flat policy", self.width, flat_obs.shape[-1], present_parts(obs))
             if problem:
                 raise ValueError(problem)
         raw = self._act(flat_obs)

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
-from .spaces import FLAT_PARTS, parts_differ
+from .spaces import parts_differ, present_parts
 from .vector import AODVectorEnv
 
 
@@ -134,8 +134,7 @@ class SB3Policy:
             sb3_obs["pose"] = torch.as_tensor(obs["pose"]).float().cpu().numpy()
         space = getattr(self.model, "observation_space", None)
         if isinstance(space, gym.spaces.Dict):  # a model of another env config: refused by name, not by SB3's shapes
-            problem = parts_differ("the SB3 model", tuple(k for k in FLAT_PARTS if k in space.spaces),
-                                   tuple(k for k in FLAT_PARTS if k in sb3_obs))
+            problem = parts_differ("the SB3 model", present_parts(space.spaces), present_parts(sb3_obs))
             if problem:
                 raise ValueError(problem)
         if self.recurrent:

@@ -50,9 +50,10 @@ def flatten_observation(obs: dict[str, Any]) -> np.ndarray:
     return np.concatenate(parts, axis=-1)
 
 
-def observation_parts(config: EnvConfig) -> tuple[str, ...]:
-    """The parts of the observation under ``config``, in the flat vector's order."""
-    return tuple(k for k in FLAT_PARTS if k not in OPTIONAL_PARTS or getattr(config, OPTIONAL_PARTS[k][0]))
+def present_parts(obs: Any) -> tuple[str, ...]:
+    """The parts an observation (or a Dict space's ``spaces``) holds, in the flat vector's order
+    (the batched interface's ``mask`` counts as ``action_mask``)."""
+    return tuple(k for k in FLAT_PARTS if k in obs or (k == "action_mask" and "mask" in obs))
 
 
 def parts_mismatch(who: str, width: int, have_width: int, have_parts: tuple[str, ...]) -> str | None:

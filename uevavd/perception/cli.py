@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 
-from ..config_rules import check_count
+from ..config_rules import check_count, check_file
 from ..presets import PRESET_HELP, cli_layers
 
 
@@ -61,9 +60,8 @@ def add_train_classifier(p: argparse.ArgumentParser):
         s = ClassifierRecipe.from_preset(load_preset(args.preset) if args.preset else {}, **given)  # before any work
         check_count("--threads", args.threads)
         check_count("--workers", args.workers)
-        if args.imagenet is not None and not os.path.isfile(args.imagenet):
-            raise FileNotFoundError(f"--imagenet {args.imagenet}: no such file; expected ResNet18 ImageNet weights "
-                                    "(torchvision's resnet18-f37072fd.pth), or leave it out to use torch's cache")
+        check_file("--imagenet", args.imagenet, "ResNet18 ImageNet weights (torchvision's resnet18-f37072fd.pth), or "
+                                                "leave it out to use torch's cache")
         read_dataset(args.data)  # a wrong root is refused before torch is imported (about 3 s)
         _logging()
         from ..runtime import resolve_device
@@ -102,9 +100,8 @@ def add_prepare(p: argparse.ArgumentParser):
             check_count("--threads", args.threads)
         if args.shards is not None:
             check_count("--shards", args.shards)
-        if args.classifier is not None and not os.path.isfile(args.classifier):
-            raise FileNotFoundError(f"--classifier {args.classifier}: no such file; expected a recognizer "
-                                    ".safetensors (uevavd train-classifier writes one), or leave it out")
+        check_file("--classifier", args.classifier, "a recognizer .safetensors (uevavd train-classifier writes one), "
+                                                    "or leave it out")
         from ..data.reader import read_dataset
 
         read_dataset(args.data)  # a wrong root is refused before torch is imported (about 3 s)

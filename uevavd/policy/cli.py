@@ -5,14 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
 from pathlib import Path
 from typing import Any
 
 from ..atomic import atomic_write_json
-from ..cli import Terminated
 from ..cli import error as _error
+from ..cli import stopped
 from ..config_rules import check_count, did_you_mean, parse_override
 from ..presets import PRESET_HELP, cli_layers, known_presets
 from ..runtime import usable_cores
@@ -359,9 +358,9 @@ def add_export_minari(p: argparse.ArgumentParser):
             ds = export_minari(args.table, args.split, args.policy, args.dataset_id, episodes=args.episodes,
                                seed=args.seed, out=args.out, config=config)
         except KeyboardInterrupt as exc:  # the dataset is put in place whole or not at all
-            how = "terminated" if isinstance(exc, Terminated) else "interrupted"
+            how, code = stopped(exc)
             print(f"{how}; no dataset was written under that id: a rerun starts the export over", file=sys.stderr)
-            return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+            return code
         print(f"wrote {ds.spec.dataset_id}: {ds.total_episodes} episodes, {ds.total_steps} steps")
         return 0
 

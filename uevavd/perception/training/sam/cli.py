@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 
 def _common(p: argparse.ArgumentParser, *, steps: int, lr: float, points: int) -> None:
@@ -85,9 +84,10 @@ def add_finetune(p: argparse.ArgumentParser):
 
     def run(a) -> int:
         _check_data(a)
-        if not Path(a.checkpoint).is_file():
-            raise FileNotFoundError(f"--checkpoint {a.checkpoint}: no such file; expected a SAM checkpoint (.pth) or "
-                                    "a uevavd .safetensors one (uevavd train-sam-small writes one)")
+        from ....config_rules import check_file
+
+        check_file("--checkpoint", a.checkpoint, "a SAM checkpoint (.pth) or a uevavd .safetensors one (uevavd "
+                                                 "train-sam-small writes one)")
         import torch
 
         from .data import split_heldout
