@@ -54,7 +54,7 @@ def main() -> int:
         passive = evaluate_policy(table, split, PassivePolicy(), cfg).ret.mean()
         seek = evaluate_policy(table, split, rule, cfg).ret.mean()
         assert abs(seek - sol.value[:, cfg.t_max].mean()) < 1e-9  # the exact values are the rollouts'
-        one, two = (departure_ceiling(sol, cfg, d).mean() for d in (1, 2))
+        one, two = (departure_ceiling(sol, d).mean() for d in (1, 2))
         vis = evaluate_policy(table, split, build_visibility_oracle(table=table, config=cfg), cfg).ret.mean()
         best = oracle.value[sol.scenes, cfg.t_max].mean()
         print(f"| {split} | {passive:.3f} | {seek:.3f} | {one:.3f} | {two:.3f} | {vis:.3f} | {best:.3f} |")

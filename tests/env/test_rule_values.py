@@ -74,7 +74,7 @@ def test_the_departure_ceiling_runs_from_the_rule_to_the_oracle(table):
     unconstrained best policy, the oracle's value."""
     rule = PoseSeekPolicy(2, 4)
     sol = rule_values(table, "hard", rule, CFG)
-    ceilings = [departure_ceiling(sol, CFG, d) for d in range(CFG.t_max + 1)]
+    ceilings = [departure_ceiling(sol, d) for d in range(CFG.t_max + 1)]
     np.testing.assert_array_equal(ceilings[0], sol.value[:, CFG.t_max])
     for lower, upper in zip(ceilings, ceilings[1:], strict=False):
         assert (upper >= lower - 1e-12).all()
@@ -83,4 +83,4 @@ def test_the_departure_ceiling_runs_from_the_rule_to_the_oracle(table):
     np.testing.assert_allclose(ceilings[CFG.t_max], oracle, rtol=0, atol=1e-12)
     assert (ceilings[1] <= oracle + 1e-12).all()
     with pytest.raises(ValueError, match="departures=-1"):
-        departure_ceiling(sol, CFG, -1)
+        departure_ceiling(sol, -1)

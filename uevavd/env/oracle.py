@@ -46,6 +46,18 @@ def oracle_values(
     return solve_oracle(cfg.recognized(table.true_class_probs()), cfg, with_q=with_q)
 
 
+def move_values(config: EnvConfig, reco: np.ndarray, next_view: np.ndarray, after: np.ndarray, k: int) -> np.ndarray:
+    """(S, V, 6, A): the return of every move with ``k`` decisions left, ``after`` (S, V)
+    being the value of the view it reaches with ``k - 1`` left (unread where ``k == 1``: the
+    move ends the episode, recognised or not at its view). The recursion of the oracle, of a
+    rule's values and of their mixtures (:mod:`uevavd.env.rule_values`)."""
+    nxt = next_view[:, :STOP, :]  # (V, 6, A)
+    cost = config.move_cost(np.arange(config.max_range, dtype=np.float64))  # (A,)
+    if k == 1:  # the last decision: every move ends the episode
+        return config.reward(True, reco[:, nxt], cost)
+    return config.reward(False, False, cost) + config.gamma * after[:, nxt]
+
+
 def solve_oracle(reco: np.ndarray, config: EnvConfig, *, with_q: bool = False) -> OracleSolution:
     """The DP of :func:`oracle_values` on ``reco`` (S, 605) bool, whether the recognizer
     recognises each view of each scene."""
@@ -55,17 +67,12 @@ def solve_oracle(reco: np.ndarray, config: EnvConfig, *, with_q: bool = False) -
     s, v = reco.shape
     a = cfg.max_range
     term = cfg.terminal_reward(reco).astype(np.float64)  # (S, V)
-    cost = cfg.move_cost(np.arange(a, dtype=np.float64))  # (A,)
     value = np.zeros((s, cfg.t_max + 1, v))
     q = np.zeros((s, cfg.t_max + 1, v, N_TYPES, a)) if with_q else None
     best_type = np.zeros((s, cfg.t_max + 1, v), np.int64)
     best_range = np.zeros((s, cfg.t_max + 1, v), np.int64)
-    nxt = tr.next_view[:, :STOP, :]  # (V, 6, A)
     for k in range(1, cfg.t_max + 1):
-        if k == 1:  # the last decision: every move ends the episode
-            moves = cfg.reward(True, reco[:, nxt], cost)  # (S, V, 6, A)
-        else:
-            moves = cfg.reward(False, False, cost) + cfg.gamma * value[:, k - 1][:, nxt]
+        moves = move_values(cfg, reco, tr.next_view, value[:, k - 1], k)  # (S, V, 6, A)
         if q is not None:
             q[:, k, :, :STOP, :] = moves
             q[:, k, :, STOP, :] = term[:, :, None]

@@ -30,25 +30,27 @@ from ..data.grid import N_TYPES, N_VIEWS, STOP
 from ..table import ObservationTable
 from .batched import EnvTensors
 from .config import EnvConfig, make_config
+from .oracle import move_values
 
 
 @dataclass(frozen=True)
 class RuleSolution:
     """A rule's exact values on a split's scenes (``scenes``: table indices, as
-    :class:`~uevavd.env.batched.EnvTensors` orders them). ``value`` (S, T_max + 1, 605)
-    float64: V(view, k), the rule's return with k decisions left (k = 0 unused, zeros);
-    ``q`` (S, T_max + 1, 605, 7, A) float64: the return of each (type, range) taken now and
-    the rule followed after; ``rule_type`` / ``rule_range`` (S, T_max + 1, 605) int64: the
-    rule's action with k decisions left; ``next_view`` (605, 7, A) and ``reward``
-    (S, T_max + 1, 605, 7, A): each action's next view and immediate reward."""
+    :class:`~uevavd.env.batched.EnvTensors` orders them) under ``config``. ``value``
+    (S, T_max + 1, 605) float64: V(view, k), the rule's return with k decisions left (k = 0
+    unused, zeros); ``q`` (S, T_max + 1, 605, 7, A) float64: the return of each (type, range)
+    taken now and the rule followed after; ``rule_type`` / ``rule_range`` (S, T_max + 1, 605)
+    int64: the rule's action with k decisions left; ``reco`` (S, 605) bool: where the
+    recognizer recognises the view; ``next_view`` (605, 7, A): each action's next view."""
 
     scenes: np.ndarray
+    config: EnvConfig
     value: np.ndarray
     q: np.ndarray
     rule_type: np.ndarray
     rule_range: np.ndarray
+    reco: np.ndarray
     next_view: np.ndarray
-    reward: np.ndarray
 
     def advantage(self) -> np.ndarray:
         """``q - value``: what departing once from the rule with each action gains."""
@@ -90,52 +92,37 @@ def rule_values(table: ObservationTable | EnvTensors, split: str, rule: Any,
     types, ranges = rule_actions(tb, rule)
     reco = tb.reco.cpu().numpy().astype(bool)
     nxt = tb.next_view.cpu().numpy()  # (V, 7, A)
-    s, a = reco.shape[0], cfg.max_range
-    term = cfg.terminal_reward(reco).astype(np.float64)  # (S, V)
-    cost = cfg.move_cost(np.arange(a, dtype=np.float64))  # (A,)
+    s = reco.shape[0]
+    term = cfg.terminal_reward(reco).astype(np.float64)[:, :, None]  # (S, V, 1): stop, whatever its range
     value = np.zeros((s, cfg.t_max + 1, N_VIEWS))
-    q = np.zeros((s, cfg.t_max + 1, N_VIEWS, N_TYPES, a))
-    reward = np.zeros_like(q)
-    rows = np.arange(s)[:, None]
-    cols = np.arange(N_VIEWS)[None, :]
-    moves_next = nxt[:, :STOP, :]  # (V, 6, A)
+    q = np.zeros((s, cfg.t_max + 1, N_VIEWS, N_TYPES, cfg.max_range))
+    rows, cols = np.arange(s)[:, None], np.arange(N_VIEWS)[None, :]
     for k in range(1, cfg.t_max + 1):
-        if k == 1:  # the last decision: every move ends the episode
-            r = cfg.reward(True, reco[:, moves_next], cost)  # (S, V, 6, A)
-            q[:, k, :, :STOP] = r
-        else:
-            r = np.broadcast_to(cfg.reward(False, False, cost), (s, N_VIEWS, STOP, a))
-            q[:, k, :, :STOP] = r + cfg.gamma * value[:, k - 1][:, moves_next]
-        reward[:, k, :, :STOP] = r
-        reward[:, k, :, STOP] = term[:, :, None]
-        q[:, k, :, STOP] = term[:, :, None]
+        q[:, k, :, :STOP] = move_values(cfg, reco, nxt, value[:, k - 1], k)
+        q[:, k, :, STOP] = term
         value[:, k] = q[rows, k, cols, types[:, k], ranges[:, k]]
-    return RuleSolution(tb.scenes.cpu().numpy(), value, q, types, ranges, nxt, reward)
+    return RuleSolution(tb.scenes.cpu().numpy(), cfg, value, q, types, ranges, reco, nxt)
 
 
-def departure_ceiling(sol: RuleSolution, config: EnvConfig | dict | None = None, departures: int = 1) -> np.ndarray:
+def departure_ceiling(sol: RuleSolution, departures: int = 1) -> np.ndarray:
     """(S, 605) float64: from every start, the best return of a policy that follows the rule
     but may depart from it up to ``departures`` times (any action, stop included), each
     departure chosen with the context's exact values (privileged: it bounds what a
-    rule-anchored method can gain; 0 departures is the rule's own return)."""
-    cfg = make_config(config)
+    rule-anchored method can gain; 0 departures is the rule's own return, ``T_max`` the
+    oracle's)."""
     if isinstance(departures, bool) or not isinstance(departures, int) or departures < 0:
         raise ValueError(f"departures={departures!r}: expected an integer >= 0")
-    s = sol.value.shape[0]
-    rows = np.arange(s)[:, None]
-    cols = np.arange(N_VIEWS)[None, :]
-    moves_next = sol.next_view[:, :STOP, :]
-    prev = sol.value  # U_{d-1}: at most d - 1 departures left
+    cfg = sol.config
+    term = cfg.terminal_reward(sol.reco).astype(np.float64)  # (S, V)
+    rows, cols = np.arange(len(sol.scenes))[:, None], np.arange(N_VIEWS)[None, :]
+    fewer = sol.value  # with one departure fewer left (none: the rule's values)
     for _ in range(departures):
-        cur = np.zeros_like(prev)
+        more = np.zeros_like(fewer)
         for k in range(1, cfg.t_max + 1):
-            r = sol.reward[:, k]  # (S, V, 7, A)
-            stay = r.copy()  # continuation with the same departures left (the rule's action)
-            depart = r.copy()  # continuation with one departure fewer (any action)
-            if k > 1:
-                stay[:, :, :STOP] += cfg.gamma * cur[:, k - 1][:, moves_next]
-                depart[:, :, :STOP] += cfg.gamma * prev[:, k - 1][:, moves_next]
-            follow = stay[rows, cols, sol.rule_type[:, k], sol.rule_range[:, k]]
-            cur[:, k] = np.maximum(follow, depart.reshape(s, N_VIEWS, -1).max(-1))
-        prev = cur
-    return prev[:, cfg.t_max]
+            stay = move_values(cfg, sol.reco, sol.next_view, more[:, k - 1], k)  # the rule's move, as many left
+            depart = move_values(cfg, sol.reco, sol.next_view, fewer[:, k - 1], k)  # any move, one fewer left
+            t, r = sol.rule_type[:, k], sol.rule_range[:, k]
+            follow = np.where(t == STOP, term, stay[rows, cols, np.minimum(t, STOP - 1), r])
+            more[:, k] = np.maximum.reduce([follow, term, depart.reshape(*term.shape, -1).max(-1)])
+        fewer = more
+    return fewer[:, cfg.t_max]
