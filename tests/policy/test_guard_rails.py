@@ -44,9 +44,9 @@ from .test_cli import _sets
     ("train.per_alpha", 1e4, "train.per_alpha = 10000.0: expected a prioritisation exponent in [0, 10]"),
     ("train.per_alpha", 1e308, "train.per_alpha = 1e+308: expected a prioritisation exponent in [0, 10]"),
     ("train.stop_gate", "boxx", "train.stop_gate = 'boxx' has the wrong type: expected one of 'none', 'box', "
-                                "'learned', 'pays'"),
+                                "'learned', 'pays', 'rule'"),
     # settings nothing reads under the options chosen were accepted and never read
-    ("train.stop_threshold", 0.7, "train.stop_threshold = 0.7: expected its default 0.5: only the learned and pays "
+    ("train.stop_threshold", 0.7, "train.stop_threshold = 0.7: expected its default 0.5: only the learned, pays and rule "
                                   "stop gates read it"),
     ("train.imitation_fraction", 0.5, "train.imitation_fraction = 0.5: expected its default 1.0"),
 ])

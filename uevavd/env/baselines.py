@@ -154,7 +154,6 @@ class PoseSeekPolicy:
         if isinstance(moves, bool) or not isinstance(moves, int) or moves < 1 or max_range < 1:
             raise ValueError(f"pose_seek: moves={moves!r}, max_range={max_range!r}: expected integers >= 1")
         self.moves, self.max_range = moves, int(max_range)
-        self._pose: torch.Tensor | None = None
 
     def reset(self, n: int) -> None:
         """Nothing to clear: the rule reads only the current observation."""
@@ -162,17 +161,36 @@ class PoseSeekPolicy:
     def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """The rule of the class docstring, one action per episode: stop, or the horizontal move
         toward the target's column."""
-        view = obs["view"]
-        if self._pose is None or self._pose.device != view.device:
-            self._pose = torch.as_tensor(view_coords(np.arange(N_VIEWS)), dtype=torch.float64, device=view.device)
-        pose = self._pose.index_select(0, view)
-        dx, dy = -pose[:, 0], -pose[:, 1]  # metres to the target's column
-        along_x = dx.abs() >= dy.abs()
-        offset = torch.where(along_x, dx, dy)
-        steps = torch.round(offset.abs() / STEP_M).long().clamp(max=self.max_range)
-        a_type = torch.where(along_x, torch.where(dx > 0, _RIGHT, _LEFT), torch.where(dy > 0, _FORWARD, _BACKWARD))
-        fly = ~box_visible(obs["box"]) & (steps > 0) & (obs["t"] < self.moves)
-        return torch.where(fly, a_type, STOP), torch.where(fly, steps - 1, 0)
+        a_type, a_range = pose_seek_hidden(obs["view"], obs["t"], self.moves, self.max_range)
+        vis = box_visible(obs["box"])
+        return torch.where(vis, STOP, a_type), torch.where(vis, 0, a_range)
+
+
+def pose_seek_hidden(view: torch.Tensor, t: torch.Tensor, moves: int | torch.Tensor,
+                     max_range: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """:class:`PoseSeekPolicy`'s action where the box is hidden, from the views (N,) and the
+    steps t (N,) (any shape, the same): the move toward the target's column, or stop (range 0)
+    above the column or after ``moves`` moves. The rule gate of training reads it too
+    (``train.stop_gate = "rule"``)."""
+    pose = _grid_pose(view.device).index_select(0, view.reshape(-1)).reshape(*view.shape, 3)
+    dx, dy = -pose[..., 0], -pose[..., 1]  # metres to the target's column
+    along_x = dx.abs() >= dy.abs()
+    offset = torch.where(along_x, dx, dy)
+    steps = torch.round(offset.abs() / STEP_M).long().clamp(max=max_range)
+    a_type = torch.where(along_x, torch.where(dx > 0, _RIGHT, _LEFT), torch.where(dy > 0, _FORWARD, _BACKWARD))
+    fly = (steps > 0) & (t < moves)
+    return torch.where(fly, a_type, STOP), torch.where(fly, steps - 1, 0)
+
+
+_POSE: dict[str, torch.Tensor] = {}
+
+
+def _grid_pose(device: torch.device) -> torch.Tensor:
+    """(605, 3) float64 viewpoint coordinates in metres on ``device`` (cached)."""
+    key = str(device)
+    if key not in _POSE:
+        _POSE[key] = torch.as_tensor(view_coords(np.arange(N_VIEWS)), dtype=torch.float64, device=device)
+    return _POSE[key]
 
 
 def pose_seek_moves(table, config) -> tuple[int, dict[int, float]]:

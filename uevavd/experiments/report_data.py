@@ -24,6 +24,7 @@ import pandas as pd
 
 from ..env.config import EnvConfig
 from ..plugins.manager import manager
+from .labels import LABELS, METHOD_ORDER
 from .plan import SB3_AGENTS
 from .stats import Estimate
 
@@ -75,44 +76,6 @@ def roles_now() -> dict[str, Any]:
     return {"baselines": list(baselines()), "deterministic": list(deterministic()), "labels": {**labels, **LABELS}}
 
 
-#: Display order and names of the methods (unknown methods follow, by name).
-METHOD_ORDER: tuple[str, ...] = (
-    "random", "passive", "box_gate", "pose_seek", "map", "memo_map", "ibe_map", "ibe_map_sam", "ibe_map_ens",
-    "ibe_map_plr", "ibe_map_reco", "ibe_map_aug", "ibe_map_aux", "ibe_map_gate", "ibe_map_stop", "ibe_map_pess",
-    "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate", "ibe_map_pose_dagger", "ibe_map_pose_dagger_gate",
-    "ibe_map_boxpose_gate", "ibe_map_boxpose_dagger_gate", "ibe_map_pose_pays", "ibe_map_boxpose_pays", "sb3_dqn",
-    "sb3_ppo", "visibility_oracle", "oracle")
-LABELS: dict[str, str] = {
-    "map": "MAP",
-    "memo_map": "Memo-MAP",
-    "ibe_map": "IBE-MAP",
-    "ibe_map_sam": "IBE-MAP (SAM masks)",
-    "ibe_map_ens": "IBE-MAP (ensemble head)",
-    "ibe_map_plr": "IBE-MAP (level replay)",
-    "ibe_map_reco": "IBE-MAP (recognizer in the state)",
-    "ibe_map_aug": "IBE-MAP (feature dropout)",
-    "ibe_map_aux": "IBE-MAP (recognition probe)",
-    "ibe_map_gate": "IBE-MAP (box gate in training)",
-    "ibe_map_stop": "IBE-MAP (learned stop gate)",
-    "ibe_map_pess": "IBE-MAP (pessimistic ensemble)",
-    "ibe_map_gate_pess": "IBE-MAP (box gate + pessimistic ensemble)",
-    "ibe_map_pose": "IBE-MAP (pose in the state)",
-    "ibe_map_pose_gate": "IBE-MAP (pose + box gate in training)",
-    "ibe_map_pose_dagger": "IBE-MAP (pose, DAgger of the visibility oracle)",
-    "ibe_map_pose_dagger_gate": "IBE-MAP (pose, DAgger behind the box gate)",
-    "ibe_map_boxpose_gate": "IBE-MAP (box + pose state, box gate in training)",
-    "ibe_map_boxpose_dagger_gate": "IBE-MAP (box + pose state, DAgger behind the box gate)",
-    "ibe_map_pose_pays": "IBE-MAP (pose, gate open where a flight pays)",
-    "ibe_map_boxpose_pays": "IBE-MAP (box + pose state, gate open where a flight pays)",
-    "random": "Random",
-    "passive": "Passive",
-    "box_gate": "Box gate (scripted)",
-    "pose_seek": "Pose rule (scripted)",
-    "visibility_oracle": "Visibility oracle",
-    "oracle": "Class-knowing oracle (upper bound)",
-    "sb3_dqn": "SB3 DQN (reference)",
-    "sb3_ppo": "SB3 PPO (reference)",
-}
 #: A run's unit id in the loaded results: ``recognizer * UNIT + seed`` in column ``seed``
 #: (the RL seed alone in ``rl_seed``), so that every grouping by seed keeps the runs of
 #: different recognizers apart; ``seed // UNIT`` is the recognizer.

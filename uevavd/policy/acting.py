@@ -193,7 +193,8 @@ class GreedyPolicy:
             else:
                 s, hidden = est.step(rows(obs["features"]).float(), inputs, hidden)
             q = self.net.head(s)
-            greedy_type, greedy_range = self.net.head.greedy(q, self.net.allowed(mask, boxes, s))
+            allowed = self.net.allowed(mask, boxes, s, view=rows(obs["view"]), t=t)
+            greedy_type, greedy_range = self.net.head.greedy(q, allowed)
             if live is None:
                 self.hidden, a_type, a_range = hidden, greedy_type, greedy_range
             else:

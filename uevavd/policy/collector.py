@@ -59,7 +59,7 @@ class EpisodeCollector:
     def __init__(self, env: BatchedAODEnv, net: Any, *, seed: int, device: torch.device,
                  contexts: LevelReplay | None = None, pays: Any = None) -> None:
         n, tmax = env.n_envs, env.config.t_max
-        self.pays = pays  # where a flight pays (FlightPays; train.stop_gate "pays"), else None
+        self.pays = pays  # where a flight pays (PaysLabels; train.stop_gate "pays" or "rule"), else None
         self.env, self.net, self.n = env, net, n
         self.contexts = contexts  # the new episodes' context sampler (None: uniform)
         self.generator = torch.Generator(device=device)
@@ -96,7 +96,8 @@ class EpisodeCollector:
             boxes = estimator_boxes(self.net.estimator, obs["box"], obs.get("pose"))
             q, self.hidden = self.net.step(obs["features"], boxes, self.hidden)
             pays = self.pays.at(obs["scene"], obs["view"], t) if self.pays is not None else None
-            mask = self.net.allowed(obs["mask"], obs["box"], training=True, pays=pays)  # train.stop_gate
+            mask = self.net.allowed(obs["mask"], obs["box"], training=True, pays=pays,  # train.stop_gate
+                                    view=obs["view"], t=t)
             a_type, a_range = self.net.head.greedy(q, mask)
             a_type, a_range = epsilon_greedy(a_type, a_range, mask, epsilon, self.generator)
         self.ep_views[ar, t] = obs["view"]

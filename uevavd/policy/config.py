@@ -34,8 +34,10 @@ CONTEXT_SAMPLINGS = ("uniform", "level_replay")
 #: probability above ``train.stop_threshold``, in greedy acting only; "pays", the box gate
 #: opened where a flight pays: in training where the oracle's best reachable return from the
 #: view beats stopping there, in greedy acting where a probe on s_t, trained on that answer
-#: over the box-visible views, predicts it with probability above ``train.stop_threshold``.
-STOP_GATES = ("none", "box", "learned", "pays")
+#: over the box-visible views, predicts it with probability above ``train.stop_threshold``;
+#: "rule", the pose rule (``pose_seek``) wherever the box is hidden, and where it is visible the
+#: "pays" gate with the rule's advantage as its answer: a flight now, the rule after, beats stopping.
+STOP_GATES = ("none", "box", "learned", "pays", "rule")
 #: How a buffer can draw its batches (``TrainConfig.replay_sampling``; see
 #: :class:`uevavd.policy.replay.EpisodeReplay`).
 SAMPLINGS = ("portable", "vectorised")
@@ -127,7 +129,7 @@ class TrainConfig:
     aux_recognition: float = 0.0
     """An auxiliary objective: the weight of a linear probe's loss predicting, from the state,
     whether the recognizer recognises the current view (0 = none)."""
-    stop_gate: Literal["none", "box", "learned", "pays"] = "none"
+    stop_gate: Literal["none", "box", "learned", "pays", "rule"] = "none"
     """Where the agent may only stop (:data:`STOP_GATES`): "none"; "box",
     wherever the observed target box is non-empty, in training (its actions and its TD targets)
     and in acting, so its values are learned on the decisions where the target is hidden;
@@ -138,9 +140,13 @@ class TrainConfig:
     actions and TD targets) where the oracle's best return reachable from the view, with the
     decisions left, beats stopping there; in greedy acting where a probe on the state, trained
     on that answer over the views whose box is visible (its own loss and optimizer), predicts
-    it above ``stop_threshold``."""
+    it above ``stop_threshold``; "rule", anchored to the pose rule: wherever the box is hidden
+    the action is ``pose_seek``'s (its number of moves chosen on the training contexts), in
+    acting and in the TD targets, and where it is visible the "pays" gate with the rule's exact
+    advantage as its answer (:func:`uevavd.env.rule_values.rule_values`): whether a flight now,
+    the rule followed after, beats stopping. Not with ``imitation``."""
     stop_threshold: float = 0.5
-    """The learned and "pays" gates' threshold on their probe's probability."""
+    """The learned, "pays" and "rule" gates' threshold on their probe's probability."""
     imitation: Literal["none", "visibility_oracle"] = "none"
     """"visibility_oracle": DAgger (Ross et al. 2011) with the visibility oracle as the expert. The
     student acts (epsilon-greedy, as in every run), and every decision it takes is labelled with
@@ -201,9 +207,12 @@ class TrainConfig:
         need(isinstance(self.stop_threshold, int | float) and 0.0 <= self.stop_threshold <= 1.0, "stop_threshold",
              "a probability in [0, 1]")
         # a setting nothing reads under the options chosen is a mistake, not a no-op: refuse it
-        need(self.stop_threshold == 0.5 or self.stop_gate in ("learned", "pays"), "stop_threshold",
-             f"its default 0.5: only the learned and pays stop gates read it, and train.stop_gate is {self.stop_gate!r} "
+        need(self.stop_threshold == 0.5 or self.stop_gate in ("learned", "pays", "rule"), "stop_threshold",
+             f"its default 0.5: only the learned, pays and rule stop gates read it, and train.stop_gate is {self.stop_gate!r} "
              "(set train.stop_gate, or leave train.stop_threshold out)")
+        need(self.stop_gate != "rule" or self.imitation == "none", "stop_gate",
+             "not 'rule' with train.imitation: the rule gate trains by the TD loss (leave train.imitation out, "
+             "or use stop_gate 'box' or 'pays')")
         need(self.imitation_fraction == 1.0 or self.imitation != "none", "imitation_fraction",
              "its default 1.0: it is the share of training that imitates, and train.imitation is 'none' (set "
              "train.imitation, or leave train.imitation_fraction out)")

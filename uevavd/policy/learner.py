@@ -60,16 +60,14 @@ class FeatureLookup:
         return self.pose.index_select(0, views[seen])
 
 
-class FlightPays:
-    """Where a flight pays (``train.stop_gate = "pays"``): ``pays`` (T_max, S', 605) bool, at
-    index k whether, with k + 1 decisions left, the oracle's best reachable return from a view
-    of a local scene beats stopping there (:func:`uevavd.env.oracle.flight_pays`). It depends
-    on the table and the env config alone, so it is computed once per run."""
+class PaysLabels:
+    """Where a flight pays, as a gate's training answer: ``pays`` (T_max, S', 605) bool, at
+    index k whether, with k + 1 decisions left, flying from a view of a local scene pays.
+    Computed once per run from the table and the env config alone."""
 
-    def __init__(self, tensors: Any) -> None:
-        cfg = tensors.config
-        self.pays = torch.as_tensor(flight_pays(tensors.reco.cpu().numpy(), cfg), device=tensors.device)
-        self.local, self.t_max = tensors.local, cfg.t_max
+    pays: torch.Tensor
+    local: torch.Tensor
+    t_max: int
 
     def at(self, scene: torch.Tensor, view: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """(N,) table scene indices, views and step indices t (0..T_max - 1) -> (N,) bool."""
@@ -79,6 +77,16 @@ class FlightPays:
         """scene (B,), views (B, L) of decisions t = 0..L-1 -> (B, L) bool (False where t >= T_max)."""
         t = torch.arange(views.shape[1], device=views.device)[None].expand_as(views)
         return self.at(scene[:, None].expand_as(views), views, t) & (t < self.t_max)
+
+
+class FlightPays(PaysLabels):
+    """Where a flight pays (``train.stop_gate = "pays"``): whether the oracle's best reachable
+    return from the view beats stopping there (:func:`uevavd.env.oracle.flight_pays`)."""
+
+    def __init__(self, tensors: Any) -> None:
+        cfg = tensors.config
+        self.pays = torch.as_tensor(flight_pays(tensors.reco.cpu().numpy(), cfg), device=tensors.device)
+        self.local, self.t_max = tensors.local, cfg.t_max
 
 
 class FeatureDropout:
@@ -150,10 +158,11 @@ class Learner:
 
     def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber",
                  feature_dropout: FeatureDropout | None = None, aux_recognition: RecognitionProbe | None = None,
-                 imitation: OracleLabels | None = None, pays: FlightPays | None = None) -> None:
+                 imitation: OracleLabels | None = None, pays: PaysLabels | None = None) -> None:
         self.net = net
-        if net.stop_gate == "pays" and pays is None:
-            raise ValueError('stop_gate "pays" trains on where a flight pays: pass pays=FlightPays(env.tensors)')
+        if net.stop_gate in ("pays", "rule") and pays is None:
+            raise ValueError(f'stop_gate "{net.stop_gate}" trains on where a flight pays: pass pays= '
+                             '(FlightPays(env.tensors), RulePays(env.tensors, moves))')
         self.pays = pays  # where a flight pays (train.stop_gate "pays"): opens the gate, trains its probe
         self.imitation = imitation  # the expert's labels (train.imitation), read where update(imitate=True)
         self.feature_dropout, self.aux_recognition = feature_dropout, aux_recognition
@@ -215,11 +224,12 @@ class Learner:
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
             q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, inputs, seen, skip_first=True))
-            if self.net.stop_gate in ("box", "pays"):  # the next decision's allowed actions, as acting saw them
+            if self.net.stop_gate in ("box", "pays", "rule"):  # the next decision's allowed actions, as acting saw them
                 seen_boxes = boxes.new_zeros(*seen.shape, 4)
                 seen_boxes[seen] = boxes
                 pays = self.pays.episodes(batch.scene, batch.views) if self.pays is not None else None
-                mask = self.net.allowed(mask, seen_boxes, training=True, pays=pays)
+                steps = torch.arange(seen.shape[1], device=seen.device)[None].expand_as(batch.views)
+                mask = self.net.allowed(mask, seen_boxes, training=True, pays=pays, view=batch.views, t=steps)
             boot = head.bootstrap(q_next_online, q_next_target, mask[:, 1:])  # (B, T, K)
             y = T.td_target(batch.reward, batch.done, boot, self.gamma)
         q_taken = head.taken(tuple(q[:, :-1] for q in q_all), batch.a_type, batch.a_range)  # (B, T, K)

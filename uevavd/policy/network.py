@@ -9,7 +9,8 @@ from torch import nn
 
 from ..config import Component
 from ..data.grid import DEFAULT_MAX_RANGE, N_TYPES, STOP
-from ..env.gate import gate_mask
+from ..env.baselines import pose_seek_hidden
+from ..env.gate import box_visible, gate_mask
 from .config import STOP_GATES
 
 
@@ -32,14 +33,17 @@ class QNetwork(nn.Module):
         self.stop_probe: nn.Linear | None = None
 
     def set_stop_gate(self, kind: str, threshold: float = 0.5) -> QNetwork:
-        """Give the network its stop gate (:data:`STOP_GATES`); "learned" and "pays" add the
-        gate's probe, a linear layer on s_t (its weights are part of the network and of its
-        policy file).
+        """Give the network its stop gate (:data:`STOP_GATES`); "learned", "pays" and "rule" add
+        the gate's probe, a linear layer on s_t (its weights are part of the network and of its
+        policy file); "rule" also holds the pose rule's number of moves (``rule_moves``, a buffer
+        of the policy file, set by the trainer from the training contexts).
         Call it where the network is built, before its weights are loaded. Returns self."""
         if kind not in STOP_GATES:
             raise ValueError(f"stop gate {kind!r}: expected one of {STOP_GATES}")
         self.stop_gate, self.stop_threshold = kind, float(threshold)
-        self.stop_probe = nn.Linear(self.estimator.state_dim, 1) if kind in ("learned", "pays") else None
+        self.stop_probe = nn.Linear(self.estimator.state_dim, 1) if kind in ("learned", "pays", "rule") else None
+        if kind == "rule":
+            self.register_buffer("rule_moves", torch.zeros((), dtype=torch.int64))
         return self
 
     def q_parameters(self) -> list[nn.Parameter]:
@@ -48,25 +52,38 @@ class QNetwork(nn.Module):
 
     def stop_probability(self, s: torch.Tensor) -> torch.Tensor:
         """(N, state_dim) -> (N,) the gate's probe's probability: that the recognizer recognises
-        the current view ("learned"), that a flight pays from it ("pays")."""
-        assert self.stop_probe is not None, "the network has no probe (train.stop_gate is not 'learned' or 'pays')"
+        the current view ("learned"), that a flight pays from it ("pays"), that departing from the
+        pose rule pays ("rule")."""
+        assert self.stop_probe is not None, "the network has no probe (train.stop_gate is 'none' or 'box')"
         return torch.sigmoid(self.stop_probe(s)[..., 0])
 
     def allowed(self, mask: torch.Tensor, box: torch.Tensor, s: torch.Tensor | None = None, *,
-                training: bool = False, pays: torch.Tensor | None = None) -> torch.Tensor:
+                training: bool = False, pays: torch.Tensor | None = None, view: torch.Tensor | None = None,
+                t: torch.Tensor | None = None) -> torch.Tensor:
         """The (..., 7, A) action mask narrowed by the stop gate: where it closes, only stop is
         allowed. ``box`` (..., 4) the observed boxes; ``s`` (..., state_dim) the states, read
-        by the learned and the "pays" gates when acting greedily (``training`` False);
-        ``pays`` (...) bool, where a flight pays, which opens the "pays" gate in training."""
+        by the learned, "pays" and "rule" gates when acting greedily (``training`` False);
+        ``pays`` (...) bool, where a flight (a departure from the rule) pays, which opens the
+        "pays" ("rule") gate in training; ``view`` and ``t`` (...) the views and steps, which
+        the "rule" gate reads for the pose rule's action where the box is hidden."""
         if self.stop_gate == "box":
             return gate_mask(mask, box)
-        if self.stop_gate == "pays":
+        if self.stop_gate in ("pays", "rule"):
             if training:
                 opened = pays
             else:
                 opened = None if s is None else self.stop_probability(s) > self.stop_threshold
             gated = gate_mask(mask, box)
-            return gated if opened is None else torch.where(opened[..., None, None], mask, gated)
+            gated = gated if opened is None else torch.where(opened[..., None, None], mask, gated)
+            if self.stop_gate == "pays":
+                return gated
+            if view is None or t is None:
+                raise ValueError('the "rule" stop gate reads the views and steps: pass view= and t=')
+            rule = torch.zeros(mask.shape, dtype=torch.bool, device=mask.device)  # the pose rule's one action where the box is hidden
+            a_type, a_range = pose_seek_hidden(view, t, self.rule_moves, mask.shape[-1])
+            rule.view(-1, *mask.shape[-2:])[torch.arange(a_type.numel(), device=mask.device),
+                                           a_type.reshape(-1), a_range.reshape(-1)] = True
+            return torch.where(box_visible(box)[..., None, None], gated, rule)
         if self.stop_gate == "learned" and not training and s is not None:
             gated = mask.clone()
             gated[..., :STOP, :][self.stop_probability(s) > self.stop_threshold] = False

@@ -48,6 +48,7 @@ from .imitation import OracleLabels, check_branches
 from .learner import FeatureDropout, FeatureLookup, FlightPays, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
+from .rule_gate import RulePays, rule_moves
 from .rundir import (
     RunDir,
     RunDirError,
@@ -297,6 +298,9 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
             check_branches(net.head(torch.zeros(1, net.estimator.state_dim, device=dev)), env_cfg.max_range)
         imitation = OracleLabels(env.tensors)
     pays = FlightPays(env.tensors) if cfg.stop_gate == "pays" else None
+    if cfg.stop_gate == "rule":  # the pose rule's moves, chosen on the training contexts, travel with the network
+        net.rule_moves.fill_(rule_moves(table, env_cfg))
+        pays = RulePays(env.tensors, int(net.rule_moves))
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
                       feature_dropout=feature_dropout, aux_recognition=aux_recognition, imitation=imitation,
                       pays=pays)
