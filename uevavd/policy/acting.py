@@ -276,7 +276,10 @@ def method_network(spec: Any, feature_dim: int, n_ranges: int) -> QNetwork:
     (:func:`~uevavd.policy.network.build_network`) and its stop gate (``train.stop_gate``)."""
     gate = spec.get("train.stop_gate", TrainConfig.stop_gate)
     threshold = spec.get("train.stop_threshold", TrainConfig.stop_threshold)
-    return build_network(spec.state, spec.head, feature_dim, n_ranges=n_ranges).set_stop_gate(gate, threshold)
+    ensemble = spec.get("train.rule_ensemble", TrainConfig.rule_ensemble)
+    margin = spec.get("train.rule_margin", TrainConfig.rule_margin)
+    return build_network(spec.state, spec.head, feature_dim, n_ranges=n_ranges).set_stop_gate(
+        gate, threshold, ensemble=ensemble, margin=margin)
 
 
 def save_network(net: QNetwork, path: str | Path, *, method: Any, table: Any) -> Path:

@@ -23,7 +23,8 @@ MAX_UPDATES_PER_STEP = 1024
 #: :func:`uevavd.policy.rundir.with_legacy_settings`).
 LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", "plr_temperature": 0.1,
                 "plr_staleness": 0.1, "feature_dropout": 0.0, "aux_recognition": 0.0,
-                "stop_gate": "none", "stop_threshold": 0.5, "imitation": "none", "imitation_fraction": 1.0}
+                "stop_gate": "none", "stop_threshold": 0.5, "imitation": "none", "imitation_fraction": 1.0,
+                "rule_ensemble": 0, "rule_margin": 0.0}
 #: What a run may imitate (``train.imitation``).
 IMITATIONS = ("none", "visibility_oracle")
 #: How training picks each new episode's context (``train.context_sampling``).
@@ -147,6 +148,14 @@ class TrainConfig:
     the rule followed after, beats stopping. Not with ``imitation``."""
     stop_threshold: float = 0.5
     """The learned, "pays" and "rule" gates' threshold on their probe's probability."""
+    rule_ensemble: int = 0
+    """The rule gate's probe (``stop_gate = "rule"``): 0, one probe of whether a departure pays
+    (read against ``stop_threshold``); K >= 2, K linear regressors of the best move's advantage
+    over the rule, each fit on its own bootstrap resample of the training contexts (not of
+    seeds), the gate opening in acting only where the smallest of the K exceeds ``rule_margin``."""
+    rule_margin: float = 0.0
+    """The rule ensemble's margin: the advantage over the rule (in return units) that the
+    ensemble's lowest prediction must exceed for a departure."""
     imitation: Literal["none", "visibility_oracle"] = "none"
     """"visibility_oracle": DAgger (Ross et al. 2011) with the visibility oracle as the expert. The
     student acts (epsilon-greedy, as in every run), and every decision it takes is labelled with
@@ -210,6 +219,19 @@ class TrainConfig:
         need(self.stop_threshold == 0.5 or self.stop_gate in ("learned", "pays", "rule"), "stop_threshold",
              f"its default 0.5: only the learned, pays and rule stop gates read it, and train.stop_gate is {self.stop_gate!r} "
              "(set train.stop_gate, or leave train.stop_threshold out)")
+        need(isinstance(self.rule_ensemble, int) and not isinstance(self.rule_ensemble, bool)
+             and (self.rule_ensemble == 0 or 2 <= self.rule_ensemble <= 64), "rule_ensemble",
+             "0 (one probe) or an ensemble size in [2, 64]")
+        need(isinstance(self.rule_margin, int | float) and -1.0 <= self.rule_margin <= 1.0, "rule_margin",
+             "an advantage in [-1, 1]")
+        need(self.rule_ensemble == 0 or self.stop_gate == "rule", "rule_ensemble",
+             f"its default 0: only the rule stop gate reads it, and train.stop_gate is {self.stop_gate!r} "
+             "(set train.stop_gate = 'rule', or leave train.rule_ensemble out)")
+        need(self.rule_margin == 0.0 or self.rule_ensemble, "rule_margin",
+             "its default 0.0: only the rule gate's ensemble reads it (set train.rule_ensemble, or leave "
+             "train.rule_margin out)")
+        need(self.stop_threshold == 0.5 or not self.rule_ensemble, "stop_threshold",
+             "its default 0.5: the rule gate's ensemble reads train.rule_margin instead")
         need(self.stop_gate != "rule" or self.imitation == "none", "stop_gate",
              "not 'rule' with train.imitation: the rule gate trains by the TD loss (leave train.imitation out, "
              "or use stop_gate 'box' or 'pays')")

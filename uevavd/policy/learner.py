@@ -138,9 +138,17 @@ class StopProbeLearner:
         self.net = net
         self.optimizer = torch.optim.Adam(net.stop_probe.parameters(), lr=lr)
 
-    def update(self, s: torch.Tensor, recognized: torch.Tensor) -> float:
-        logits = self.net.stop_probe(s.detach())[:, 0]
-        loss = F.binary_cross_entropy_with_logits(logits, recognized.float())
+    def update(self, s: torch.Tensor, recognized: torch.Tensor, *, gain: torch.Tensor | None = None,
+               weight: torch.Tensor | None = None) -> float:
+        """One step on rows ``s`` (N, state_dim): the binary answer ``recognized`` (N,); or, for
+        the rule gate's ensemble, each member's squared error on ``gain`` (N,) weighted by its
+        resample's ``weight`` (N, K) (how often the row's context was drawn)."""
+        if gain is None:
+            logits = self.net.stop_probe(s.detach())[:, 0]
+            loss = F.binary_cross_entropy_with_logits(logits, recognized.float())
+        else:
+            err = (self.net.stop_probe(s.detach()) - gain[:, None]) ** 2
+            loss = (err * weight).sum() / weight.sum().clamp_min(1.0)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -254,7 +262,13 @@ class Learner:
             if self.stop_probe is not None and self.pays is not None:  # "pays": where the gate would close
                 vis = box_visible(boxes)
                 if bool(vis.any()):
-                    self.stop_probe.update(s[vis], self.pays.episodes(batch.scene, batch.views)[seen][vis])
+                    labels = self.pays.episodes(batch.scene, batch.views)[seen][vis]
+                    if self.net.rule_ensemble:  # each member on its resample of the contexts
+                        rows = batch.scene[:, None].expand_as(seen)[seen][vis]
+                        gain, weight = self.pays.gains(batch.scene, batch.views)[seen][vis], self.pays.weights(rows)
+                        self.stop_probe.update(s[vis], labels, gain=gain, weight=weight)
+                    else:
+                        self.stop_probe.update(s[vis], labels)
             elif self.stop_probe is not None:
                 self.stop_probe.update(s, recognized)
         norm = self.step(loss)

@@ -30,18 +30,25 @@ class QNetwork(nn.Module):
             )
         self.estimator, self.head = estimator, head
         self.stop_gate, self.stop_threshold = "none", 0.5
+        self.rule_ensemble, self.rule_margin = 0, 0.0
         self.stop_probe: nn.Linear | None = None
 
-    def set_stop_gate(self, kind: str, threshold: float = 0.5) -> QNetwork:
+    def set_stop_gate(self, kind: str, threshold: float = 0.5, *, ensemble: int = 0, margin: float = 0.0) -> QNetwork:
         """Give the network its stop gate (:data:`STOP_GATES`); "learned", "pays" and "rule" add
         the gate's probe, a linear layer on s_t (its weights are part of the network and of its
         policy file); "rule" also holds the pose rule's number of moves (``rule_moves``, a buffer
-        of the policy file, set by the trainer from the training contexts).
+        of the policy file, set by the trainer from the training contexts), and with ``ensemble``
+        K >= 2 its probe is K regressors of a departure's advantage, opening where the smallest
+        exceeds ``margin`` (``train.rule_ensemble``, ``train.rule_margin``).
         Call it where the network is built, before its weights are loaded. Returns self."""
         if kind not in STOP_GATES:
             raise ValueError(f"stop gate {kind!r}: expected one of {STOP_GATES}")
+        if ensemble and kind != "rule":
+            raise ValueError(f"a probe ensemble ({ensemble}) is the rule gate's: the stop gate is {kind!r}")
         self.stop_gate, self.stop_threshold = kind, float(threshold)
-        self.stop_probe = nn.Linear(self.estimator.state_dim, 1) if kind in ("learned", "pays", "rule") else None
+        self.rule_ensemble, self.rule_margin = int(ensemble), float(margin)
+        width = max(1, self.rule_ensemble)
+        self.stop_probe = nn.Linear(self.estimator.state_dim, width) if kind in ("learned", "pays", "rule") else None
         if kind == "rule":
             self.register_buffer("rule_moves", torch.zeros((), dtype=torch.int64))
         return self
@@ -56,6 +63,14 @@ class QNetwork(nn.Module):
         pose rule pays ("rule")."""
         assert self.stop_probe is not None, "the network has no probe (train.stop_gate is 'none' or 'box')"
         return torch.sigmoid(self.stop_probe(s)[..., 0])
+
+    def opens(self, s: torch.Tensor) -> torch.Tensor:
+        """(N, state_dim) -> (N,) bool: where the "pays" or "rule" gate opens in greedy acting,
+        its probe's probability above the threshold, or the ensemble's lowest advantage above
+        the margin."""
+        if self.rule_ensemble:
+            return self.stop_probe(s).amin(-1) > self.rule_margin
+        return self.stop_probability(s) > self.stop_threshold
 
     def allowed(self, mask: torch.Tensor, box: torch.Tensor, s: torch.Tensor | None = None, *,
                 training: bool = False, pays: torch.Tensor | None = None, view: torch.Tensor | None = None,
@@ -72,7 +87,7 @@ class QNetwork(nn.Module):
             if training:
                 opened = pays
             else:
-                opened = None if s is None else self.stop_probability(s) > self.stop_threshold
+                opened = None if s is None else self.opens(s)
             gated = gate_mask(mask, box)
             gated = gated if opened is None else torch.where(opened[..., None, None], mask, gated)
             if self.stop_gate == "pays":

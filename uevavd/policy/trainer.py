@@ -284,7 +284,8 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     # each component checked against its kind's rules (one line naming the broken one) before
     # anything of the run is written; a table without the train or an eval split is refused here too
     net = build_checked_network(spec.state, spec.head, table.feature_dim, n_ranges=env_cfg.max_range)
-    net = net.set_stop_gate(cfg.stop_gate, cfg.stop_threshold).to(dev)
+    net = net.set_stop_gate(cfg.stop_gate, cfg.stop_threshold, ensemble=cfg.rule_ensemble,
+                            margin=cfg.rule_margin).to(dev)
     feature_dropout = (FeatureDropout(cfg.feature_dropout, seed=seeds.feature_dropout, device=dev)
                        if cfg.feature_dropout else None)
     aux_recognition = (RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev)
@@ -300,7 +301,7 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     pays = FlightPays(env.tensors) if cfg.stop_gate == "pays" else None
     if cfg.stop_gate == "rule":  # the pose rule's moves, chosen on the training contexts, travel with the network
         net.rule_moves.fill_(rule_moves(table, env_cfg))
-        pays = RulePays(env.tensors, int(net.rule_moves))
+        pays = RulePays(env.tensors, int(net.rule_moves), ensemble=cfg.rule_ensemble, seed=seeds.rule_bootstrap)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
                       feature_dropout=feature_dropout, aux_recognition=aux_recognition, imitation=imitation,
                       pays=pays)
