@@ -138,7 +138,7 @@ def test_the_ensembles_members_fit_their_own_resamples_of_the_contexts():
 @pytest.mark.parametrize("margin", [-1.0, 1.0])
 def test_a_rule_ensemble_run_resumes_bit_for_bit_and_departs_only_above_its_margin(tmp_path, margin):
     table = hidden_table()
-    spec = _spec("ibe_map_boxpose_rule", **{"train.rule_ensemble": 3, "train.rule_margin": margin})
+    spec = _spec("ibe_map_boxpose_rule_ens", **{"train.rule_ensemble": 3, "train.rule_margin": margin})
     for d, epochs in (("whole", None), ("paused", 1), ("paused", None)):
         train(spec, table, out=tmp_path / d, seed=3, device="cpu", progress=False, max_epochs=epochs)
     a, b = (torch.load(tmp_path / d / "checkpoint.pt", weights_only=False) for d in ("whole", "paused"))
