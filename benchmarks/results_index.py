@@ -35,6 +35,7 @@ GROUPS = (
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
+    ("Past the pose rule", ("rule-validation", "rule-validation-ens")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -96,6 +97,11 @@ COMMANDS = {
                          "ibe_map_pose ibe_map_pose_gate ibe_map_pose_dagger ibe_map_pose_dagger_gate "
                          "ibe_map_boxpose_gate ibe_map_boxpose_dagger_gate ibe_map_pose_pays ibe_map_boxpose_pays "
                          "--seeds 5 --recognizers 2 --sweep env.train_per_block=4",
+    "rule-validation": f"uevavd ablate {S} --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule "
+                       "ibe_map_boxpose_pays ibe_map_boxpose_rule --sweep train.stop_threshold=0.3,0.7 "
+                       "--sweep-methods ibe_map_boxpose_rule",
+    "rule-validation-ens": f"uevavd ablate {S} --methods ibe_map_boxpose_rule_ens --sweep train.rule_margin=0.02,0.05 "
+                           "--sweep-methods ibe_map_boxpose_rule_ens",
     "components-encoder": f"{C} --sweep 'perception.encoder={{name=\"resnet18\",weights=\"random\"}},"
                           '{name="resnet50",weights="random"}\'',
     "components-segmenter": f"uevavd train-sam-small W --threads 1 && {C} --sweep perception.segmenter.name=sam",
