@@ -9,7 +9,7 @@ METHOD_ORDER: tuple[str, ...] = (
     "ibe_map_plr", "ibe_map_reco", "ibe_map_aug", "ibe_map_aux", "ibe_map_gate", "ibe_map_stop", "ibe_map_pess",
     "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate", "ibe_map_pose_dagger", "ibe_map_pose_dagger_gate",
     "ibe_map_boxpose_gate", "ibe_map_boxpose_dagger_gate", "ibe_map_pose_pays", "ibe_map_boxpose_pays",
-    "map_rule", "memo_map_rule", "ibe_map_rule", "ibe_map_boxpose_rule", "sb3_dqn",
+    "map_rule", "memo_map_rule", "ibe_map_rule", "ibe_map_boxpose_rule", "ibe_map_boxpose_rule_ens", "sb3_dqn",
     "sb3_ppo", "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
@@ -37,6 +37,7 @@ LABELS: dict[str, str] = {
     "memo_map_rule": "Memo-MAP (pose rule where the box is hidden)",
     "ibe_map_rule": "IBE-MAP (pose rule where the box is hidden)",
     "ibe_map_boxpose_rule": "IBE-MAP (box + pose state, pose rule where the box is hidden)",
+    "ibe_map_boxpose_rule_ens": "IBE-MAP (box + pose state, pose rule where the box is hidden, context ensemble)",
     "random": "Random",
     "passive": "Passive",
     "box_gate": "Box gate (scripted)",
