@@ -35,7 +35,8 @@ GROUPS = (
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
-    ("Past the pose rule", ("rule-validation", "rule-validation-ens")),
+    ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-quick-world2", "rule-quick-world3",
+                            "rule-paper64")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -102,6 +103,11 @@ COMMANDS = {
                        "--sweep-methods ibe_map_boxpose_rule",
     "rule-validation-ens": f"uevavd ablate {S} --methods ibe_map_boxpose_rule_ens --sweep train.rule_margin=0.02,0.05 "
                            "--sweep-methods ibe_map_boxpose_rule_ens",
+    "rule-quick-world2": "uevavd ablate --preset quick --world-seed 2 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
+                         "--seeds 5 --recognizers 2",
+    "rule-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
+                         "--seeds 5 --recognizers 2",
+    "rule-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_pays ibe_map_boxpose_rule",
     "components-encoder": f"{C} --sweep 'perception.encoder={{name=\"resnet18\",weights=\"random\"}},"
                           '{name="resnet50",weights="random"}\'',
     "components-segmenter": f"uevavd train-sam-small W --threads 1 && {C} --sweep perception.segmenter.name=sam",
