@@ -11,7 +11,7 @@ import torch
 from uevavd.config import ConfigError
 from uevavd.data.grid import STOP
 from uevavd.env import evaluate_policy
-from uevavd.env.baselines import PoseSeekPolicy, pose_seek_hidden
+from uevavd.env.baselines import PoseSeekPolicy, pose_seek_hidden, pose_seek_moves
 from uevavd.env.batched import BatchedAODEnv
 from uevavd.env.gate import box_visible
 from uevavd.env.rule_values import rule_values
@@ -19,10 +19,14 @@ from uevavd.policy.acting import load_policy
 from uevavd.policy.collector import EpisodeCollector
 from uevavd.policy.config import TrainConfig
 from uevavd.policy.network import build_network
-from uevavd.policy.rule_gate import RulePays, rule_moves
+from uevavd.policy.rule_gate import RulePays
 from uevavd.policy.trainer import train
 
 from .test_stop_gate import _spec, hidden_table
+
+
+def rule_moves(table, config) -> int:
+    return pose_seek_moves(table, config)[0]
 
 
 def test_the_rule_gate_is_refused_with_imitation_and_without_views():

@@ -24,7 +24,7 @@ from ..env.oracle import flight_pays
 from ..state.base import estimator_boxes, reads_pose
 from . import targets as T
 from .imitation import OracleLabels, imitation_loss
-from .network import QNetwork
+from .network import PROBED_GATES, TRAINING_GATES, QNetwork
 from .replay import EpisodeBatch
 
 
@@ -75,8 +75,14 @@ class PaysLabels:
 
     def episodes(self, scene: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
         """scene (B,), views (B, L) of decisions t = 0..L-1 -> (B, L) bool (False where t >= T_max)."""
+        return self.per_decision(self.pays, scene, views)
+
+    def per_decision(self, values: torch.Tensor, scene: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
+        """``values`` laid out as ``pays`` (T_max, S', 605), read at the decisions t = 0..L-1
+        of episodes: scene (B,), views (B, L) -> (B, L), zero (False) where t >= T_max."""
         t = torch.arange(views.shape[1], device=views.device)[None].expand_as(views)
-        return self.at(scene[:, None].expand_as(views), views, t) & (t < self.t_max)
+        v = values[(self.t_max - 1 - t).clamp_min(0), self.local[scene[:, None].expand_as(views)], views]
+        return torch.where(t < self.t_max, v, torch.zeros((), dtype=v.dtype, device=v.device))
 
 
 class FlightPays(PaysLabels):
@@ -168,7 +174,7 @@ class Learner:
                  feature_dropout: FeatureDropout | None = None, aux_recognition: RecognitionProbe | None = None,
                  imitation: OracleLabels | None = None, pays: PaysLabels | None = None) -> None:
         self.net = net
-        if net.stop_gate in ("pays", "rule") and pays is None:
+        if net.stop_gate in PROBED_GATES and pays is None:
             raise ValueError(f'stop_gate "{net.stop_gate}" trains on where a flight pays: pass pays= '
                              '(FlightPays(env.tensors), RulePays(env.tensors, moves))')
         self.pays = pays  # where a flight pays (train.stop_gate "pays"): opens the gate, trains its probe
@@ -232,7 +238,7 @@ class Learner:
         with torch.no_grad():
             q_next_online = tuple(q[:, 1:] for q in q_all)
             q_next_target = tuple(q[:, 1:] for q in episode_q(self.target, feats, inputs, seen, skip_first=True))
-            if self.net.stop_gate in ("box", "pays", "rule"):  # the next decision's allowed actions, as acting saw them
+            if self.net.stop_gate in TRAINING_GATES:  # the next decision's allowed actions, as acting saw them
                 seen_boxes = boxes.new_zeros(*seen.shape, 4)
                 seen_boxes[seen] = boxes
                 pays = self.pays.episodes(batch.scene, batch.views) if self.pays is not None else None

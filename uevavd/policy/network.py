@@ -13,6 +13,10 @@ from ..env.baselines import pose_seek_hidden
 from ..env.gate import box_visible, gate_mask
 from .config import STOP_GATES
 
+#: The gates that narrow the mask in training too (its actions and TD targets), and those of
+#: them a probe trained on where a flight pays opens in acting.
+TRAINING_GATES = ("box", "pays", "rule")
+PROBED_GATES = ("pays", "rule")
 
 class QNetwork(nn.Module):
     """s_t = estimator(o_1..o_t); Q = head(s_t).
@@ -83,7 +87,7 @@ class QNetwork(nn.Module):
         the "rule" gate reads for the pose rule's action where the box is hidden."""
         if self.stop_gate == "box":
             return gate_mask(mask, box)
-        if self.stop_gate in ("pays", "rule"):
+        if self.stop_gate in PROBED_GATES:
             if training:
                 opened = pays
             else:

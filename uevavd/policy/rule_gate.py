@@ -17,18 +17,12 @@ import numpy as np
 import torch
 
 from ..data.grid import STOP
-from ..env.baselines import PoseSeekPolicy, pose_seek_moves
+from ..env.baselines import PoseSeekPolicy
 from ..env.rule_values import rule_values
 from .learner import PaysLabels
 
 #: An advantage counts as a gain above this (the values are float64 sums of float32 rewards).
 ADVANTAGE_TOL = 1e-9
-
-
-def rule_moves(table: Any, config: Any) -> int:
-    """``pose_seek``'s number of moves for the rule gate, chosen on ``table``'s training
-    contexts under ``config`` (:func:`uevavd.env.baselines.pose_seek_moves`)."""
-    return pose_seek_moves(table, config)[0]
 
 
 class RulePays(PaysLabels):
@@ -56,9 +50,7 @@ class RulePays(PaysLabels):
     def gains(self, scene: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
         """scene (B,), views (B, L) of decisions t = 0..L-1 -> (B, L) float32, the best move's
         advantage over the rule (0 where t >= T_max)."""
-        t = torch.arange(views.shape[1], device=views.device)[None].expand_as(views)
-        g = self.gain[(self.t_max - 1 - t).clamp_min(0), self.local[scene[:, None].expand_as(views)], views]
-        return torch.where(t < self.t_max, g, 0.0)
+        return self.per_decision(self.gain, scene, views)
 
     def weights(self, scene: torch.Tensor) -> torch.Tensor:
         """(N,) table scene indices -> (N, K) each member's count of the row's context."""

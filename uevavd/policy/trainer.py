@@ -27,6 +27,7 @@ from ..atomic import remove_temporaries
 from ..config import MethodSpec, PerceptionSection
 from ..config_rules import ConfigError, dotted_get
 from ..data.grid import N_TYPES
+from ..env.baselines import pose_seek_moves
 from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
@@ -48,7 +49,7 @@ from .imitation import OracleLabels, check_branches
 from .learner import FeatureDropout, FeatureLookup, FlightPays, Learner, RecognitionProbe
 from .level_replay import level_replay
 from .replay import EpisodeReplay
-from .rule_gate import RulePays, rule_moves
+from .rule_gate import RulePays
 from .rundir import (
     RunDir,
     RunDirError,
@@ -300,7 +301,7 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
         imitation = OracleLabels(env.tensors)
     pays = FlightPays(env.tensors) if cfg.stop_gate == "pays" else None
     if cfg.stop_gate == "rule":  # the pose rule's moves, chosen on the training contexts, travel with the network
-        net.rule_moves.fill_(rule_moves(table, env_cfg))
+        net.rule_moves.fill_(pose_seek_moves(table, env_cfg)[0])
         pays = RulePays(env.tensors, int(net.rule_moves), ensemble=cfg.rule_ensemble, seed=seeds.rule_bootstrap)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
                       feature_dropout=feature_dropout, aux_recognition=aux_recognition, imitation=imitation,
