@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from uevavd.perception.nets import BatchRunner, fold_batchnorm
+from uevavd.perception.nets import CPU_BATCH_PIXELS, BatchRunner, fold_batchnorm
 from uevavd.perception.weights import make_resnet
 
 
@@ -51,3 +51,14 @@ def test_untraceable_model_runs_as_given():
     runner = BatchRunner(model, device="cpu", batch_size=2)
     out = runner(np.zeros((3, 8, 8, 3), np.uint8))
     assert out.shape == (3, 4)
+
+
+def test_automatic_batch_follows_image_size_and_keeps_every_output():
+    model = _trained_looking(make_resnet("resnet18", num_classes=5, seed=0))
+    auto, fixed = BatchRunner(model, device="cpu"), BatchRunner(model, device="cpu", batch_size=256)
+    small = np.random.default_rng(0).integers(0, 256, (130, 64, 64, 3), dtype=np.uint8)
+    assert auto.batch_of(small) == CPU_BATCH_PIXELS // (64 * 64) == 64
+    assert auto.batch_of(np.zeros((1, 256, 256, 3), np.uint8)) == 4
+    assert auto.batch_of(np.zeros((1, 1024, 1024, 3), np.uint8)) == 1
+    # a view's output does not depend on the batch it ran in: the tables keep their bytes
+    assert np.array_equal(auto(small), fixed(small))

@@ -132,7 +132,7 @@ class ResNetClassifier:
     """(N, H, W, 3) uint8 RGB -> (N, len(classes)) float32 softmax probabilities."""
 
     def __init__(self, model: torch.nn.Module, *, arch: str, classes: tuple[str, ...], mean, std,
-                 weights_hash: str, device: str = "auto", batch_size: int = 256, meta=None):
+                 weights_hash: str, device: str = "auto", batch_size: int | None = None, meta=None):
         self.arch = arch
         self.classes = tuple(classes)
         self.weights_hash = weights_hash
@@ -188,7 +188,7 @@ def make_recognizer(arch: str, *, num_classes: int, seed: int = 0, empty: bool =
     return make_resnet(arch, num_classes=num_classes, seed=seed, empty=empty)
 
 
-def load_classifier(path: str | os.PathLike[str], *, device: str = "auto", batch_size: int = 256) -> ResNetClassifier:
+def load_classifier(path: str | os.PathLike[str], *, device: str = "auto", batch_size: int | None = None) -> ResNetClassifier:
     sd, meta = read_classifier_file(path)
     arch = meta["arch"]
     model = make_recognizer(arch, num_classes=len(meta["classes"]), empty=True)
@@ -204,14 +204,14 @@ def load_classifier(path: str | os.PathLike[str], *, device: str = "auto", batch
                             weights_hash=file_weights_hash(sd, meta), device=device, batch_size=batch_size, meta=meta)
 
 
-def build_resnet18_classifier(*, path: str | None = None, device: str = "auto", batch_size: int = 256,
+def build_resnet18_classifier(*, path: str | None = None, device: str = "auto", batch_size: int | None = None,
                               data: str | None = None) -> ResNetClassifier:
     """The trained ResNet18 recognizer from ``path``; ``path=None`` means the default
     location for dataset ``data`` (``uevavd prepare`` passes it)."""
     return _build_classifier("resnet18", path, device, batch_size, data)
 
 
-def build_efficientnet_lite0_classifier(*, path: str | None = None, device: str = "auto", batch_size: int = 256,
+def build_efficientnet_lite0_classifier(*, path: str | None = None, device: str = "auto", batch_size: int | None = None,
                                         data: str | None = None) -> ResNetClassifier:
     """The trained EfficientNet-Lite0 recognizer from ``path`` (as :func:`build_resnet18_classifier`)."""
     return _build_classifier("efficientnet_lite0", path, device, batch_size, data)

@@ -157,7 +157,7 @@ class Lite0Encoder:
     feature_dim = FEATURE_DIM
 
     def __init__(self, model: torch.nn.Module, *, weights_desc: str, weights_hash: str, device: str = "auto",
-                 batch_size: int = 256):
+                 batch_size: int | None = None):
         self.runner = BatchRunner(Lite0Features(fold_lite0(model)), device=device, batch_size=batch_size,
                                   mean=LITE_MEAN, std=LITE_STD, fold=False)
         self.weights_desc = weights_desc
@@ -178,7 +178,7 @@ class Lite0Encoder:
 
 
 def build_efficientnet_lite0(*, weights: str = "imagenet", seed: int = 0, device: str = "auto",
-                             batch_size: int = 256) -> Lite0Encoder:
+                             batch_size: int | None = None) -> Lite0Encoder:
     """EfficientNet-Lite0 encoder, 1280-d features. ``weights``: ``"imagenet"`` (from the
     installed package, hash-checked), ``"file:PATH"`` (a Lite0 state dict) or ``"random"``."""
     kind, arg = parse_spec(weights)

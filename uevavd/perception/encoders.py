@@ -35,7 +35,7 @@ class ResNetEncoder:
     """(N, H, W, 3) uint8 RGB -> (N, feature_dim) float32 pooled ResNet features."""
 
     def __init__(self, arch: str, model: torch.nn.Module, *, weights_desc: str, weights_hash: str,
-                 device: str = "auto", batch_size: int = 256):
+                 device: str = "auto", batch_size: int | None = None):
         self.arch = arch
         self.feature_dim = FEATURE_DIMS[arch]
         model.fc = torch.nn.Identity()
@@ -94,14 +94,14 @@ def _build(arch: str, weights: str, seed: int, device: str, batch_size: int, cla
                          batch_size=batch_size)
 
 
-def build_resnet18(*, weights: str = "imagenet", seed: int = 0, device: str = "auto", batch_size: int = 256,
+def build_resnet18(*, weights: str = "imagenet", seed: int = 0, device: str = "auto", batch_size: int | None = None,
                    classifier: str | None = None, data: str | None = None) -> ResNetEncoder:
     """ResNet18 encoder, 512-d features. ``data`` (dataset root) locates the default
     classifier for ``weights="classifier"``; ``uevavd prepare`` passes it."""
     return _build("resnet18", weights, seed, device, batch_size, classifier, data)
 
 
-def build_resnet50(*, weights: str = "imagenet", seed: int = 0, device: str = "auto", batch_size: int = 256,
+def build_resnet50(*, weights: str = "imagenet", seed: int = 0, device: str = "auto", batch_size: int | None = None,
                    classifier: str | None = None, data: str | None = None) -> ResNetEncoder:
     """ResNet50 encoder, 2048-d features (the paper's encoder)."""
     return _build("resnet50", weights, seed, device, batch_size, classifier, data)
