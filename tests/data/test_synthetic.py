@@ -257,6 +257,9 @@ def test_train_605_views_are_context_like_and_fully_visible():
         assert {scene.categories[int(i)] for i in np.unique(plain.seg[changed])} <= {"building", "tree", "vehicle"}
         assert (view.seg[plain.seg == TARGET_ID] == TARGET_ID).all()
         assert changed.any() == bool(plain.occluders)
+        # its colours are those of a shaded render without the objects it left out (none casts an image)
+        absent = tuple(sorted(set(scene.categories) - set(np.unique(view.seg).tolist())))
+        assert np.array_equal(render_view(scene, int(v), 32, prep, exclude=absent).rgb, view.rgb)
         hidden += bool(plain.occluders)
         assert (view.seg != TARGET_ID).mean() > 0.5  # background and clutter around the target
         assert len(np.unique(view.seg)) >= 3

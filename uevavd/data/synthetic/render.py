@@ -215,6 +215,20 @@ def render_view(scene: Scene, view: int, size: int, prep: PreparedScene | None =
     (``rgb`` is then all zeros; segmentation, box and visible fraction are unchanged): the
     validity rule needs only the visible fractions."""
     prep = prep or PreparedScene(scene)
+    v, hits = _cast_view(scene, view, size, prep, cull, exclude)
+    return _shade(scene, prep, v, hits) if shade else v
+
+
+def _shade(scene: Scene, prep: PreparedScene, v: View, hits: tuple) -> View:
+    """``v`` with the colours of the ray hits ``hits`` (from :func:`_cast_view`)."""
+    v.rgb = shade_points(scene, prep, *hits).reshape(v.rgb.shape)
+    return v
+
+
+def _cast_view(scene: Scene, view: int, size: int, prep: PreparedScene, cull: bool,
+               exclude: tuple[int, ...]) -> tuple[View, tuple]:
+    """The geometry of :func:`render_view`: the unshaded view, and the ray hits its colours
+    are shaded from."""
     p = prep.p
     origin = view_coords(view)
     basis = camera_basis(origin, scene.look_at)
@@ -267,8 +281,6 @@ def render_view(scene: Scene, view: int, size: int, prep: PreparedScene | None =
     seg.put(h, p["h_inst"].take(pid_f.take(h)))
     seg.put(e, p["e_inst"].take(pid_f.take(e)))
     seg = seg.reshape(size, size)
-    rgb = (shade_points(scene, prep, pts, ground_rgb, h, e, pid_f, face_f).reshape(size, size, 3) if shade
-           else np.zeros((size, size, 3), np.uint8))
     vis = seg == TARGET_ID
     whole = np.isfinite(ttar)
     full = int(whole.sum())
@@ -279,7 +291,9 @@ def render_view(scene: Scene, view: int, size: int, prep: PreparedScene | None =
     else:
         bx = np.zeros(4, np.int32)
     occluders = tuple(int(i) for i in np.unique(seg[whole & ~vis])) if n_vis < full else ()
-    return View(rgb=rgb, seg=seg, box=bx, visible=float(n_vis / full) if full else 0.0, occluders=occluders)
+    v = View(rgb=np.zeros((size, size, 3), np.uint8), seg=seg, box=bx, visible=float(n_vis / full) if full else 0.0,
+             occluders=occluders)
+    return v, (pts, ground_rgb, h, e, pid_f, face_f)
 
 
 def render_unoccluded_view(scene: Scene, view: int, size: int, prep: PreparedScene | None = None) -> View:
@@ -287,14 +301,15 @@ def render_unoccluded_view(scene: Scene, view: int, size: int, prep: PreparedSce
     (their shadows stay, as those of objects just outside the crop would): the target is
     fully visible, the rest of the scene as it is. One render when nothing hides the
     target; otherwise the objects drawn over it are left out and the view rendered again,
-    until none is (an object behind a removed one may show up in its place)."""
+    until none is (an object behind a removed one may show up in its place). Only the last
+    render is shaded."""
     prep = prep or PreparedScene(scene)
-    v = render_view(scene, view, size, prep)
+    v, hits = _cast_view(scene, view, size, prep, True, ())
     exclude: tuple[int, ...] = ()
     while v.occluders:
         exclude = tuple(sorted({*exclude, *v.occluders}))
-        v = render_view(scene, view, size, prep, exclude=exclude)
-    return v
+        v, hits = _cast_view(scene, view, size, prep, True, exclude)
+    return _shade(scene, prep, v, hits)
 
 
 def render_views(scene: Scene, size: int, views=None, *, shade: bool = True) -> ContextViews:
