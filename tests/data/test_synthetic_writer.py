@@ -17,7 +17,7 @@ from uevavd.data import layout
 from uevavd.data.grid import N_VIEWS, view_coords
 from uevavd.data.synthetic import render_context, write_world
 from uevavd.data.synthetic.cli import parse_contexts
-from uevavd.data.synthetic.writer import scene_complete
+from uevavd.data.synthetic.writer import scene_complete, write_scene
 
 SIZE = 16  # the smallest crop: the writer's behaviour does not depend on the size
 
@@ -327,3 +327,12 @@ def test_a_folder_that_is_not_a_world_is_refused_and_left_as_it_was(tmp_path, ca
     (partial / f".{layout.MANIFEST}.abc123.tmp").write_text("killed mid-write")
     assert main(["synth", "--out", str(partial), *argv]) == 0
     assert (partial / layout.DATASET_CARD).is_file()
+
+
+def test_a_scene_reports_each_view_as_it_is_written(world, tmp_path):
+    """The world's bar moves view by view, not a scene (605 or 3,025 views) at a time."""
+    ticks = []
+    meta = write_scene(tmp_path, "005", size=SIZE, seed=3,
+                              on_view=lambda: ticks.append(len(list((tmp_path / "005").glob("*.png")))))
+    assert len(ticks) == N_VIEWS and ticks == list(range(1, N_VIEWS + 1))  # each after its image is on disk
+    assert _tree_bytes(tmp_path / "005") == _tree_bytes(world / "005") and meta["scene"] == "005"

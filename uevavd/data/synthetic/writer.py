@@ -24,15 +24,16 @@ import logging
 import os
 import re
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import as_completed
+from concurrent.futures import FIRST_COMPLETED, wait
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from ...atomic import atomic_write, folder_lock
 from ...hashing import sha256_hex
-from ...runtime import WorkerPool, single_threaded_worker
+from ...runtime import WorkerPool, safe_context, single_threaded_worker
 from .. import layout
 from ..grid import N_VIEWS, view_coords
 from ..splits import CLASSIFIER_SCENE, TARGETS, UNOCCLUDED_SCENE, check_context, scene_name
@@ -121,8 +122,9 @@ def scene_complete(folder: Path, *, size: int, seed: int) -> bool:
     return True
 
 
-def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
-    """Render and write one scene folder; returns its ``scene.json`` record."""
+def write_scene(root: Path, name: str, *, size: int, seed: int, on_view: Callable[[], None] | None = None) -> dict:
+    """Render and write one scene folder; returns its ``scene.json`` record. ``on_view`` is
+    called after each view is written (a progress bar's tick)."""
     folder = root / name
     (folder / layout.SEG_DIR).mkdir(parents=True, exist_ok=True)
     for stale in [*folder.glob(".*.tmp*"), *(folder / layout.SEG_DIR).glob(".*.tmp*")]:
@@ -164,6 +166,8 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
                 files[rel] = sha256_hex(data)
             visible[stem] = round(float(view.visible), 6)
             order.append(((TARGETS.index(scene.target), int(v)), stem))
+            if on_view is not None:
+                on_view()
     visible = {stem: visible[stem] for _, stem in sorted(order)}  # targets' views in grid order
     cats = {str(k): v for k, v in sorted(categories.items())}
     data = (json.dumps(cats, indent=1) + "\n").encode()
@@ -196,9 +200,25 @@ def write_scene(root: Path, name: str, *, size: int, seed: int) -> dict:
     return meta
 
 
+#: In a rendering worker: the count of views written, shared with the parent's progress bar.
+_views_written: Any = None
+
+
+def _rendering_worker(counter: Any) -> None:
+    """Initializer of the rendering processes: one numpy thread, views counted into ``counter``."""
+    global _views_written
+    single_threaded_worker()
+    _views_written = counter
+
+
+def _count_view() -> None:
+    with _views_written.get_lock():
+        _views_written.value += 1
+
+
 def _job(root: str, name: str, size: int, seed: int) -> tuple[str, int]:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    write_scene(Path(root), name, size=size, seed=seed)
+    write_scene(Path(root), name, size=size, seed=seed, on_view=None if _views_written is None else _count_view)
     return name, _views_in(name)
 
 
@@ -283,17 +303,23 @@ def _write_world(root: Path, contexts: list[int], size: int, seed: int, include_
     names = _scene_jobs(contexts, include_unoccluded)
     todo = [n for n in names if not scene_complete(root / n, size=size, seed=seed)]
     total = sum(_views_in(n) for n in names)
-    # views already written start the bar (initial), so its rate counts this call's views only
-    bar = tqdm(total=total, initial=total - sum(_views_in(n) for n in todo), unit="view", desc=f"synth {size}px",
-               disable=not progress)
+    # views already written start the bar (initial), so its rate counts this call's views only;
+    # it moves view by view (the workers count into a shared integer the parent polls)
+    initial = total - sum(_views_in(n) for n in todo)
+    bar = tqdm(total=total, initial=initial, unit="view", desc=f"synth {size}px", disable=not progress)
     if workers == 1 or len(todo) <= 1:
         for n in todo:
-            bar.update(_job(str(root), n, size, seed)[1])
+            write_scene(root, n, size=size, seed=seed, on_view=lambda: bar.update(1))
     else:
-        with WorkerPool(workers, initializer=single_threaded_worker) as pool:
-            futures = [pool.submit(_job, str(root), n, size, seed) for n in todo]
-            for fut in as_completed(futures):
-                bar.update(fut.result()[1])
+        ctx = safe_context()
+        counter = ctx.Value("q", 0)
+        with WorkerPool(workers, mp_context=ctx, initializer=_rendering_worker, initargs=(counter,)) as pool:
+            pending = {pool.submit(_job, str(root), n, size, seed) for n in todo}
+            while pending:
+                done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    fut.result()
+                bar.update(initial + counter.value - bar.n)
     bar.close()
     _write_card_and_manifest(root, names, contexts, size, seed, include_unoccluded)
     return root
