@@ -166,3 +166,17 @@ def test_recognizer_weights_do_not_depend_on_the_callers_thread_count():
         torch.set_num_threads(before)
     assert hashes[0] == hashes[1]
     assert one["threads"] == 1
+
+
+def test_channels_last_padding_is_zeropad2d_value_for_value_and_stride_for_stride():
+    from uevavd.perception.efficientnet import ZeroPadChannelsLast
+
+    for padding in ((0, 1, 0, 1), (1, 2, 0, 3)):
+        ref, fast = torch.nn.ZeroPad2d(padding), ZeroPadChannelsLast(padding)
+        for shape in ((4, 8, 10, 12), (2, 3, 1, 1)):
+            x = torch.randn(*shape)
+            for layout in (torch.contiguous_format, torch.channels_last):
+                xl = x.contiguous(memory_format=layout)
+                a, b = ref(xl), fast(xl)
+                # the same tensor for the convolution after it: its algorithm, and so its bits, follow
+                assert torch.equal(a, b) and a.stride() == b.stride(), (padding, shape, layout)

@@ -101,7 +101,9 @@ def fold_lite0(model: torch.nn.Module) -> torch.nn.Module:
     convolutions pad themselves and its blocks take extra arguments. Also (same outputs, bit
     for bit on CPU: benchmarks/bench_prepare.py checks it) a convolution whose "same"
     padding is symmetric pads inside ``conv2d`` instead of copying its input through a
-    ``ZeroPad2d`` first, and ReLU6 runs in place: a third less time per forward at 64 px."""
+    ``ZeroPad2d`` first (an asymmetric one pads into a channels-last tensor of zeros:
+    :class:`ZeroPadChannelsLast`), and ReLU6 runs in place: a third less time per forward at
+    64 px."""
     model.eval()
     _pad_in_conv(model)
 
@@ -135,8 +137,30 @@ def _pad_in_conv(model: torch.nn.Module) -> None:
             if left == right == top == bottom and tuple(m.padding) == (0, 0):
                 m.padding = (left, left)
                 m.static_padding = torch.nn.Identity()
+            elif min(left, right, top, bottom) >= 0:
+                m.static_padding = ZeroPadChannelsLast(m.static_padding.padding)
         elif isinstance(m, torch.nn.ReLU6):
             m.inplace = True
+
+
+class ZeroPadChannelsLast(torch.nn.Module):
+    """``ZeroPad2d(padding)`` (left, right, top, bottom >= 0) that writes a channels-last input
+    into a channels-last tensor of zeros: the same values and strides as ``ZeroPad2d``'s
+    output, about twice as fast on a CPU (the stride-2 convolutions' asymmetric padding was a
+    tenth of a table's forward time)."""
+
+    def __init__(self, padding: tuple[int, int, int, int]):
+        super().__init__()
+        self.padding = tuple(int(p) for p in padding)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dim() != 4 or x.is_contiguous() or not x.is_contiguous(memory_format=torch.channels_last):
+            return torch.nn.functional.pad(x, self.padding)  # where the two layouts differ, as given
+        left, right, top, bottom = self.padding
+        n, c, h, w = x.shape
+        out = x.new_zeros((n, h + top + bottom, w + left + right, c)).permute(0, 3, 1, 2)
+        out[:, :, top:top + h, left:left + w] = x
+        return out
 
 
 class Lite0Features(torch.nn.Module):
