@@ -16,26 +16,15 @@ Prints ms per view and the ratio per network and size, and the machine-speed ref
 from __future__ import annotations
 
 import argparse
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 import torchvision
+from machine_speed import refwork
 
 from uevavd.perception.efficientnet import build_efficientnet_lite0
 from uevavd.perception.nets import BatchRunner
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def refwork() -> str:
-    tool = ROOT.parent / "shared" / "tools" / "refwork.py"
-    if not tool.is_file():
-        return "refwork: not available"
-    return subprocess.run([sys.executable, str(tool)], capture_output=True, text=True).stdout.strip()
 
 
 def ms_per_view(runner: BatchRunner, images: np.ndarray, batch: int | None, repeats: int) -> tuple[float, np.ndarray]:

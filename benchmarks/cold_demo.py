@@ -25,17 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from machine_speed import refwork_seconds as refwork
+
 ROOT = Path(__file__).resolve().parents[1]
 STAGES = re.compile(r"demo finished in (\d+) s \((.*)\) on")
-
-
-def refwork() -> float | None:
-    tool = ROOT.parent / "shared" / "tools" / "refwork.py"
-    if not tool.is_file():
-        return None
-    out = subprocess.run([sys.executable, str(tool)], capture_output=True, text=True).stdout
-    found = re.search(r"([\d.]+)", out)
-    return float(found.group(1)) if found else None
 
 
 def cold_demo(checkout: Path) -> tuple[float, dict[str, float], str]:

@@ -27,8 +27,6 @@ import cProfile
 import os
 import pstats
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,8 +34,8 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from machine_speed import refwork
 
-ROOT = Path(__file__).resolve().parents[1]
 #: The parts of the world's time, by the file (or function) cProfile charges it to, first match wins.
 WORLD_PARTS = (
     ("PNG encoding", ("imencode",)),
@@ -48,14 +46,6 @@ WORLD_PARTS = (
     ("the rest of the renderer", ("render.py",)),
     ("the scene's construction", ("scenes.py", "world.py", "ground.py", "vehicles.py", "geometry.py", "draws.py")),
 )
-
-
-def refwork() -> str:
-    tool = ROOT.parent / "shared" / "tools" / "refwork.py"
-    if not tool.is_file():
-        return "refwork: not available"
-    out = subprocess.run([sys.executable, str(tool)], capture_output=True, text=True)
-    return out.stdout.strip() or "refwork: failed"
 
 
 def _part(key: tuple) -> str:

@@ -17,20 +17,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def refwork() -> str:
-    tool = ROOT.parent / "shared" / "tools" / "refwork.py"
-    if not tool.is_file():
-        return "refwork n/a"
-    return subprocess.run([sys.executable, str(tool)], capture_output=True, text=True).stdout.strip()
+from machine_speed import refwork
 
 
 def main() -> int:
