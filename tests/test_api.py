@@ -43,8 +43,8 @@ def test_the_readme_script_runs_and_its_policy_file_reloads(tmp_path, monkeypatc
     run = namespace["run"]
     assert run.finished and run.env_config.thre == 0.2
     frame = run.evaluate("hard")
-    assert list(frame.index) == ["ibe_map", "random", "passive", "box_gate", "pose_seek", "visibility_oracle",
-                                 "oracle"]
+    assert list(frame.index) == ["ibe_map", "random", "passive", "box_gate", "pose_seek", "departure_ceiling",
+                                 "departure_ceiling2", "visibility_oracle", "oracle"]
     assert frame.loc["oracle", "mean_return"] >= frame["mean_return"].max() - 1e-9
     policy, cfg = uevavd.load_policy_file(tmp_path / "ibe_map.safetensors", table=namespace["table"])
     from uevavd.env.evaluate import evaluate_policy

@@ -10,9 +10,9 @@ import torch
 
 from uevavd.data.grid import N_VIEWS, STOP
 from uevavd.env import EnvConfig, evaluate_policy
-from uevavd.env.baselines import BoxGatePolicy, PoseSeekPolicy
+from uevavd.env.baselines import BoxGatePolicy, PoseSeekPolicy, evaluate_beside_baselines
 from uevavd.env.oracle import oracle_values
-from uevavd.env.rule_values import departure_ceiling, rule_values
+from uevavd.env.rule_values import DepartureCeilingPolicy, departure_ceiling, rule_values
 from uevavd.table import ObservationTable
 
 CFG = EnvConfig(t_max=4)
@@ -84,3 +84,23 @@ def test_the_departure_ceiling_runs_from_the_rule_to_the_oracle(table):
     assert (ceilings[1] <= oracle + 1e-12).all()
     with pytest.raises(ValueError, match="departures=-1"):
         departure_ceiling(sol, -1)
+
+
+@pytest.mark.parametrize("departures", [1, 2])
+@pytest.mark.parametrize("split", ["train", "hard"])
+def test_the_departure_ceiling_policy_flies_the_ceiling(table, departures, split):
+    """Rolled out through the evaluation, the policy's return from every start is the ceiling's
+    value: its departures are the ones the values count, and never more than allowed."""
+    rule = PoseSeekPolicy(2, 4)
+    sol = rule_values(table, split, rule, CFG)
+    policy = DepartureCeilingPolicy(table, CFG, rule, departures)
+    rollout = evaluate_policy(table, split, policy, CFG)
+    np.testing.assert_allclose(rollout.ret, departure_ceiling(sol, departures).reshape(-1), rtol=0, atol=1e-12)
+    assert rollout.ret.mean() > sol.value[:, CFG.t_max].mean()  # it departs, and gains
+
+
+def test_the_departure_ceiling_is_a_baseline_of_every_evaluation(table):
+    frame, _ = evaluate_beside_baselines(table, "hard", PoseSeekPolicy(2, 4), "rule", CFG)
+    ret = frame["mean_return"]
+    assert ret["rule"] <= ret["departure_ceiling"] <= ret["departure_ceiling2"] <= ret["oracle"] + 1e-12
+    assert ret["departure_ceiling"] > ret["pose_seek"]

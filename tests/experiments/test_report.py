@@ -526,6 +526,14 @@ def test_the_room_table_gives_each_policy_its_share_of_the_oracles_gain_by_kind_
     assert table[("hard", "box in view")][6:] == ["0.100 (-100%)", "0.200 (+0%)"]
     assert room_section(final.drop(columns=["hidden_return"]), "default", tmp_path) == []  # earlier results
     assert room_section(final[final["method"] != "visibility_oracle"], "default", tmp_path) == []
+    # the rule's departure ceilings, where evaluated, stand beside the visibility oracle
+    ceiling = df[df["method"] == "oracle"].assign(method="departure_ceiling", box_return=0.4, hidden_return=0.5)
+    lines = room_section(final_rows(pd.concat([df, ceiling], ignore_index=True)), "default", tmp_path)
+    header = next(line for line in lines if line.startswith("| where"))
+    assert [c.strip() for c in header.split("|")[6:9]] == ["room", "Pose rule, one exact departure (ceiling)",
+                                                          "Box gate (scripted)"]
+    hidden = next(line for line in lines if line.startswith("| hard | box hidden"))
+    assert [c.strip() for c in hidden.split("|")[6:8]] == ["+0.400", "0.500 (+200%)"]
 
 
 def test_the_start_kinds_split_the_return():

@@ -68,8 +68,8 @@ def ablation(tiny) -> dict:
 def test_results_are_tidy_and_complete(ablation):
     df = pd.read_csv(ablation["results"])
     assert list(df.columns) == RESULT_COLUMNS
-    assert set(df["method"]) == {"map", "ibe_map", "random", "passive", "box_gate", "pose_seek", "visibility_oracle",
-                                "oracle"}
+    assert set(df["method"]) == {"map", "ibe_map", "random", "passive", "box_gate", "pose_seek", "departure_ceiling",
+                                "departure_ceiling2", "visibility_oracle", "oracle"}
     assert set(df["split"]) == {"train", "hard"}
     for method in ("map", "ibe_map"):
         rows = df[df["method"] == method]
@@ -644,9 +644,11 @@ def test_a_plugin_baseline_joins_every_evaluation_and_is_never_counted_as_learne
 
         run = load_run(ablation["plan"].out / "runs" / "map" / "default" / "rec0" / "seed0")
         assert list(reference_policies(run.table(), run.env_config)) == [
-            "random", "passive", "box_gate", "pose_seek", "visibility_oracle", "oracle", "first_range_up"]
+            "random", "passive", "box_gate", "pose_seek", "departure_ceiling", "departure_ceiling2",
+            "visibility_oracle", "oracle", "first_range_up"]
         assert list(run.evaluate("hard").index) == ["map", "random", "passive", "box_gate", "pose_seek",
-                                                    "visibility_oracle", "oracle", "first_range_up"]
+                                                    "departure_ceiling", "departure_ceiling2", "visibility_oracle",
+                                                    "oracle", "first_range_up"]
         report = (out / "report" / "report.md").read_text()
     finally:
         manager.unregister_plugin("baseline-test")

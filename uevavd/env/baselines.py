@@ -20,6 +20,7 @@ from .config import make_config
 from .evaluate import evaluate_gated, evaluate_policy, stopping_summary
 from .gate import box_visible, fit_to_mask
 from .oracle import OraclePolicy
+from .rule_values import DepartureCeilingPolicy
 from .visibility_oracle import VisibilityOraclePolicy
 
 
@@ -227,6 +228,20 @@ def build_pose_seek(*, table, config, seed: int = 0) -> PoseSeekPolicy | None:
     except TableError:
         return None
     return PoseSeekPolicy(moves, make_config(config).max_range)
+
+
+def build_departure_ceiling(*, table, config, seed: int = 0, departures: int = 1):
+    """``pose_seek`` (its moves chosen on the training contexts) departed from at most
+    ``departures`` times with each context's exact values: the privileged ceiling of a method
+    anchored to the rule (:class:`~uevavd.env.rule_values.DepartureCeilingPolicy`), or None
+    where ``pose_seek`` does not apply."""
+    rule = build_pose_seek(table=table, config=config)
+    return None if rule is None else DepartureCeilingPolicy(table, config, rule, departures)
+
+
+def build_departure_ceiling2(*, table, config, seed: int = 0):
+    """:func:`build_departure_ceiling` with two departures."""
+    return build_departure_ceiling(table=table, config=config, departures=2)
 
 
 def build_visibility_oracle(*, table, config, seed: int = 0):

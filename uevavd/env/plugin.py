@@ -16,6 +16,11 @@ def register_baselines(registry):
     registry.add("pose_seek", "uevavd.env.baselines:build_pose_seek",
                  summary="scripted, observation and pose: stop where the target's box is non-empty, else fly "
                          "toward the column above the target (moves chosen on the training contexts)")
+    registry.add("departure_ceiling", "uevavd.env.baselines:build_departure_ceiling",
+                 summary="privileged: pose_seek, departed from once where the context's exact values gain (the "
+                         "ceiling of a method anchored to the rule)")
+    registry.add("departure_ceiling2", "uevavd.env.baselines:build_departure_ceiling2",
+                 summary="privileged: pose_seek, departed from at most twice with the context's exact values")
     registry.add("visibility_oracle", "uevavd.env.baselines:build_visibility_oracle",
                  summary="knows every view's visible fraction, flies the cheapest path to the most visible "
                          "reachable view (tables with visible fractions)")

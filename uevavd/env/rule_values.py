@@ -20,7 +20,7 @@ departure with the exact values of its context (a privileged diagnostic, like th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -104,25 +104,125 @@ def rule_values(table: ObservationTable | EnvTensors, split: str, rule: Any,
     return RuleSolution(tb.scenes.cpu().numpy(), cfg, value, q, types, ranges, reco, nxt)
 
 
-def departure_ceiling(sol: RuleSolution, departures: int = 1) -> np.ndarray:
-    """(S, 605) float64: from every start, the best return of a policy that follows the rule
-    but may depart from it up to ``departures`` times (any action, stop included), each
-    departure chosen with the context's exact values (privileged: it bounds what a
-    rule-anchored method can gain; 0 departures is the rule's own return, ``T_max`` the
-    oracle's)."""
+@dataclass(frozen=True)
+class DepartureLayer:
+    """The best use of ``d`` departures from the rule, at every (scene, k decisions left, view):
+    ``value`` (S, T_max + 1, 605) float64 the return with ``d`` departures left; ``depart``
+    (S, T_max + 1, 605) bool whether to depart now (where following the rule is not as good),
+    with ``a_type`` / ``a_range`` the departure's action (stop: range 0)."""
+
+    value: np.ndarray
+    depart: np.ndarray
+    a_type: np.ndarray
+    a_range: np.ndarray
+
+
+def departure_layers(sol: RuleSolution, departures: int = 1) -> list[DepartureLayer]:
+    """``[layer with 1 departure left, ..., with departures left]`` (:class:`DepartureLayer`):
+    the dynamic programme of :func:`departure_ceiling`, with the choices that reach it (a tie
+    follows the rule; among departures, stop, then the lowest move index)."""
     if isinstance(departures, bool) or not isinstance(departures, int) or departures < 0:
         raise ValueError(f"departures={departures!r}: expected an integer >= 0")
     cfg = sol.config
     term = cfg.terminal_reward(sol.reco).astype(np.float64)  # (S, V)
     rows, cols = np.arange(len(sol.scenes))[:, None], np.arange(N_VIEWS)[None, :]
+    layers: list[DepartureLayer] = []
     fewer = sol.value  # with one departure fewer left (none: the rule's values)
     for _ in range(departures):
         more = np.zeros_like(fewer)
+        depart = np.zeros(more.shape, bool)
+        a_type = np.full(more.shape, STOP, np.int64)
+        a_range = np.zeros(more.shape, np.int64)
         for k in range(1, cfg.t_max + 1):
             stay = move_values(cfg, sol.reco, sol.next_view, more[:, k - 1], k)  # the rule's move, as many left
-            depart = move_values(cfg, sol.reco, sol.next_view, fewer[:, k - 1], k)  # any move, one fewer left
-            t, r = sol.rule_type[:, k], sol.rule_range[:, k]
+            moves = move_values(cfg, sol.reco, sol.next_view, fewer[:, k - 1], k).reshape(*term.shape, -1)
+            t, r = sol.rule_type[:, k], sol.rule_range[:, k]  # any move, one fewer left
             follow = np.where(t == STOP, term, stay[rows, cols, np.minimum(t, STOP - 1), r])
-            more[:, k] = np.maximum.reduce([follow, term, depart.reshape(*term.shape, -1).max(-1)])
+            best = moves.argmax(-1)
+            best_move = np.take_along_axis(moves, best[..., None], -1)[..., 0]
+            more[:, k] = np.maximum.reduce([follow, term, best_move])
+            depart[:, k] = more[:, k] > follow
+            by_move = depart[:, k] & (best_move > term)
+            a_type[:, k] = np.where(by_move, best // cfg.max_range, STOP)
+            a_range[:, k] = np.where(by_move, best % cfg.max_range, 0)
+        layers.append(DepartureLayer(more, depart, a_type, a_range))
         fewer = more
-    return fewer[:, cfg.t_max]
+    return layers
+
+
+def departure_ceiling(sol: RuleSolution, departures: int = 1) -> np.ndarray:
+    """(S, 605) float64: from every start, the best return of a policy that follows the rule
+    but may depart from it up to ``departures`` times (any action, stop included), each
+    departure chosen with the context's exact values (privileged: it bounds what a
+    rule-anchored method can gain; 0 departures is the rule's own return, ``T_max`` the
+    oracle's). :class:`DepartureCeilingPolicy` flies it."""
+    layers = departure_layers(sol, departures)
+    return (layers[-1].value if layers else sol.value)[:, sol.config.t_max]
+
+
+class DepartureCeilingPolicy:
+    """The departure ceiling as a policy under the evaluation protocol (privileged, like the
+    oracles: reads ``obs["scene"]``, ``obs["view"]`` and ``obs["t"]``): ``rule`` (memoryless,
+    :func:`rule_actions`) followed from every start, departed from at most ``departures`` times
+    where the context's exact values say a departure gains (:func:`departure_layers`). Its
+    return from a start is :func:`departure_ceiling`'s. The values are solved for the scenes it
+    is first asked about, by their split, and kept."""
+
+    needs_features = False
+
+    def __init__(self, table: ObservationTable, config: EnvConfig | dict | None, rule: Any,
+                 departures: int = 1) -> None:
+        self.table, self.rule, self.departures = table, rule, int(departures)
+        self.config = make_config(config)
+        # the values do not depend on which training contexts a run keeps: every scene asked about is solved
+        self._solve_cfg = replace(self.config, train_per_block=0, holdout_block=0)
+        shape = (len(table), self.config.t_max + 1, N_VIEWS)
+        self._solved = np.zeros(len(table), bool)
+        self._rule = (np.zeros(shape, np.int64), np.zeros(shape, np.int64))
+        self._layers = [(np.zeros(shape, bool), np.zeros(shape, np.int64), np.zeros(shape, np.int64))
+                        for _ in range(self.departures)]
+        self._tensors: tuple | None = None
+        self._left: torch.Tensor | None = None
+
+    def _solve(self, scenes: np.ndarray) -> None:
+        todo = np.unique(scenes[~self._solved[scenes]])
+        splits = np.asarray(self.table.splits)
+        for split in sorted(set(splits[todo])):
+            pick = todo[splits[todo] == split]
+            tb = EnvTensors(self.table, split, self._solve_cfg, contexts=self.table.contexts[pick],
+                            with_features=getattr(self.rule, "needs_features", True))
+            sol = rule_values(tb, split, self.rule)
+            self._rule[0][sol.scenes], self._rule[1][sol.scenes] = sol.rule_type, sol.rule_range
+            for (depart, a_type, a_range), layer in zip(self._layers, departure_layers(sol, self.departures),
+                                                        strict=True):
+                depart[sol.scenes], a_type[sol.scenes], a_range[sol.scenes] = layer.depart, layer.a_type, layer.a_range
+            self._solved[sol.scenes] = True
+        self._tensors = None
+
+    def reset(self, n: int) -> None:
+        """Every episode starts with all its departures left."""
+        self._left = None
+
+    def act(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rule's action, or the departure its context's exact values choose."""
+        view, t, scene = obs["view"], obs["t"], obs["scene"]
+        here = scene.cpu().numpy()
+        if not self._solved[here].all():
+            self._solve(here)
+        if self._tensors is None or self._tensors[0].device != view.device:
+            self._tensors = tuple(torch.as_tensor(a, device=view.device) for a in (*self._rule, *(
+                x for layer in self._layers for x in layer)))
+        rule_type, rule_range, *per_layer = self._tensors
+        full = torch.full_like(t, self.departures)
+        self._left = full if self._left is None else torch.where(t == 0, full, self._left)
+        k = (self.config.t_max - t).clamp(1, self.config.t_max)
+        a_type, a_range = rule_type[scene, k, view], rule_range[scene, k, view]
+        departed = torch.zeros_like(t, dtype=torch.bool)
+        for d in range(1, self.departures + 1):
+            depart, d_type, d_range = per_layer[3 * (d - 1):3 * d]
+            now = (self._left == d) & depart[scene, k, view]
+            a_type = torch.where(now, d_type[scene, k, view], a_type)
+            a_range = torch.where(now, d_range[scene, k, view], a_range)
+            departed |= now
+        self._left = self._left - departed.long()
+        return a_type, a_range

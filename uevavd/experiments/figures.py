@@ -32,6 +32,7 @@ CURVE_METRICS: tuple[tuple[str, str], ...] = (
 )
 CURVE_SPLITS: tuple[tuple[str, str], ...] = (("train", "training contexts"), ("hard", "hard-test contexts"))
 _BASELINE_COLOURS = {"random": "0.45", "passive": "tab:brown", "visibility_oracle": "tab:purple",
+                     "departure_ceiling": "mediumorchid", "departure_ceiling2": "plum",
                      "oracle": "black", "sb3_dqn": "tab:olive", "sb3_ppo": "tab:cyan"}
 #: Colours of other baselines (a plugin's), in order of their names: each its own.
 _MORE_COLOURS = ("tab:pink", "tab:gray", "darkgoldenrod", "teal", "indigo", "firebrick")

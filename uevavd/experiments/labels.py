@@ -10,7 +10,7 @@ METHOD_ORDER: tuple[str, ...] = (
     "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate", "ibe_map_pose_dagger", "ibe_map_pose_dagger_gate",
     "ibe_map_boxpose_gate", "ibe_map_boxpose_dagger_gate", "ibe_map_pose_pays", "ibe_map_boxpose_pays",
     "map_rule", "memo_map_rule", "ibe_map_rule", "ibe_map_boxpose_rule", "ibe_map_boxpose_rule_ens", "sb3_dqn",
-    "sb3_ppo", "visibility_oracle", "oracle")
+    "sb3_ppo", "departure_ceiling", "departure_ceiling2", "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
     "memo_map": "Memo-MAP",
@@ -42,6 +42,8 @@ LABELS: dict[str, str] = {
     "passive": "Passive",
     "box_gate": "Box gate (scripted)",
     "pose_seek": "Pose rule (scripted)",
+    "departure_ceiling": "Pose rule, one exact departure (ceiling)",
+    "departure_ceiling2": "Pose rule, two exact departures (ceiling)",
     "visibility_oracle": "Visibility oracle",
     "oracle": "Class-knowing oracle (upper bound)",
     "sb3_dqn": "SB3 DQN (reference)",

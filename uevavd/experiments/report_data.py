@@ -124,7 +124,8 @@ def label(method: str) -> str:
 
 #: Baselines drawn first (the floor) and last (the ceilings); other baselines sit between the
 #: learned methods and these.
-_FIRST, _LAST = ("random", "passive", "box_gate", "pose_seek"), ("visibility_oracle", "oracle")
+_FIRST = ("random", "passive", "box_gate", "pose_seek")
+_LAST = ("departure_ceiling", "departure_ceiling2", "visibility_oracle", "oracle")
 
 
 def order_methods(methods) -> list[str]:
