@@ -27,10 +27,11 @@ def main() -> int:
     args = parser.parse_args()
 
     import uevavd
+    from uevavd.data.grid import STOP
     from uevavd.env import EnvConfig, evaluate_policy
     from uevavd.env.baselines import PassivePolicy, build_pose_seek, build_visibility_oracle
     from uevavd.env.oracle import oracle_values
-    from uevavd.env.rule_values import departure_ceiling, rule_values
+    from uevavd.env.rule_values import departure_ceiling, departure_layers, rule_values
     from uevavd.experiments.plan import make_plan
     from uevavd.experiments.stages import stage_world
     from uevavd.presets import ZOO
@@ -49,8 +50,9 @@ def main() -> int:
     oracle = oracle_values(table, cfg)
     print("| split | passive | pose_seek | 1 departure | 2 departures | visibility oracle | oracle |")
     print("|---|---|---|---|---|---|---|")
+    sols = {}
     for split in ("train", "simple", "hard"):
-        sol = rule_values(table, split, rule, cfg)
+        sol = sols[split] = rule_values(table, split, rule, cfg)
         passive = evaluate_policy(table, split, PassivePolicy(), cfg).ret.mean()
         seek = evaluate_policy(table, split, rule, cfg).ret.mean()
         assert abs(seek - sol.value[:, cfg.t_max].mean()) < 1e-9  # the exact values are the rollouts'
@@ -58,6 +60,20 @@ def main() -> int:
         vis = evaluate_policy(table, split, build_visibility_oracle(table=table, config=cfg), cfg).ret.mean()
         best = oracle.value[sol.scenes, cfg.t_max].mean()
         print(f"| {split} | {passive:.3f} | {seek:.3f} | {one:.3f} | {two:.3f} | {vis:.3f} | {best:.3f} |")
+    print("\nWhere the one-departure ceiling departs at the first decision (share of starts), and where its "
+          "first-decision moves land:\n")
+    print("| split | departs at once | by stopping | by a move | the move lands on a recognised view | "
+          "where the rule then stops |")
+    print("|---|---|---|---|---|---|")
+    k = cfg.t_max
+    for split, sol in sols.items():
+        layer = departure_layers(sol, 1)[0]
+        depart, a_type, a_range = layer.depart[:, k], layer.a_type[:, k], layer.a_range[:, k]
+        move = depart & (a_type != STOP)
+        scene, view = np.nonzero(move)
+        lands = sol.next_view[view, a_type[move], a_range[move]]
+        print(f"| {split} | {depart.mean():.0%} | {(depart & ~move).mean():.0%} | {move.mean():.0%} | "
+              f"{sol.reco[scene, lands].mean():.0%} | {(sol.rule_type[scene, k - 1, lands] == STOP).mean():.0%} |")
     print(f"\n{time.perf_counter() - t0:.0f} s; numpy {np.__version__}")
     return 0
 
