@@ -6,8 +6,10 @@ target is fully occluded) and the instance segmentation (uint16 PNG under ``seg/
 scene ``seg/categories.json`` and ``scene.json``. ``scene.json`` is written last, atomically,
 and records the sha256 of every other file of the scene: a scene counts as complete only
 when it exists, matches the requested settings and every recorded file hashes to its
-record, so an interrupted run resumes by redoing just the incomplete scenes. The dataset
-card ``uevavd.json`` and ``manifest.json`` (sha256 and size of every file) come last.
+record, so an interrupted run resumes by redoing just the incomplete scenes (a hidden
+``.verified.json`` keeps each file's size, mtime and ctime when it last matched, so an
+unchanged file is not hashed again). The dataset card ``uevavd.json`` and ``manifest.json``
+(sha256 and size of every file) come last.
 
 A scene's view files are written in place: its ``scene.json``, written last and atomically
 (temp file in the same folder, then ``os.replace``) with the hash of every file, is the
@@ -101,24 +103,62 @@ def _views_in(name: str) -> int:
     return N_VIEWS * (len(TARGETS) if name in (UNOCCLUDED_SCENE, CLASSIFIER_SCENE) else 1)
 
 
+#: Per scene folder, hidden from the dataset's readers: the size, mtime and ctime of every file
+#: ``scene.json`` records, when each last matched its sha256 (and that ``scene.json``'s digest).
+_STAMP = ".verified.json"
+
+
+def _stats(folder: Path, rels) -> dict[str, list[int]]:
+    out = {}
+    for rel in rels:
+        st = (folder / rel).stat()
+        out[rel] = [st.st_size, st.st_mtime_ns, st.st_ctime_ns]
+    return out
+
+
+def _stamp(folder: Path, meta_bytes: bytes, rels) -> None:
+    """Record that the files ``rels`` of ``folder`` match ``scene.json`` (``meta_bytes``) now."""
+    stamp = {"scene_json": sha256_hex(meta_bytes), "files": _stats(folder, rels)}
+    atomic_write(folder / _STAMP, json.dumps(stamp).encode())
+
+
+def _stamp_holds(folder: Path, meta_bytes: bytes, rels) -> bool:
+    """The stamp vouches for this ``scene.json`` and no recorded file changed since: the same
+    size, mtime and ctime (which no one can set back: a write with the mtime restored moves it)."""
+    try:
+        stamp = json.loads((folder / _STAMP).read_bytes())
+        return stamp["scene_json"] == sha256_hex(meta_bytes) and stamp["files"] == _stats(folder, rels)
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
 def scene_complete(folder: Path, *, size: int, seed: int) -> bool:
     """True when ``folder/scene.json`` exists, was written by this generator version for
-    (size, seed) and every file it records exists with the recorded sha256."""
+    (size, seed) and every file it records exists with the recorded sha256. A file unchanged
+    since it last matched (size, mtime and ctime, as a table's features are checked) is not
+    hashed again: a cached world is checked in a stat per file."""
     meta_path = folder / layout.SCENE_META
     try:
-        meta = json.loads(meta_path.read_text())
+        meta_bytes = meta_path.read_bytes()
+        meta = json.loads(meta_bytes)
     except (OSError, ValueError):
         return False
     if (meta.get("format"), meta.get("version")) != (FORMAT, VERSION):
         return False  # written by another version of the generator: redo it
     if meta.get("size") != size or meta.get("seed") != seed or not isinstance(meta.get("files"), dict):
         return False
+    if _stamp_holds(folder, meta_bytes, meta["files"]):
+        return True
     for rel, digest in meta["files"].items():
         try:
             if sha256_hex((folder / rel).read_bytes()) != digest:
                 return False
         except OSError:
             return False
+    try:
+        _stamp(folder, meta_bytes, meta["files"])
+    except OSError:
+        pass  # a read-only world: checked by its hashes at every call
     return True
 
 
@@ -130,6 +170,7 @@ def write_scene(root: Path, name: str, *, size: int, seed: int, on_view: Callabl
     for stale in [*folder.glob(".*.tmp*"), *(folder / layout.SEG_DIR).glob(".*.tmp*")]:
         stale.unlink(missing_ok=True)  # left by an interrupted run
     (folder / layout.SCENE_META).unlink(missing_ok=True)  # the scene is incomplete until it is rewritten
+    (folder / _STAMP).unlink(missing_ok=True)
     files: dict[str, str] = {}
     visible: dict[str, float] = {}
     categories: dict[int, str] = {}
@@ -196,7 +237,9 @@ def write_scene(root: Path, name: str, *, size: int, seed: int, on_view: Callabl
         "visible": visible,
         "files": files,
     }
-    atomic_write(folder / layout.SCENE_META, (json.dumps(meta, indent=1) + "\n").encode())
+    meta_bytes = (json.dumps(meta, indent=1) + "\n").encode()
+    atomic_write(folder / layout.SCENE_META, meta_bytes)
+    _stamp(folder, meta_bytes, files)  # the files were hashed as they were written
     return meta
 
 
