@@ -36,7 +36,7 @@ GROUPS = (
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
     ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-quick-world2", "rule-quick-world3",
-                            "rule-paper64")),
+                            "rule-paper64", "rule-paper64-methods")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -108,13 +108,16 @@ COMMANDS = {
     "rule-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
                          "--seeds 5 --recognizers 2",
     "rule-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_pays ibe_map_boxpose_rule",
+    "rule-paper64-methods": "uevavd ablate --preset paper64 --methods map_rule memo_map_rule ibe_map_rule --out A && "
+                            "uevavd ablate --preset paper64 --out B && uevavd report A B",
     "components-encoder": f"{C} --sweep 'perception.encoder={{name=\"resnet18\",weights=\"random\"}},"
                           '{name="resnet50",weights="random"}\'',
     "components-segmenter": f"uevavd train-sam-small W --threads 1 && {C} --sweep perception.segmenter.name=sam",
     "components-factorial": f"{C} --sweep state.name=single_view,gru --sweep perception.decompose=false,true --cross",
 }
 ORDER = ("map", "memo_map", "ibe_map")
-REFERENCES = ("random", "passive", "box_gate", "pose_seek", "visibility_oracle", "oracle")
+REFERENCES = ("random", "passive", "box_gate", "pose_seek", "departure_ceiling", "departure_ceiling2",
+              "visibility_oracle", "oracle")
 
 
 def _git(*args: str) -> str:
