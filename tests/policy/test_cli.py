@@ -22,7 +22,8 @@ def test_train_then_evaluate_from_the_command_line(table, tmp_path, capsys):
     for name in ("map", "random", "passive", "box_gate", "pose_seek", "oracle", "moved_if_box", "gated_return"):
         assert name in out
     result = json.loads((tmp_path / "run" / "eval_hard.json").read_text())
-    assert set(result) == {"map", "random", "passive", "box_gate", "pose_seek", "oracle"}
+    assert set(result) == {"map", "random", "passive", "box_gate", "pose_seek", "departure_ceiling",
+                           "departure_ceiling2", "oracle"}
     # the stopping diagnosis, and the learned policy's return behind the stop gate
     assert {"box_start", "moved_if_box", "box_lost", "reco_lost"} <= set(result["map"]["summary"])
     assert isinstance(result["map"]["gated_return"], float) and result["passive"]["summary"]["moved_if_box"] == 0
