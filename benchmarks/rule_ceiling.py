@@ -31,7 +31,7 @@ def main() -> int:
     from uevavd.env import EnvConfig, evaluate_policy
     from uevavd.env.baselines import PassivePolicy, build_pose_seek, build_visibility_oracle
     from uevavd.env.oracle import oracle_values
-    from uevavd.env.rule_values import departure_ceiling, departure_layers, rule_values
+    from uevavd.env.rule_values import departure_layers, rule_values
     from uevavd.experiments.plan import make_plan
     from uevavd.experiments.stages import stage_world
     from uevavd.presets import ZOO
@@ -52,11 +52,12 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|")
     sols = {}
     for split in ("train", "simple", "hard"):
-        sol = sols[split] = rule_values(table, split, rule, cfg)
+        sol = rule_values(table, split, rule, cfg)
         passive = evaluate_policy(table, split, PassivePolicy(), cfg).ret.mean()
         seek = evaluate_policy(table, split, rule, cfg).ret.mean()
         assert abs(seek - sol.value[:, cfg.t_max].mean()) < 1e-9  # the exact values are the rollouts'
-        one, two = (departure_ceiling(sol, d).mean() for d in (1, 2))
+        layers = sols[split] = (sol, departure_layers(sol, 2))
+        one, two = (layer.value[:, cfg.t_max].mean() for layer in layers[1])
         vis = evaluate_policy(table, split, build_visibility_oracle(table=table, config=cfg), cfg).ret.mean()
         best = oracle.value[sol.scenes, cfg.t_max].mean()
         print(f"| {split} | {passive:.3f} | {seek:.3f} | {one:.3f} | {two:.3f} | {vis:.3f} | {best:.3f} |")
@@ -66,8 +67,7 @@ def main() -> int:
           "where the rule then stops |")
     print("|---|---|---|---|---|---|")
     k = cfg.t_max
-    for split, sol in sols.items():
-        layer = departure_layers(sol, 1)[0]
+    for split, (sol, (layer, _)) in sols.items():
         depart, a_type, a_range = layer.depart[:, k], layer.a_type[:, k], layer.a_range[:, k]
         move = depart & (a_type != STOP)
         scene, view = np.nonzero(move)

@@ -124,8 +124,10 @@ def label(method: str) -> str:
 
 #: Baselines drawn first (the floor) and last (the ceilings); other baselines sit between the
 #: learned methods and these.
+#: The pose rule's privileged departure ceilings (:mod:`uevavd.env.rule_values`), one and two departures.
+DEPARTURE_CEILINGS: tuple[str, ...] = ("departure_ceiling", "departure_ceiling2")
 _FIRST = ("random", "passive", "box_gate", "pose_seek")
-_LAST = ("departure_ceiling", "departure_ceiling2", "visibility_oracle", "oracle")
+_LAST = (*DEPARTURE_CEILINGS, "visibility_oracle", "oracle")
 
 
 def order_methods(methods) -> list[str]:

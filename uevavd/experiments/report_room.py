@@ -14,14 +14,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .report_data import ROOM, SPLITS, estimate, is_baseline, label, learned, md_table
+from .report_data import DEPARTURE_CEILINGS, ROOM, SPLITS, estimate, is_baseline, label, learned, md_table
 from .report_stopping import read_contexts
 
-#: The two references the room lies between, the scripted rules shown beside the learned methods,
-#: and the privileged ceilings of a method anchored to the rule, shown beside the visibility oracle.
+#: The two references the room lies between, and the scripted rules shown beside the learned methods
+#: (the rule's departure ceilings, where evaluated, stand beside the visibility oracle).
 FLOOR, CEILING = "passive", "visibility_oracle"
 SCRIPTED = ("box_gate", "pose_seek")
-DEPARTURES = ("departure_ceiling", "departure_ceiling2")
 KINDS = (("box_return", "box in view"), ("hidden_return", "box hidden"))
 
 
@@ -60,7 +59,7 @@ def room_section(final: pd.DataFrame, setting: str, ablation_dir: Path) -> list[
     present = set(final.loc[final["setting"] == setting, "method"])
     if not {FLOOR, CEILING} <= present or final.loc[final["method"] == CEILING, "hidden_return"].isna().all():
         return []
-    beside = [m for m in DEPARTURES if m in present]
+    beside = [m for m in DEPARTURE_CEILINGS if m in present]
     methods = [*(m for m in SCRIPTED if m in present),
                *learned(final.loc[~is_baseline(final) & (final["setting"] == setting), "method"].unique())]
     means = []
