@@ -230,6 +230,10 @@ def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny
     done = sorted(out.glob("runs/*/*/*/*/done.json"))
     mtimes = {p: p.stat().st_mtime_ns for p in done}
     assert len(done) == 2
+    # what a kill while writing results.csv or saving a figure leaves: the rerun removes it
+    left = [out / ".results.csv.k1ll3d.tmp", out / "report" / ".fig9_curves.pdf.k1ll3d.tmp.pdf"]
+    for p in left:
+        p.write_bytes(b"%PDF-1.4 half")
     asked, real = [], runner.write_report
     monkeypatch.setattr(runner, "write_report", lambda d, *, figures: asked.append(figures) or real(d, figures=False))
     lines: list[str] = []
@@ -240,6 +244,18 @@ def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny
     assert any("reusing classifier" in x for x in lines)
     assert {p: p.stat().st_mtime_ns for p in done} == mtimes
     pd.testing.assert_frame_equal(pd.read_csv(results), before)
+    assert not [p for p in left if p.exists()]
+
+
+def test_a_second_ablation_into_an_out_folder_another_is_writing_is_refused(tiny, tmp_path):
+    """Two ablations with one --out would interleave results.csv and the report, and one could
+    remove the other's temporary files: the second is refused at once, naming the lock."""
+    from uevavd.atomic import folder_lock
+
+    out = tmp_path / "busy"
+    with folder_lock(out, RuntimeError), pytest.raises(AblationError, match=r"being written by another ablation.*\.busy\.lock"):
+        run_ablation(make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1))
+    assert not out.exists()  # nothing written
 
 
 def test_other_configuration_in_the_same_directory_is_refused(ablation, tiny):

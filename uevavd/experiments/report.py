@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..atomic import atomic_write
+from ..atomic import atomic_write, folder_lock, remove_temporaries
 from .arms import arm_label, write_arms
 from .audit import audit_markdown
 from .claims import Claim, check_claims, diagnose
@@ -151,7 +151,7 @@ def _setup_section(meta: dict | None, results: pd.DataFrame, final: pd.DataFrame
         out.append(f"- Note: {n}")
     stages = meta.get("stages") or {}
     if stages:
-        out += ["", "Stage timings:", ""]
+        out += ["", "Stage timings (of the last call: a resumed ablation times what it did after resuming):", ""]
         rows = [[str(k), f"{float(v):.1f}"] for k, v in stages.items()]
         rows.append(["**total**", f"**{sum(float(v) for v in stages.values()):.1f}**"])
         out += md_table(["stage", "wall (s)"], rows)
@@ -359,7 +359,9 @@ def write_report(dir: Path, *, window: int | None = None, figures: bool = True) 
     meta_path = ablation_dir / ABLATION_FILE
     meta = (check_outputs(ablation_dir, read_ablation_meta(meta_path)) if meta_path.is_file()
             else _read_json(meta_path, notes))
-    with recorded_roles(meta):
+    # two reports of one folder take turns; the temporaries a killed one left are removed
+    with recorded_roles(meta), folder_lock(ablation_dir / REPORT_DIR, RuntimeError, wait=lambda lock: None):
+        remove_temporaries(ablation_dir / REPORT_DIR)
         return _write_report(ablation_dir, results, meta, notes, window, figures)
 
 

@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ..atomic import atomic_write_json, is_temporary, write_sealed_json
+from ..atomic import atomic_write_json, folder_lock, is_temporary, remove_temporaries, write_sealed_json
 from ..config_rules import ConfigError
 from ..env.baselines import check_baselines
 from ..perception.decompose import check_decomposition
@@ -180,10 +180,19 @@ def check_perception(plan: Plan) -> None:
 
 
 def run_ablation(plan: Plan, *, log=print) -> Path:
-    """Run (or resume) the whole ablation; returns the results file."""
+    """Run (or resume) the whole ablation; returns the results file. One process at a time
+    writes an ``--out`` folder: a second is refused while the first holds it."""
     check_components(plan)
+    busy = lambda lock: AblationError(f"--out {plan.out} is being written by another ablation (it holds {lock}): "  # noqa: E731
+                                      "wait for it to finish, or choose another --out")
+    with folder_lock(plan.out, busy):
+        return _run_ablation(plan, log)
+
+
+def _run_ablation(plan: Plan, log) -> Path:
     check_out_dir(plan)
     plan.out.mkdir(parents=True, exist_ok=True)
+    remove_temporaries(plan.out)  # what a killed write left here (the runs and the report clean their own)
     write_meta(plan, None, "running")
     with Stage(plan, "world", log):
         data = stage_world(plan, log)
