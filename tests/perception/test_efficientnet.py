@@ -140,6 +140,45 @@ def test_recognizer_training_is_reproducible_whatever_the_global_rng():
     assert torch.equal(torch.random.get_rng_state(), before)  # the caller's stream is left alone
 
 
+def test_a_recognizer_training_killed_after_an_epoch_resumes_to_the_uninterrupted_weights(tmp_path, monkeypatch):
+    """A kill lost the whole training (about 2 minutes at quick, each epoch of it): fit() saves
+    its state after each epoch and resumes from it, to the same weights and history; a
+    checkpoint of another recipe is not resumed."""
+    import uevavd.perception.training.classifier as training
+    from uevavd.perception.training.classifier import ClassifierRecipe, fit
+    from uevavd.perception.weights import state_dict_hash
+
+    rng = np.random.default_rng(1)
+    labels = np.repeat(np.arange(5), 8)
+    images = np.clip(rng.normal(40 * labels[:, None, None, None] + 40, 30, (40, 32, 32, 3)), 0, 255).astype(np.uint8)
+    views = np.tile(np.arange(8), 5)
+    s = ClassifierRecipe(arch="efficientnet_lite0", epochs=3, batch_size=4)
+    model, info = fit(images, labels, views, s, progress=False)
+    whole = state_dict_hash(model.state_dict())
+
+    ckpt = tmp_path / ".rec.safetensors.partial.pt"
+    real, calls = training.predict, []
+
+    def killed_in_epoch_2(*a, **k):  # the validation that ends epoch 2 never comes
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(training, "predict", killed_in_epoch_2)
+    with pytest.raises(KeyboardInterrupt):
+        fit(images, labels, views, s, progress=False, checkpoint=ckpt)
+    monkeypatch.setattr(training, "predict", real)
+    assert torch.load(ckpt, weights_only=True)["epoch"] == 1
+    model2, info2 = fit(images, labels, views, s, progress=False, checkpoint=ckpt)
+    assert state_dict_hash(model2.state_dict()) == whole
+    assert info2["history"] == info["history"]
+
+    other = ClassifierRecipe(arch="efficientnet_lite0", epochs=3, batch_size=8)  # not this checkpoint's recipe
+    fresh = state_dict_hash(fit(images, labels, views, other, progress=False)[0].state_dict())
+    assert state_dict_hash(fit(images, labels, views, other, progress=False, checkpoint=ckpt)[0].state_dict()) == fresh
+
+
 def test_recognizer_weights_do_not_depend_on_the_callers_thread_count():
     """The recognizer's float sums round differently on another torch thread count: the
     quick preset's recognizer trained with ``--no-zoo`` on a 16-core machine (torch's default:

@@ -22,9 +22,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ...atomic import check_writable
+from ...atomic import atomic_save, check_writable
 from ...data.reader import read_dataset
 from ...data.splits import TARGETS
+from ...hashing import sha256_hex
 from ...runtime import resolve_device, torch_threads
 from ..classifier import classifier_cache_path, data_hash, train_records, write_classifier_file
 from ..efficientnet import LITE0_FILE, LITE_MEAN, LITE_STD, check_size, imagenet_backbone, make_lite0
@@ -138,7 +139,7 @@ def predict(model: torch.nn.Module, images: np.ndarray, batch_size: int = 256, *
 
 def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: ClassifierRecipe, *,
         imagenet: str | None = None, n_classes: int = len(TARGETS), progress: bool = True,
-        device: str = "auto", threads: int | None = THREADS):
+        device: str = "auto", threads: int | None = THREADS, checkpoint: Path | None = None):
     """Train on (N, H, W, 3) uint8 crops with (N,) int class labels and (N,) view indices.
 
     Returns ``(model, info)``; ``info`` holds the held-out views, clean validation accuracy,
@@ -149,20 +150,22 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cla
     batches and their augmentation are drawn on the CPU either way, so both devices see the
     same images, and the model comes back on the CPU. On the CPU it trains on ``threads``
     torch threads (default :data:`THREADS`; ``None``: torch's current setting), restored
-    after; ``info["threads"]`` records the count (``None`` on a GPU).
+    after; ``info["threads"]`` records the count (``None`` on a GPU). ``checkpoint``: a file
+    the training state is saved to after each epoch and resumed from (when it holds a training
+    of the same data and recipe), to the weights of an uninterrupted training.
     """
     dev = resolve_device(device)
     cpu_threads = threads if dev.type == "cpu" else None
     with torch.random.fork_rng(devices=[]), torch_threads(cpu_threads):
         torch.manual_seed(int(settings.seed) + 12345)
         model, info = _fit(images, labels, views, settings, imagenet=imagenet, n_classes=n_classes,
-                           progress=progress, device=dev)
+                           progress=progress, device=dev, checkpoint=checkpoint)
         info["threads"] = torch.get_num_threads() if dev.type == "cpu" else None
     return model, info
 
 
 def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: ClassifierRecipe, *,
-         imagenet: str | None, n_classes: int, progress: bool, device: torch.device):
+         imagenet: str | None, n_classes: int, progress: bool, device: torch.device, checkpoint: Path | None):
     from tqdm.auto import tqdm
 
     settings.check()
@@ -184,10 +187,14 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cl
     total = settings.epochs * steps_per_epoch
     opt = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=settings.lr, total_steps=total, pct_start=0.2)
-    history = []
-    bar = tqdm(total=total, desc="train-classifier", unit="batch", disable=not progress)
+    history: list[dict] = []
+    key = sha256_hex(b"".join([repr((asdict(settings), imagenet, n_classes, init, str(device))).encode(),
+                               images.tobytes(), labels.tobytes(), views.tobytes()]))
+    start = _resume(checkpoint, key, model, opt, sched, gen, history)
+    bar = tqdm(total=total, initial=start * steps_per_epoch, desc="train-classifier", unit="batch",
+               disable=not progress)
     t0 = time.perf_counter()
-    for epoch in range(settings.epochs):
+    for epoch in range(start, settings.epochs):
         model.train()
         order = tr[torch.randperm(len(tr), generator=gen).numpy()]
         losses = []
@@ -205,6 +212,11 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cl
         acc = float((predict(model, images[va], norm=norm).argmax(1) == labels[va]).mean())
         history.append({"epoch": epoch + 1, "loss": float(np.mean(losses)), "val_accuracy": acc})
         bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses):.3f}", val_acc=f"{acc:.3f}")
+        if checkpoint is not None and epoch + 1 < settings.epochs:
+            state = {"key": key, "epoch": epoch + 1, "history": history, "model": model.state_dict(),
+                     "opt": opt.state_dict(), "sched": sched.state_dict(), "gen": gen.get_state(),
+                     "rng": torch.random.get_rng_state()}
+            atomic_save(checkpoint, lambda tmp, state=state: torch.save(state, tmp))
     bar.close()
     model = model.cpu().eval()
     info = {
@@ -219,6 +231,28 @@ def _fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cl
         "weights_hash": state_dict_hash(model.state_dict()),
     }
     return model, info
+
+
+def _resume(checkpoint: Path | None, key: str, model, opt, sched, gen: torch.Generator, history: list) -> int:
+    """The epochs done by the training ``checkpoint`` holds, its state loaded into ``model``,
+    ``opt``, ``sched``, ``gen``, torch's global generator and ``history``; 0 when it holds
+    none of this data and recipe (or cannot be read: the training starts over)."""
+    if checkpoint is None or not Path(checkpoint).is_file():
+        return 0
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - a damaged checkpoint costs its epochs, nothing else
+        log.warning("%s: unreadable (%s); training the recognizer from its start", checkpoint, exc)
+        return 0
+    if not isinstance(state, dict) or state.get("key") != key:
+        return 0
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["opt"])
+    sched.load_state_dict(state["sched"])
+    gen.set_state(state["gen"])
+    torch.random.set_rng_state(state["rng"])
+    history += state["history"]
+    return int(state["epoch"])
 
 
 def train_classifier(data: str | Path, out: str | Path | None = None, *, settings: ClassifierRecipe | None = None,
@@ -243,8 +277,9 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
         images = dec.images([r.image for r in recs])
         labels = np.array([TARGETS.index(r.target) for r in recs], np.int64)
         views = np.array([r.view for r in recs], np.int64)
+        partial = out.parent / f".{out.name}.partial.pt"  # the epochs a killed training had done
         model, info = fit(images, labels, views, settings, imagenet=imagenet, progress=progress, device=device,
-                          threads=threads)
+                          threads=threads, checkpoint=partial)
         meta = {
             "arch": settings.arch,
             "classes": list(TARGETS),
@@ -257,5 +292,6 @@ def train_classifier(data: str | Path, out: str | Path | None = None, *, setting
             "val_views": info["val_views"],
         }
         path = write_classifier_file(out, model.state_dict(), meta)
+        partial.unlink(missing_ok=True)
         visibility_report(model, manifest, path, info, decoder=dec, max_views=report_views, seed=settings.seed)
     return path
