@@ -1,6 +1,6 @@
 """A cold start killed at random moments, resumed each time, against one left alone.
 
-    python benchmarks/kill_resume.py [--kills 8] [--seed 0] [--keep DIR]
+    python benchmarks/kill_resume.py [--kills 8] [--seed 0] [--no-zoo] [--keep DIR]
 
 Runs `uevavd demo` from an empty cache twice, in the same folder (so every path it records is
 the same): once uninterrupted (its time T), then again, killed with SIGKILL (its whole process
@@ -10,9 +10,9 @@ output), then compares every file of both caches and output folders:
 
 - files only in one of them (a temporary file left behind counts);
 - files whose content differs, after leaving out what records how long a stage took or when a
-  file was written, and the seals over them (``wall_s``, ``stages``, ``mtime_ns``, ``ctime_ns``
+  file was written, and the seals over them (``wall_s``, ``seconds``, ``stages``, ``mtime_ns``, ``ctime_ns``
   and ``sha256`` keys in JSON, ablation.json's digests of its output files (compared themselves), ``sha256`` arrays in ``.npz``, ``wall_s*`` columns in CSV, the
-  report's stage-timing rows). A table's cache key and its scenes' file names hash the world's
+  report's stage-timing rows and durations in seconds in Markdown). A table's cache key and its scenes' file names hash the world's
   file times (a cache key, not content), so the killed run's keys are mapped to the
   uninterrupted run's by the table's settings and the scene before comparing; lock files,
   TensorBoard event files (named by their start time, one per resume) and the world's check
@@ -47,16 +47,16 @@ from safetensors import safe_open
 
 DEMO = [sys.executable, "-c", "import sys; from uevavd.cli import entry; sys.exit(entry())", "demo"]
 #: keys and columns that record a duration, and the seals computed over them
-TIMING_KEYS = re.compile(r"^(wall|wall_s.*|stages|sha256|meta_sha256|evals_digest|outputs|mtime_ns|ctime_ns)$")
+TIMING_KEYS = re.compile(r"^(wall|wall_s.*|seconds|stages|sha256|meta_sha256|evals_digest|outputs|mtime_ns|ctime_ns)$")
 STAGE_ROW = re.compile(r"^\| (\*\*)?(world|classifier|tables|training|evaluation|report|total)(\*\*)? \| ")
 SKIPPED = re.compile(r"(^|/)(\.[^/]*\.lock|events\.out\.tfevents\.[^/]*|\.verified\.json)$")
 SCENE_FILE = re.compile(r"^(\d{3}|00|train_605)-([0-9a-f]{16})\.npz$")
 
 
-def start(work: Path, log: Path) -> subprocess.Popen:
+def start(work: Path, log: Path, extra: list[str]) -> subprocess.Popen:
     env = {**os.environ, "UEVAVD_CACHE": str(work / "cache"), "SOURCE_DATE_EPOCH": "1700000000"}
     with open(log, "ab") as out:
-        return subprocess.Popen([*DEMO, "--out", str(work / "demo")], cwd=work, env=env, stdout=out,
+        return subprocess.Popen([*DEMO, "--out", str(work / "demo"), *extra], cwd=work, env=env, stdout=out,
                                 stderr=subprocess.STDOUT, start_new_session=True)
 
 
@@ -145,8 +145,9 @@ def normalised(path: Path, keys: dict[str, str]) -> bytes:
         rows = list(csv.reader(io.StringIO(data.decode())))
         keep = [i for i, name in enumerate(rows[0] if rows else []) if not name.startswith("wall_s")]
         return "\n".join(",".join(r[i] for i in keep if i < len(r)) for r in rows).encode()
-    if path.suffix == ".md":
-        return b"\n".join(s for s in data.splitlines() if not STAGE_ROW.match(s.decode(errors="replace")))
+    if path.suffix == ".md":  # the report's stage rows; a duration in seconds anywhere
+        return re.sub(rb"\b\d+(\.\d+)? s\b", b"N s", b"\n".join(
+            s for s in data.splitlines() if not STAGE_ROW.match(s.decode(errors="replace"))))
     return data
 
 
@@ -165,8 +166,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--kills", type=int, default=8, help="kills before the run is left to finish (default 8)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the kill delays (default 0)")
+    ap.add_argument("--no-zoo", action="store_true", help="the demo trains its recognizer (kills can fall in it)")
     ap.add_argument("--keep", type=Path, default=None, help="keep both runs' folders in DIR")
     args = ap.parse_args()
+    extra = ["--no-zoo"] if args.no_zoo else []
     print(refwork(), flush=True)
     base = Path(tempfile.mkdtemp(prefix="uevavd-kill-")) if args.keep is None else args.keep.resolve()
     work, ref, killed = base / "work", base / "uninterrupted", base / "killed"
@@ -175,7 +178,7 @@ def main() -> int:
             sys.exit(f"kill_resume: {p} exists: give --keep an empty or new folder")
     work.mkdir(parents=True)
     t0 = time.perf_counter()
-    rc = start(work, base / "uninterrupted.log").wait()
+    rc = start(work, base / "uninterrupted.log", extra).wait()
     total = time.perf_counter() - t0
     if rc:
         sys.exit(f"kill_resume: the uninterrupted demo exited {rc}: see {base / 'uninterrupted.log'}")
@@ -187,7 +190,7 @@ def main() -> int:
     attempts = 0
     for k in range(args.kills):
         delay = rng.uniform(0.05, 0.4) * total
-        proc = start(work, log)
+        proc = start(work, log, extra)
         attempts += 1
         try:
             proc.wait(timeout=delay)
@@ -199,7 +202,7 @@ def main() -> int:
             print(f"kill {k + 1} after {delay:.0f} s, at: {last_line(log)}", flush=True)
     else:
         t1 = time.perf_counter()
-        rc = start(work, log).wait()
+        rc = start(work, log, extra).wait()
         attempts += 1
         if rc:
             sys.exit(f"kill_resume: the last resume exited {rc}: see {log}")
