@@ -215,7 +215,7 @@ def render() -> str:
         "`summary.csv`. Above each table: the command (as its topic page gives it), the commit that",
         "published it and the machine; below it, the folder (the full report, figures, `results.csv`",
         "and `contexts.csv`) and the section that discusses it. Speed and cost are in",
-        "[measurements.md](measurements.md), each under its command. This page is written by",
+        "[measurements.md](measurements.md) and [cold-start.md](cold-start.md), each under its command. This page is written by",
         "`python benchmarks/results_index.py`; a test checks it is current.",
         "",
     ]
