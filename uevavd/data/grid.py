@@ -41,6 +41,10 @@ STOP = 6
 #: Default maximum range A (range indices 0..A-1 mean 1..A grid steps).
 DEFAULT_MAX_RANGE = 4
 
+#: The grid's left-right mirror (world x to -x): each action type's mirror image, left and right
+#: swapped (:func:`mirror_views` for the viewpoints).
+MIRROR_TYPES: tuple[int, ...] = (0, 1, 3, 2, 4, 5, 6)
+
 # Unit displacement in grid steps (dix, diy, diz) of each action type.
 _DIRECTIONS = np.array(
     [(0, 1, 0), (0, -1, 0), (-1, 0, 0), (1, 0, 0), (0, 0, -1), (0, 0, 1), (0, 0, 0)],
@@ -81,6 +85,13 @@ def view_coords(view: int | np.ndarray) -> np.ndarray:
         axis=-1,
     ).astype(np.float64)
     return out
+
+
+def mirror_views() -> np.ndarray:
+    """(605,) int64: each viewpoint's left-right mirror image (x to -x, y and z kept); applying
+    it twice gives every view back."""
+    ix, iy, iz = grid_indices(np.arange(N_VIEWS))
+    return (((NX - 1 - ix) * NY + iy) * NZ + iz).astype(np.int64)
 
 
 def coords_to_view(x: float, y: float, z: float) -> int:

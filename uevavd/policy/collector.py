@@ -29,11 +29,12 @@ class RunSeeds:
     acting: int  #: epsilon-greedy exploration
     feature_dropout: int  #: the features' augmentation (train.feature_dropout)
     rule_bootstrap: int  #: the rule gate's resamples of the training contexts (train.rule_ensemble)
+    mirror: int  #: which replayed episodes are seen mirrored (train.mirror)
 
     @classmethod
     def of(cls, seed: int) -> RunSeeds:
         return cls(network=seed, replay=seed + 1, env=seed + 2, acting=seed + 3, feature_dropout=seed + 4,
-                   rule_bootstrap=seed + 5)
+                   rule_bootstrap=seed + 5, mirror=seed + 6)
 
 
 @dataclasses.dataclass

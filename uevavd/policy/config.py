@@ -24,7 +24,7 @@ MAX_UPDATES_PER_STEP = 1024
 LEGACY_TRAIN = {"replay_sampling": "vectorised", "context_sampling": "uniform", "plr_temperature": 0.1,
                 "plr_staleness": 0.1, "feature_dropout": 0.0, "aux_recognition": 0.0,
                 "stop_gate": "none", "stop_threshold": 0.5, "imitation": "none", "imitation_fraction": 1.0,
-                "rule_ensemble": 0, "rule_margin": 0.0}
+                "rule_ensemble": 0, "rule_margin": 0.0, "mirror": 0.0}
 #: What a run may imitate (``train.imitation``).
 IMITATIONS = ("none", "visibility_oracle")
 #: How training picks each new episode's context (``train.context_sampling``).
@@ -156,6 +156,13 @@ class TrainConfig:
     rule_margin: float = 0.0
     """The rule ensemble's margin: the advantage over the rule (in return units) that the
     ensemble's lowest prediction must exceed for a departure."""
+    mirror: float = 0.0
+    """Augmentation by the task's left-right mirror: each replayed episode of an update seen, with
+    this probability, as its mirror image (world x to -x: the boxes' columns reversed, the pose's
+    x negated, the moves left and right swapped, the rule's and the grid's edges mirrored), its
+    rewards kept; 0 = none. The world's distribution is symmetric under it; the recognizer is not
+    trained to be, so a mirrored episode is one of a mirrored world with the same recognitions.
+    Only for estimators that read no image features (``state.image = false``)."""
     imitation: Literal["none", "visibility_oracle"] = "none"
     """"visibility_oracle": DAgger (Ross et al. 2011) with the visibility oracle as the expert. The
     student acts (epsilon-greedy, as in every run), and every decision it takes is labelled with
@@ -235,6 +242,9 @@ class TrainConfig:
         need(self.stop_gate != "rule" or self.imitation == "none", "stop_gate",
              "not 'rule' with train.imitation: the rule gate trains by the TD loss (leave train.imitation out, "
              "or use stop_gate 'box' or 'pays')")
+        need(isinstance(self.mirror, int | float) and 0.0 <= self.mirror <= 1.0, "mirror", "a probability in [0, 1]")
+        need(self.mirror == 0.0 or self.imitation == "none", "mirror",
+             "0 with train.imitation: the expert's labels are not mirrored (leave one of them out)")
         need(self.imitation_fraction == 1.0 or self.imitation != "none", "imitation_fraction",
              "its default 1.0: it is the share of training that imitates, and train.imitation is 'none' (set "
              "train.imitation, or leave train.imitation_fraction out)")

@@ -2,7 +2,8 @@
 
 * :class:`FeatureLookup` - the observation table as device tensors, for replayed episodes.
 * :class:`FeatureDropout` / :class:`RecognitionProbe` - the optional augmentation of the
-  features an update reads, and the optional auxiliary objective on the state.
+  features an update reads, and the optional auxiliary objective on the state (the mirror's
+  augmentation is in :mod:`.mirror`).
 * :class:`Learner` - the double-DQN update on a batch of whole episodes, with
   :func:`needed_observations` (what a batch encodes) and :func:`episode_q` (Q over episodes).
 
@@ -24,6 +25,7 @@ from ..env.oracle import flight_pays
 from ..state.base import estimator_boxes, reads_pose
 from . import targets as T
 from .imitation import OracleLabels, imitation_loss
+from .mirror import MirrorAugment
 from .network import PROBED_GATES, TRAINING_GATES, QNetwork
 from .replay import EpisodeBatch
 
@@ -172,8 +174,12 @@ class Learner:
 
     def __init__(self, net: QNetwork, *, lr: float, gamma: float, grad_clip: float, loss: str = "huber",
                  feature_dropout: FeatureDropout | None = None, aux_recognition: RecognitionProbe | None = None,
-                 imitation: OracleLabels | None = None, pays: PaysLabels | None = None) -> None:
+                 imitation: OracleLabels | None = None, pays: PaysLabels | None = None,
+                 mirror: MirrorAugment | None = None) -> None:
         self.net = net
+        if mirror is not None and imitation is not None:
+            raise ValueError("mirror= with imitation=: the expert's labels are not mirrored")
+        self.mirror = mirror
         if net.stop_gate in PROBED_GATES and pays is None:
             raise ValueError(f'stop_gate "{net.stop_gate}" trains on where a flight pays: pass pays= '
                              '(FlightPays(env.tensors), RulePays(env.tensors, moves))')
@@ -201,7 +207,7 @@ class Learner:
     def parts(self) -> dict[str, Any]:
         """The optional parts a checkpoint holds besides the networks and the optimizer."""
         return {k: v for k, v in (("feature_dropout", self.feature_dropout), ("aux_recognition", self.aux_recognition),
-                                  ("stop_probe", self.stop_probe)) if v is not None}
+                                  ("stop_probe", self.stop_probe), ("mirror", self.mirror)) if v is not None}
 
     def update(self, batch: EpisodeBatch, lookup: FeatureLookup, *, imitate: bool = False
                ) -> tuple[float, torch.Tensor]:
@@ -219,8 +225,13 @@ class Learner:
         feats, boxes, mask = lookup.gather_rows(batch.scene, batch.views, seen)
         if self.feature_dropout is not None:
             feats = self.feature_dropout(feats)
+        views, a_type = batch.views, batch.a_type  # as the update sees them: mirrored where train.mirror draws it
+        if self.mirror is not None:
+            flip = self.mirror.draw(len(batch.scene))
+            views, a_type = self.mirror.apply(flip, batch.views, batch.a_type)
+            boxes, mask = self.mirror.boxes(boxes, flip[:, None].expand_as(seen)[seen]), lookup.mask[views]
         est = self.net.estimator  # the estimator's input: the box, and the pose where it reads one
-        inputs = estimator_boxes(est, boxes, lookup.pose_rows(batch.views, seen) if reads_pose(est) else None)
+        inputs = estimator_boxes(est, boxes, lookup.pose_rows(views, seen) if reads_pose(est) else None)
         q_all, s = episode_q(self.net, feats, inputs, seen, with_state=True)
         if imitate:
             assert self.imitation is not None, "imitate=True on a learner without the expert's labels"
@@ -243,11 +254,11 @@ class Learner:
                 seen_boxes[seen] = boxes
                 pays = self.pays.episodes(batch.scene, batch.views) if self.pays is not None else None
                 steps = torch.arange(seen.shape[1], device=seen.device)[None].expand_as(batch.views)
-                mask = self.net.allowed(mask, seen_boxes, training=True, pays=pays, view=batch.views, t=steps)
+                mask = self.net.allowed(mask, seen_boxes, training=True, pays=pays, view=views, t=steps)
             boot = head.bootstrap(q_next_online, q_next_target, mask[:, 1:])  # (B, T, K)
             y = T.td_target(batch.reward, batch.done, boot, self.gamma)
-        q_taken = head.taken(tuple(q[:, :-1] for q in q_all), batch.a_type, batch.a_range)  # (B, T, K)
-        w = head.weights(batch.a_type) * batch.valid[..., None].float()
+        q_taken = head.taken(tuple(q[:, :-1] for q in q_all), a_type, batch.a_range)  # (B, T, K)
+        w = head.weights(a_type) * batch.valid[..., None].float()
         if self.loss == "huber":
             per = F.smooth_l1_loss(q_taken, y, reduction="none")
         else:

@@ -48,6 +48,7 @@ from .contract import build_checked_network
 from .imitation import OracleLabels, check_branches
 from .learner import FeatureDropout, FeatureLookup, FlightPays, Learner, RecognitionProbe
 from .level_replay import level_replay
+from .mirror import MirrorAugment
 from .replay import EpisodeReplay
 from .rule_gate import RulePays
 from .rundir import (
@@ -291,6 +292,10 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
                        if cfg.feature_dropout else None)
     aux_recognition = (RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev)
                        if cfg.aux_recognition else None)
+    if cfg.mirror and getattr(getattr(net.estimator, "encoder", None), "reads_image", True):
+        raise ConfigError(f"train.mirror = {cfg.mirror}: expected 0 for a state that reads image features (the "
+                          "table's features are not mirrored): set state.image = false, or leave train.mirror out")
+    mirror = MirrorAugment(cfg.mirror, seed=seeds.mirror, device=dev) if cfg.mirror else None
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=seeds.replay, sampling=cfg.replay_sampling, device=dev)
     env = BatchedAODEnv(table, "train", cfg.n_envs, env_cfg, device=dev, seed=seeds.env, features_dtype=torch.float16)
@@ -305,7 +310,7 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
         pays = RulePays(env.tensors, int(net.rule_moves), ensemble=cfg.rule_ensemble, seed=seeds.rule_bootstrap)
     learner = Learner(net, lr=cfg.lr, gamma=cfg.gamma, grad_clip=cfg.grad_clip, loss=cfg.loss,
                       feature_dropout=feature_dropout, aux_recognition=aux_recognition, imitation=imitation,
-                      pays=pays)
+                      pays=pays, mirror=mirror)
     lookup = FeatureLookup(env.tensors)
     evaluator = _Evaluator(table, cfg, env_cfg, dev, net)
     out.mkdir(parents=True, exist_ok=True)
