@@ -35,8 +35,8 @@ GROUPS = (
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
-    ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-quick-world2", "rule-quick-world3",
-                            "rule-quick-world4", "rule-paper64", "rule-paper64-methods")),
+    ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-validation-mirror", "rule-quick-world2",
+                            "rule-quick-world3", "rule-quick-world4", "rule-paper64", "rule-paper64-methods")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -103,6 +103,7 @@ COMMANDS = {
                        "--sweep-methods ibe_map_boxpose_rule",
     "rule-validation-ens": f"uevavd ablate {S} --methods ibe_map_boxpose_rule_ens --sweep train.rule_margin=0.02,0.05 "
                            "--sweep-methods ibe_map_boxpose_rule_ens",
+    "rule-validation-mirror": f"uevavd ablate {S} --methods ibe_map_boxpose_rule ibe_map_boxpose_rule_mirror",
     "rule-quick-world2": "uevavd ablate --preset quick --world-seed 2 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
                          "--seeds 5 --recognizers 2",
     "rule-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
