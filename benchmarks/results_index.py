@@ -36,7 +36,8 @@ GROUPS = (
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
     ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-validation-mirror", "rule-quick-world2",
-                            "rule-quick-world3", "rule-quick-world4", "rule-paper64", "rule-paper64-methods")),
+                            "rule-quick-world3", "rule-quick-world4", "rule-paper64", "rule-paper64-methods",
+                            "mirror-quick-world5", "mirror-quick-world4")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -109,6 +110,10 @@ COMMANDS = {
     "rule-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
                          "--seeds 5 --recognizers 2",
     "rule-quick-world4": "uevavd ablate --preset quick --world-seed 4 --methods ibe_map_boxpose_rule --seeds 5 --recognizers 2",
+    "mirror-quick-world5": "uevavd ablate --preset quick --world-seed 5 --methods ibe_map_boxpose_rule "
+                           "ibe_map_boxpose_rule_mirror --seeds 5 --recognizers 2",
+    "mirror-quick-world4": "uevavd ablate --preset quick --world-seed 4 --methods ibe_map_boxpose_rule "
+                           "ibe_map_boxpose_rule_mirror --seeds 5 --recognizers 2",
     "rule-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_pays ibe_map_boxpose_rule",
     "rule-paper64-methods": "uevavd ablate --preset paper64 --methods map_rule memo_map_rule ibe_map_rule --out A && "
                             "uevavd ablate --preset paper64 --out B && uevavd report A B",
