@@ -1,14 +1,15 @@
-"""The paired difference of two learned methods of one ablation, per split and terrain.
+"""The paired difference of two methods of one or more ablations, per split and terrain.
 
-    python benchmarks/paired_difference.py DIR METHOD_A METHOD_B [--split hard]
+    python benchmarks/paired_difference.py DIR [DIR ...] --a METHOD_A --b METHOD_B [--split hard]
 
-Reads DIR/contexts.csv (the final evaluation of every run on every context) and prints, for
-each split asked for and each terrain in it, mean return of A, of B and A - B, paired by
-(recognizer, seed): each run's mean over the split's (or terrain's) contexts, A's minus B's of
-the same recognizer and seed, then the report's two-stage bootstrap over recognizers, then
-seeds (:func:`uevavd.experiments.stats.nested_bootstrap`), with its 95 % interval. The report
-pairs each method with the baselines; this pairs two methods with each other. Default
-setting rows only.
+Reads each DIR/contexts.csv (the final evaluation of every run on every context) and prints,
+for each split asked for and each terrain in it, the mean return of A, of B and A - B, paired
+by recognizer and seed: each run's mean over the split's (or terrain's) contexts, minus B's run
+of the same recognizer and seed, or, where B is a baseline (one run per recognizer), B's run
+of that recognizer; then the report's two-stage bootstrap over recognizers, then runs
+(:func:`uevavd.experiments.stats.nested_bootstrap`), with its 95 % interval. Several folders
+(ablations of one world with different recognizers) pool their recognizers, each folder's
+counted apart. Default setting rows only.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from uevavd.experiments.stats import nested_bootstrap
 
 
 def run_means(rows: list[dict], method: str, split: str, terrain: str | None) -> dict[tuple[str, str], float]:
-    """{(recognizer, seed): mean return over the contexts of ``split`` (and ``terrain``)}."""
+    """{(folder:recognizer, seed): mean return over the contexts of ``split`` (and ``terrain``)}."""
     acc: dict[tuple[str, str], list[float]] = defaultdict(list)
     for r in rows:
         if r["method"] == method and r["split"] == split and r["setting"] == "default" and \
@@ -32,44 +33,63 @@ def run_means(rows: list[dict], method: str, split: str, terrain: str | None) ->
     return {k: sum(v) / len(v) for k, v in acc.items()}
 
 
+def pair(a: dict, b: dict) -> dict[tuple[str, str], float] | None:
+    """A - B per run of A: B's run of the same (recognizer, seed), or B's one run of that
+    recognizer; None when B has neither for some run of A."""
+    per_recognizer = defaultdict(list)
+    for (rec, _), v in b.items():
+        per_recognizer[rec].append(v)
+    out = {}
+    for (rec, seed), v in a.items():
+        if (rec, seed) in b:
+            out[(rec, seed)] = v - b[(rec, seed)]
+        elif len(per_recognizer.get(rec, ())) == 1:
+            out[(rec, seed)] = v - per_recognizer[rec][0]
+        else:
+            return None
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("folder", type=Path, help="an ablation's output folder (holding contexts.csv)")
-    ap.add_argument("a", help="method A (the row's first term)")
-    ap.add_argument("b", help="method B (subtracted)")
-    ap.add_argument("--split", action="append", help="split(s) to report (default: every split of the file)")
+    ap.add_argument("folders", type=Path, nargs="+", help="ablation output folders (each holding contexts.csv)")
+    ap.add_argument("--a", required=True, help="method A (the difference's first term)")
+    ap.add_argument("--b", required=True, help="method or baseline B (subtracted)")
+    ap.add_argument("--split", action="append", help="split(s) to report (default: every split of the files)")
     args = ap.parse_args()
-    path = args.folder / "contexts.csv"
-    if not path.is_file():
-        print(f"paired_difference: {path} not found: expected an ablation's output folder "
-              "(uevavd ablate --out DIR)", file=sys.stderr)
-        return 2
-    with path.open(encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
+    rows = []
+    for folder in args.folders:
+        path = folder / "contexts.csv"
+        if not path.is_file():
+            print(f"paired_difference: {path} not found: expected an ablation's output folder "
+                  "(uevavd ablate --out DIR)", file=sys.stderr)
+            return 2
+        with path.open(encoding="utf-8") as f:
+            rows += [{**r, "recognizer": f"{folder}:{r['recognizer']}"} for r in csv.DictReader(f)]
     for m in (args.a, args.b):
         if not any(r["method"] == m for r in rows):
-            have = sorted({r["method"] for r in rows})
-            print(f"paired_difference: no method {m!r} in {path}: expected one of {have}", file=sys.stderr)
+            print(f"paired_difference: no method {m!r} in {[str(f) for f in args.folders]}: expected one of "
+                  f"{sorted({r['method'] for r in rows})}", file=sys.stderr)
             return 2
     splits = args.split or sorted({r["split"] for r in rows})
-    lines = ["| split | terrain | runs | A | B | A - B [95 %] |", "|---|---|---|---|---|---|"]
+    lines = ["| split | terrain | recognizers | runs | A | B | A - B [95 %] |", "|---|---|---|---|---|---|---|"]
     for split in splits:
         terrains = sorted({r["terrain"] for r in rows if r["split"] == split})
         for terrain in (None, *terrains) if len(terrains) > 1 else (None,):
             a, b = run_means(rows, args.a, split, terrain), run_means(rows, args.b, split, terrain)
-            if a.keys() != b.keys():
-                print(f"paired_difference: {args.a} has runs {sorted(a)} and {args.b} {sorted(b)} on {split}: expected "
-                      "two learned methods of the same recognizers and seeds (the report pairs each method with the "
-                      "baselines)", file=sys.stderr)
+            d = pair(a, b)
+            if d is None:
+                print(f"paired_difference: {args.b} has neither a run of each seed of {args.a} nor one run per "
+                      f"recognizer on {split}: expected a method of the same seeds or a baseline", file=sys.stderr)
                 return 2
-            keys = sorted(a)
-            if not keys:
+            if not d:
                 continue
-            ea = nested_bootstrap([a[k] for k in keys], [k[0] for k in keys])
-            eb = nested_bootstrap([b[k] for k in keys], [k[0] for k in keys])
-            d = nested_bootstrap([a[k] - b[k] for k in keys], [k[0] for k in keys])
-            lines.append(f"| {split} | {terrain or 'all'} | {len(keys)} | {ea.mean:.3f} | {eb.mean:.3f} | "
-                         f"{d.mean:+.3f} [{d.lo:+.3f}, {d.hi:+.3f}] |")
+            keys = sorted(d)
+            groups = [k[0] for k in keys]
+            ea = nested_bootstrap([a[k] for k in keys], groups)
+            est = nested_bootstrap([d[k] for k in keys], groups)
+            lines.append(f"| {split} | {terrain or 'all'} | {len(set(groups))} | {len(keys)} | {ea.mean:.3f} | "
+                         f"{ea.mean - est.mean:.3f} | {est.mean:+.3f} [{est.lo:+.3f}, {est.hi:+.3f}] |")
     print("\n".join(lines))
     return 0
 

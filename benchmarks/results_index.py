@@ -37,7 +37,8 @@ GROUPS = (
                                 "pose-paper64")),
     ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-validation-mirror", "rule-quick-world2",
                             "rule-quick-world3", "rule-quick-world4", "rule-paper64", "rule-paper64-methods",
-                            "mirror-quick-world5", "mirror-quick-world4")),
+                            "mirror-quick-world5", "mirror-quick-world4", "mirror-quick-world2", "mirror-quick-world3",
+                            "mirror-paper64")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -114,6 +115,11 @@ COMMANDS = {
                            "ibe_map_boxpose_rule_mirror --seeds 5 --recognizers 2",
     "mirror-quick-world4": "uevavd ablate --preset quick --world-seed 4 --methods ibe_map_boxpose_rule "
                            "ibe_map_boxpose_rule_mirror --seeds 5 --recognizers 2",
+    "mirror-quick-world2": "uevavd ablate --preset quick --world-seed 2 --methods ibe_map_boxpose_rule "
+                           "ibe_map_boxpose_rule_mirror --seeds 5 --recognizers 2",
+    "mirror-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods ibe_map_boxpose_rule "
+                           "ibe_map_boxpose_rule_mirror --seeds 5 --recognizers 2",
+    "mirror-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_rule ibe_map_boxpose_rule_mirror",
     "rule-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_pays ibe_map_boxpose_rule",
     "rule-paper64-methods": "uevavd ablate --preset paper64 --methods map_rule memo_map_rule ibe_map_rule --out A && "
                             "uevavd ablate --preset paper64 --out B && uevavd report A B",
