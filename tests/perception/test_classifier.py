@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from uevavd.cli import main
 from uevavd.data.reader import read_dataset
@@ -83,6 +84,7 @@ def test_a_preset_gives_the_recipe_and_options_win(world_605, tmp_path, capsys, 
     assert (settings["init"], settings["max_views"], settings["batch_size"], settings["lr"]) == ("random", 10, 16, 2e-3)
     assert settings["epochs"] == 1  # the option, not the preset's 3
     assert train["threads"] == 1  # recorded: the weights depend on it
+    assert train["kernels"] == torch.backends.cpu.get_cpu_capability()  # and may depend on these
     monkeypatch.delenv("UEVAVD_DEBUG", raising=False)
     capsys.readouterr()
     assert main(["train-classifier", str(world_605), "--out", str(out), "--threads", "0"]) == 2

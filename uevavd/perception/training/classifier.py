@@ -150,7 +150,8 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cla
     batches and their augmentation are drawn on the CPU either way, so both devices see the
     same images, and the model comes back on the CPU. On the CPU it trains on ``threads``
     torch threads (default :data:`THREADS`; ``None``: torch's current setting), restored
-    after; ``info["threads"]`` records the count (``None`` on a GPU). ``checkpoint``: a file
+    after; ``info["threads"]`` records the count (``None`` on a GPU) and ``info["kernels"]`` torch's
+    CPU kernel set (``AVX512``, ``AVX2``, ...) or the GPU's name. ``checkpoint``: a file
     the training state is saved to after each epoch and resumed from (when it holds a training
     of the same data and recipe), to the weights of an uninterrupted training.
     """
@@ -161,6 +162,8 @@ def fit(images: np.ndarray, labels: np.ndarray, views: np.ndarray, settings: Cla
         model, info = _fit(images, labels, views, settings, imagenet=imagenet, n_classes=n_classes,
                            progress=progress, device=dev, checkpoint=checkpoint)
         info["threads"] = torch.get_num_threads() if dev.type == "cpu" else None
+        # the kernels it trained with: the same recipe on another CPU family or GPU may train other weights
+        info["kernels"] = torch.backends.cpu.get_cpu_capability() if dev.type == "cpu" else torch.cuda.get_device_name(dev)
     return model, info
 
 
