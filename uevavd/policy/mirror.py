@@ -1,10 +1,11 @@
 """The task's left-right mirror as an augmentation of the updates (``train.mirror``).
 
-World x to -x maps the task's distribution onto itself (docs/generalisation.md, "The mirror"):
-the grid is symmetric in x, the camera's pixel centres are symmetric about the image centre,
-and the world's layouts, sun and vehicle models are drawn symmetric in x. Of one episode it
-maps the boxes' columns, the pose's x, the views and the moves left and right; the
-recognizer's answers are kept, since no recognizer here is trained to be mirror-invariant.
+World x to -x maps the task's distribution onto itself (docs/generalisation.md, "Past the rule:
+the mirror"): the grid is symmetric in x, the camera's pixel centres are symmetric about the
+image centre, the street layouts are mirrored at random in x, the sun's azimuth is uniform and
+each vehicle model is symmetric across its length. Of one episode it maps the boxes' columns,
+the pose's x, the views and the moves left and right; the recognizer's answers are kept, since
+no recognizer here is trained to be mirror-invariant.
 """
 
 from __future__ import annotations
