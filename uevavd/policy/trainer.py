@@ -32,6 +32,7 @@ from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
 from ..runtime import resolve_device, torch_threads
+from ..state.base import reads_image
 from ..table import load_table
 from ..version import __version__
 from .acting import GreedyPolicy
@@ -292,7 +293,7 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
                        if cfg.feature_dropout else None)
     aux_recognition = (RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev)
                        if cfg.aux_recognition else None)
-    if cfg.mirror and getattr(getattr(net.estimator, "encoder", None), "reads_image", True):
+    if cfg.mirror and reads_image(net.estimator):
         raise ConfigError(f"train.mirror = {cfg.mirror}: expected 0 for a state that reads image features (the "
                           "table's features are not mirrored): set state.image = false, or leave train.mirror out")
     mirror = MirrorAugment(cfg.mirror, seed=seeds.mirror, device=dev) if cfg.mirror else None

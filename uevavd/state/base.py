@@ -35,6 +35,13 @@ def reads_pose(estimator: Any) -> bool:
     return bool(getattr(estimator, "pose", False))
 
 
+def reads_image(estimator: Any) -> bool:
+    """Whether a state estimator reads the table's image features: True unless its
+    :class:`ObservationEncoder` is built without them (``state.image = false``); a plugin's
+    estimator without that encoder counts as reading them."""
+    return bool(getattr(getattr(estimator, "encoder", None), "reads_image", True))
+
+
 def estimator_boxes(estimator: Any, box: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:
     """What ``estimator`` reads as its ``boxes``: ``box`` (..., 4) itself, or, for an estimator
     that reads the pose, ``[box, pose]`` (..., 7) with ``pose`` (..., 3) metres (the
