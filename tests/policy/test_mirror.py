@@ -133,7 +133,7 @@ def test_mirror_settings_are_checked(tmp_path):
         with pytest.raises(ConfigError, match="train.mirror"):
             TrainConfig(**bad)
     table = hidden_table()
-    with pytest.raises(ConfigError, match="train.mirror = 0.5: expected 0 for a state that reads image features"):
+    with pytest.raises(ConfigError, match="train.mirror = 0.5: expected 0 for a state that reads the table.s features"):
         train(_spec("ibe_map_pose_pays", **{"train.mirror": 0.5}), table, out=tmp_path / "run", seed=0,
               device="cpu", progress=False)
     assert not (tmp_path / "run").exists()

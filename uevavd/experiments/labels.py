@@ -10,7 +10,7 @@ METHOD_ORDER: tuple[str, ...] = (
     "ibe_map_gate_pess", "ibe_map_pose", "ibe_map_pose_gate", "ibe_map_pose_dagger", "ibe_map_pose_dagger_gate",
     "ibe_map_boxpose_gate", "ibe_map_boxpose_dagger_gate", "ibe_map_pose_pays", "ibe_map_boxpose_pays",
     "map_rule", "memo_map_rule", "ibe_map_rule", "ibe_map_boxpose_rule", "ibe_map_boxpose_rule_ens",
-    "ibe_map_boxpose_rule_mirror", "sb3_dqn", "sb3_ppo", "departure_ceiling", "departure_ceiling2", "visibility_oracle", "oracle")
+    "ibe_map_boxpose_rule_mirror", "ibe_map_boxpose_rule_reco", "sb3_dqn", "sb3_ppo", "departure_ceiling", "departure_ceiling2", "visibility_oracle", "oracle")
 LABELS: dict[str, str] = {
     "map": "MAP",
     "memo_map": "Memo-MAP",
@@ -39,6 +39,7 @@ LABELS: dict[str, str] = {
     "ibe_map_boxpose_rule": "IBE-MAP (box + pose state, pose rule where the box is hidden)",
     "ibe_map_boxpose_rule_ens": "IBE-MAP (box + pose state, pose rule where the box is hidden, context ensemble)",
     "ibe_map_boxpose_rule_mirror": "IBE-MAP (box + pose state, pose rule where the box is hidden, mirror augmentation)",
+    "ibe_map_boxpose_rule_reco": "IBE-MAP (box + pose + recognizer state, pose rule where the box is hidden)",
     "random": "Random",
     "passive": "Passive",
     "box_gate": "Box gate (scripted)",

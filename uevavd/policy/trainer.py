@@ -32,7 +32,7 @@ from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
 from ..runtime import resolve_device, torch_threads
-from ..state.base import reads_image
+from ..state.base import reads_image, reads_recognizer
 from ..table import load_table
 from ..version import __version__
 from .acting import GreedyPolicy
@@ -293,9 +293,13 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
                        if cfg.feature_dropout else None)
     aux_recognition = (RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev)
                        if cfg.aux_recognition else None)
-    if cfg.mirror and reads_image(net.estimator):
-        raise ConfigError(f"train.mirror = {cfg.mirror}: expected 0 for a state that reads image features (the "
-                          "table's features are not mirrored): set state.image = false, or leave train.mirror out")
+    if reads_recognizer(net.estimator) and not spec.perception.recognizer_in_state:
+        raise ConfigError("state.recognizer = true: expected perception.recognizer_in_state = true (the table's "
+                          "features then end with the recognizer's class probabilities the state reads)")
+    if cfg.mirror and (reads_image(net.estimator) or reads_recognizer(net.estimator)):
+        raise ConfigError(f"train.mirror = {cfg.mirror}: expected 0 for a state that reads the table's features (they "
+                          "are not mirrored): set state.image = false and leave state.recognizer out, or leave "
+                          "train.mirror out")
     mirror = MirrorAugment(cfg.mirror, seed=seeds.mirror, device=dev) if cfg.mirror else None
     replay = EpisodeReplay(cfg.buffer_episodes, env_cfg.t_max, alpha=cfg.per_alpha, eps=cfg.per_eps,
                            seed=seeds.replay, sampling=cfg.replay_sampling, device=dev)

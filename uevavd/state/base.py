@@ -18,15 +18,20 @@ from __future__ import annotations
 from typing import Any, Protocol, runtime_checkable
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from ..config_rules import ConfigError, check_flag
 from ..data.grid import XS, YS, ZS
+from ..data.splits import TARGETS
 
 #: The pose's centre and half-span per axis (metres): the encoder reads (pose - centre) / span, in [-1, 1].
 POSE_CENTRE = ((XS[0] + XS[-1]) / 2, (YS[0] + YS[-1]) / 2, (ZS[0] + ZS[-1]) / 2)
 POSE_SPAN = ((XS[-1] - XS[0]) / 2, (YS[-1] - YS[0]) / 2, (ZS[-1] - ZS[0]) / 2)
 #: Columns of an estimator's boxes input: the box (4), then the pose (3) where it reads one.
 BOX_COLUMNS, POSE_COLUMNS = 4, 3
+#: The recognizer's class probabilities a table built with ``perception.recognizer_in_state`` ends its features with.
+RECOGNIZER_COLUMNS = len(TARGETS)
 
 
 def reads_pose(estimator: Any) -> bool:
@@ -40,6 +45,21 @@ def reads_image(estimator: Any) -> bool:
     :class:`ObservationEncoder` is built without them (``state.image = false``); a plugin's
     estimator without that encoder counts as reading them."""
     return bool(getattr(getattr(estimator, "encoder", None), "reads_image", True))
+
+
+def reads_recognizer(estimator: Any) -> bool:
+    """Whether a state estimator reads the recognizer's class probabilities at the end of the
+    table's features without the image's (``state.image = false``, ``state.recognizer = true``)."""
+    return bool(getattr(getattr(estimator, "encoder", None), "recognizer_columns", 0))
+
+
+def check_recognizer(image: Any, recognizer: Any) -> bool:
+    """``state.recognizer`` checked for a built-in estimator: a TOML boolean, and true only beside
+    ``state.image = false`` (the image's features already end with the recognizer's probabilities)."""
+    if check_flag("state", "recognizer", recognizer) and image is not False:
+        raise ConfigError("state.recognizer = true: expected it beside state.image = false (with the image's "
+                          "features the state reads the recognizer's probabilities after them already)")
+    return recognizer
 
 
 def estimator_boxes(estimator: Any, box: torch.Tensor, pose: torch.Tensor | None) -> torch.Tensor:
@@ -62,10 +82,13 @@ class ObservationEncoder(nn.Module):
     (:data:`POSE_CENTRE`, :data:`POSE_SPAN`): (..., image_dim + box_dim + pose_dim).
 
     With ``image`` False the encoder reads no image: its image part is that of an all-zero
-    feature vector, ReLU(b), whatever the view (g_t keeps its width and its weights' names)."""
+    feature vector, ReLU(b), whatever the view (g_t keeps its width and its weights' names).
+    With ``recognizer`` as well it reads the features' last :data:`RECOGNIZER_COLUMNS` columns
+    only, the recognizer's class probabilities of a table built with
+    ``perception.recognizer_in_state``: ReLU(W_img f + b) with the image's columns of f zero."""
 
     def __init__(self, feature_dim: int, image_dim: int = 512, box_dim: int = 32, pose_dim: int = 0,
-                 image: bool = True) -> None:
+                 image: bool = True, recognizer: bool = False) -> None:
         super().__init__()
         if feature_dim < 1 or image_dim < 1 or box_dim < 1 or pose_dim < 0:
             raise ValueError(
@@ -73,7 +96,14 @@ class ObservationEncoder(nn.Module):
                 f"image_dim={image_dim}, box_dim={box_dim} (pose_dim={pose_dim} >= 0)"
             )
         self.feature_dim, self.image_dim, self.box_dim, self.pose_dim = feature_dim, image_dim, box_dim, pose_dim
+        if image and recognizer:
+            raise ValueError("an encoder that reads the image's features reads the recognizer's probabilities "
+                             "after them already: set image = false to read the recognizer's alone")
+        if recognizer and feature_dim <= RECOGNIZER_COLUMNS:
+            raise ValueError(f"feature_dim={feature_dim}: a table with the recognizer's {RECOGNIZER_COLUMNS} class "
+                             "probabilities after the image's features has more columns")
         self.reads_image = bool(image)
+        self.recognizer_columns = RECOGNIZER_COLUMNS if recognizer else 0
         self.image = nn.Linear(feature_dim, image_dim)
         self.box = nn.Linear(BOX_COLUMNS, box_dim)
         if pose_dim:  # not in the paper's estimators' state dicts: their files load as before
@@ -102,6 +132,9 @@ class ObservationEncoder(nn.Module):
                 f"features have {features.shape[-1]} channels but the encoder was built for "
                 f"{self.feature_dim}; build the state estimator with feature_dim={features.shape[-1]}"
             )
+        if self.recognizer_columns:
+            k = self.recognizer_columns
+            return torch.relu(F.linear(features[..., -k:], self.image.weight[:, -k:], self.image.bias))
         if not self.reads_image:
             return torch.relu(self.image.bias).expand(*features.shape[:-1], self.image_dim)
         return torch.relu(self.image(features))

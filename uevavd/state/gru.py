@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..config_rules import check_flag, check_widths
-from .base import ObservationEncoder
+from .base import ObservationEncoder, check_recognizer
 from .packed_gru import packed_gru, supports_packed
 
 
@@ -22,12 +22,12 @@ class GRUState(nn.Module):
     recurrent = True
 
     def __init__(self, feature_dim: int, input_dim: int, box_dim: int, hidden: int, state_dim: int,
-                 pose_dim: int = 0, image: bool = True) -> None:
+                 pose_dim: int = 0, image: bool = True, recognizer: bool = False) -> None:
         super().__init__()
         if input_dim <= box_dim:
             raise ValueError(f"input_dim={input_dim} must exceed box_dim={box_dim} (g_t = image + box)")
         self.feature_dim, self.hidden_dim, self.state_dim, self.pose = feature_dim, hidden, state_dim, pose_dim > 0
-        self.encoder = ObservationEncoder(feature_dim, input_dim - box_dim, box_dim, pose_dim, image)
+        self.encoder = ObservationEncoder(feature_dim, input_dim - box_dim, box_dim, pose_dim, image, recognizer)
         self.gru = nn.GRU(input_dim + pose_dim, hidden, batch_first=True)
         self.out = nn.Linear(hidden, state_dim)
 
@@ -108,14 +108,16 @@ class GRUState(nn.Module):
 def build_gru(
     *, feature_dim: int = 2048, input_dim: int = 544, box_dim: int = 32, hidden: int | None = None,
     state_dim: int = 512, pose: bool = False, pose_dim: int = 32, image: bool = True,
+    recognizer: bool = False,
 ) -> GRUState:
     """The recurrent estimator (paper sizes: g_t 544, h_t 544, s_t 512). ``hidden`` (h_t)
     defaults to ``input_dim``, as in the paper, so scaling g_t scales h_t with it.
     ``feature_dim`` (D of the table) is passed by the trainer at build time. With ``pose``
     (``state.pose``; needs ``env.pose``) g_t gains ``pose_dim`` channels for the viewpoint's pose;
-    with ``image`` false (``state.image``) it reads no image features (:class:`ObservationEncoder`)."""
+    with ``image`` false (``state.image``) it reads no image features, and with ``recognizer`` as well
+    (``state.recognizer``) the recognizer's class probabilities alone (:class:`ObservationEncoder`)."""
     hidden = input_dim if hidden is None else hidden
     check_widths("state", input_dim=input_dim, box_dim=box_dim, hidden=hidden, state_dim=state_dim,
                  **({"pose_dim": pose_dim} if check_flag("state", "pose", pose) else {}))
     return GRUState(feature_dim, input_dim, box_dim, hidden, state_dim, pose_dim if pose else 0,
-                    check_flag("state", "image", image))
+                    check_flag("state", "image", image), check_recognizer(image, recognizer))
