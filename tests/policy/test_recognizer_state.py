@@ -23,7 +23,7 @@ D = 8  # the toy table's feature size: 3 image columns, then the 5 class probabi
 
 
 @pytest.mark.parametrize("build", [build_gru, build_single_view])
-def test_the_estimator_reads_the_last_five_columns_and_nothing_before_them(build):
+def test_the_estimator_reads_the_last_five_columns_ranked_and_nothing_before_them(build):
     est = build(feature_dim=D, input_dim=24, box_dim=8, state_dim=16, pose=True, image=False, recognizer=True)
     assert reads_recognizer(est) and not reads_image(est)
     check_estimator_rules(est, feature_dim=D)
@@ -33,7 +33,11 @@ def test_the_estimator_reads_the_last_five_columns_and_nothing_before_them(build
     image_changed = f.clone()
     image_changed[..., :D - RECOGNIZER_COLUMNS] = torch.randn(2, 3, D - RECOGNIZER_COLUMNS) * 9
     assert torch.equal(s, est(image_changed, inputs))  # whatever the image's features
-    assert not torch.allclose(s, est(f.flip(-1), inputs))  # the probabilities move it
+    probs = f[..., D - RECOGNIZER_COLUMNS:]
+    relabelled = torch.cat([f[..., :D - RECOGNIZER_COLUMNS], probs[..., torch.tensor([3, 0, 4, 1, 2])]], dim=-1)
+    assert torch.equal(s, est(relabelled, inputs))  # whichever class holds which probability
+    surer = torch.cat([f[..., :D - RECOGNIZER_COLUMNS], probs * torch.tensor([4.0, 0, 0, 0, 0])], dim=-1)
+    assert not torch.allclose(s, est(surer, inputs))  # how sure it is moves the state
     blind = build(feature_dim=D, input_dim=24, box_dim=8, state_dim=16, pose=True, image=False)
     assert set(blind.state_dict()) == set(est.state_dict())  # one file layout
     with pytest.raises(ConfigError, match="state.recognizer = true: expected it beside state.image = false"):

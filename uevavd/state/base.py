@@ -48,8 +48,8 @@ def reads_image(estimator: Any) -> bool:
 
 
 def reads_recognizer(estimator: Any) -> bool:
-    """Whether a state estimator reads the recognizer's class probabilities at the end of the
-    table's features without the image's (``state.image = false``, ``state.recognizer = true``)."""
+    """Whether a state estimator reads the recognizer's class probabilities (sorted) at the end of
+    the table's features without the image's (``state.image = false``, ``state.recognizer = true``)."""
     return bool(getattr(getattr(estimator, "encoder", None), "recognizer_columns", 0))
 
 
@@ -85,7 +85,10 @@ class ObservationEncoder(nn.Module):
     feature vector, ReLU(b), whatever the view (g_t keeps its width and its weights' names).
     With ``recognizer`` as well it reads the features' last :data:`RECOGNIZER_COLUMNS` columns
     only, the recognizer's class probabilities of a table built with
-    ``perception.recognizer_in_state``: ReLU(W_img f + b) with the image's columns of f zero."""
+    ``perception.recognizer_in_state``, sorted from the largest: ReLU(W p + b) of how sure the
+    recognizer is, whichever class it names. The reward reads the true class's probability
+    against a threshold, the same for every class, so the state does not learn which class a
+    view shows, which would not carry over to a target it never trained on."""
 
     def __init__(self, feature_dim: int, image_dim: int = 512, box_dim: int = 32, pose_dim: int = 0,
                  image: bool = True, recognizer: bool = False) -> None:
@@ -132,9 +135,10 @@ class ObservationEncoder(nn.Module):
                 f"features have {features.shape[-1]} channels but the encoder was built for "
                 f"{self.feature_dim}; build the state estimator with feature_dim={features.shape[-1]}"
             )
-        if self.recognizer_columns:
+        if self.recognizer_columns:  # sorted: which class is likeliest is not the state's to read
             k = self.recognizer_columns
-            return torch.relu(F.linear(features[..., -k:], self.image.weight[:, -k:], self.image.bias))
+            ranked = features[..., -k:].sort(dim=-1, descending=True).values
+            return torch.relu(F.linear(ranked, self.image.weight[:, -k:], self.image.bias))
         if not self.reads_image:
             return torch.relu(self.image.bias).expand(*features.shape[:-1], self.image_dim)
         return torch.relu(self.image(features))
