@@ -35,10 +35,11 @@ GROUPS = (
                                  "stopping-validation-gate-pess", "stopping-quick", "stopping-paper64")),
     ("Where to fly: the pose", ("pose-validation-image", "pose-validation", "pose-quick", "pose-quick-world1",
                                 "pose-paper64")),
-    ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-validation-mirror", "rule-quick-world2",
-                            "rule-quick-world3", "rule-quick-world4", "rule-paper64", "rule-paper64-methods",
+    ("Past the pose rule", ("rule-validation", "rule-validation-ens", "rule-validation-mirror", "rule-validation-reco",
+                            "rule-quick-world2", "rule-quick-world3", "rule-quick-world4", "rule-paper64", "rule-paper64-methods",
                             "mirror-quick-world5", "mirror-quick-world4", "mirror-quick-world2", "mirror-quick-world3",
-                            "mirror-paper64")),
+                            "mirror-paper64", "reco-quick-world6", "reco-quick-world2", "reco-quick-world3",
+                            "reco-paper64")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -106,6 +107,8 @@ COMMANDS = {
     "rule-validation-ens": f"uevavd ablate {S} --methods ibe_map_boxpose_rule_ens --sweep train.rule_margin=0.02,0.05 "
                            "--sweep-methods ibe_map_boxpose_rule_ens",
     "rule-validation-mirror": f"uevavd ablate {S} --methods ibe_map_boxpose_rule ibe_map_boxpose_rule_mirror",
+    "rule-validation-reco": f"uevavd ablate {S} --methods ibe_map_boxpose_rule ibe_map_boxpose_rule_reco "
+                            "--sweep train.stop_threshold=0.5,0.7 --sweep-methods ibe_map_boxpose_rule_reco",
     "rule-quick-world2": "uevavd ablate --preset quick --world-seed 2 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
                          "--seeds 5 --recognizers 2",
     "rule-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods map memo_map ibe_map map_rule memo_map_rule ibe_map_rule ibe_map_boxpose_pays ibe_map_boxpose_rule ibe_map_boxpose_rule_ens "
@@ -120,6 +123,13 @@ COMMANDS = {
     "mirror-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods ibe_map_boxpose_rule "
                            "ibe_map_boxpose_rule_mirror --seeds 5 --recognizers 2",
     "mirror-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_rule ibe_map_boxpose_rule_mirror",
+    "reco-quick-world6": "uevavd ablate --preset quick --world-seed 6 --methods ibe_map_boxpose_rule "
+                         "ibe_map_boxpose_rule_reco --seeds 5 --recognizers 2",
+    "reco-quick-world2": "uevavd ablate --preset quick --world-seed 2 --methods ibe_map_boxpose_rule "
+                         "ibe_map_boxpose_rule_reco --seeds 5 --recognizers 2",
+    "reco-quick-world3": "uevavd ablate --preset quick --world-seed 3 --methods ibe_map_boxpose_rule "
+                         "ibe_map_boxpose_rule_reco --seeds 5 --recognizers 2",
+    "reco-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_rule ibe_map_boxpose_rule_reco",
     "rule-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_pays ibe_map_boxpose_rule",
     "rule-paper64-methods": "uevavd ablate --preset paper64 --methods map_rule memo_map_rule ibe_map_rule --out A && "
                             "uevavd ablate --preset paper64 --out B && uevavd report A B",
