@@ -53,6 +53,14 @@ def test_a_run_needs_the_recognizers_columns_in_its_table(tmp_path):
     with pytest.raises(ConfigError, match="train.mirror = 0.5: expected 0"):
         train(_spec("ibe_map_boxpose_rule_reco", **{"train.mirror": 0.5}), hidden_table(), out=tmp_path / "run",
               seed=0, device="cpu", progress=False)
+    t = hidden_table()
+    probs = np.array(t.probs)[..., :4]
+    four = ObservationTable.from_arrays(np.array(t.features), probs / probs.sum(-1, keepdims=True), np.array(t.boxes),
+                                        scenes=list(t.scenes), targets=[int(x) % 4 for x in t.targets],
+                                        splits=list(t.splits), contexts=list(t.contexts),
+                                        class_names=t.class_names[:4], config={"four": 1})
+    with pytest.raises(ConfigError, match="expected a table of 5 classes"):
+        train(_spec("ibe_map_boxpose_rule_reco"), four, out=tmp_path / "run", seed=0, device="cpu", progress=False)
     assert not (tmp_path / "run").exists()
 
 

@@ -32,7 +32,7 @@ from ..env.batched import BatchedAODEnv, EnvTensors
 from ..env.config import EnvConfig
 from ..env.evaluate import evaluate_policy
 from ..runtime import resolve_device, torch_threads
-from ..state.base import reads_image, reads_recognizer
+from ..state.base import RECOGNIZER_COLUMNS, reads_image, reads_recognizer
 from ..table import load_table
 from ..version import __version__
 from .acting import GreedyPolicy
@@ -296,6 +296,9 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
     if reads_recognizer(net.estimator) and not spec.perception.recognizer_in_state:
         raise ConfigError("state.recognizer = true: expected perception.recognizer_in_state = true (the table's "
                           "features then end with the recognizer's class probabilities the state reads)")
+    if reads_recognizer(net.estimator) and len(table.class_names) != RECOGNIZER_COLUMNS:
+        raise ConfigError(f"state.recognizer = true: expected a table of {RECOGNIZER_COLUMNS} classes, the state's "
+                          f"recognizer columns; table {table.path or table.key} has {len(table.class_names)}")
     if cfg.mirror and (reads_image(net.estimator) or reads_recognizer(net.estimator)):
         raise ConfigError(f"train.mirror = {cfg.mirror}: expected 0 for a state that reads the table's features (they "
                           "are not mirrored): set state.image = false and leave state.recognizer out, or leave "
