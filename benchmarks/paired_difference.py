@@ -1,6 +1,6 @@
 """The paired difference of two methods of one or more ablations, per split and terrain.
 
-    python benchmarks/paired_difference.py DIR [DIR ...] --a METHOD_A --b METHOD_B [--split hard]
+    python benchmarks/paired_difference.py DIR [DIR ...] --a METHOD_A --b METHOD_B [--split hard] [--by-recognizer]
 
 Reads each DIR/contexts.csv (the final evaluation of every run on every context) and prints,
 for each split asked for and each terrain in it, the mean return of A, of B and A - B, paired
@@ -9,7 +9,8 @@ of the same recognizer and seed, or, where B is a baseline (one run per recogniz
 of that recognizer; then the report's two-stage bootstrap over recognizers, then runs
 (:func:`uevavd.experiments.stats.nested_bootstrap`), with its 95 % interval. Several folders
 (ablations of one world with different recognizers) pool their recognizers, each folder's
-counted apart. Default setting rows only.
+counted apart. Default setting rows only. ``--by-recognizer`` adds each recognizer's own
+difference (a bootstrap over its seeds): a pooled gain that only some recognizers give shows there.
 """
 
 from __future__ import annotations
@@ -56,6 +57,8 @@ def main() -> int:
     ap.add_argument("--a", required=True, help="method A (the difference's first term)")
     ap.add_argument("--b", required=True, help="method or baseline B (subtracted)")
     ap.add_argument("--split", action="append", help="split(s) to report (default: every split of the files)")
+    ap.add_argument("--by-recognizer", action="store_true",
+                    help="also print each recognizer's own difference, all terrains together")
     args = ap.parse_args()
     rows = []
     for folder in args.folders:
@@ -73,6 +76,7 @@ def main() -> int:
             return 2
     splits = args.split or sorted({r["split"] for r in rows})
     lines = ["| split | terrain | recognizers | runs | A | B | A - B [95 %] |", "|---|---|---|---|---|---|---|"]
+    own: list[tuple[str, dict, dict]] = []  # (split, A's run means, A - B per run) for --by-recognizer
     for split in splits:
         terrains = sorted({r["terrain"] for r in rows if r["split"] == split})
         for terrain in (None, *terrains) if len(terrains) > 1 else (None,):
@@ -90,6 +94,16 @@ def main() -> int:
             est = nested_bootstrap([d[k] for k in keys], groups)
             lines.append(f"| {split} | {terrain or 'all'} | {len(set(groups))} | {len(keys)} | {ea.mean:.3f} | "
                          f"{ea.mean - est.mean:.3f} | {est.mean:+.3f} [{est.lo:+.3f}, {est.hi:+.3f}] |")
+            if args.by_recognizer and terrain is None:
+                own.append((split, a, d))
+    if args.by_recognizer:
+        lines += ["", "| split | recognizer | runs | A | B | A - B [95 %] |", "|---|---|---|---|---|---|"]
+        for split, a, d in own:
+            for rec in sorted({k[0] for k in d}):
+                keys = sorted(k for k in d if k[0] == rec)
+                ea, est = (nested_bootstrap([x[k] for k in keys], [rec] * len(keys)) for x in (a, d))
+                lines.append(f"| {split} | {rec} | {len(keys)} | {ea.mean:.3f} | {ea.mean - est.mean:.3f} | "
+                             f"{est.mean:+.3f} [{est.lo:+.3f}, {est.hi:+.3f}] |")
     print("\n".join(lines))
     return 0
 

@@ -39,3 +39,19 @@ def test_two_folders_pool_their_recognizers_and_bad_input_exits_2(tmp_path):
     unknown = _run(str(FOLDER), "--a", "nope", "--b", "pose_seek")
     assert unknown.returncode == 2 and "no method 'nope'" in unknown.stderr
     assert "Traceback" not in missing.stderr + unknown.stderr
+
+
+def test_each_recognizers_own_difference_averages_to_the_pooled_one():
+    folder = ROOT / "docs" / "results" / "reco4-quick-world2"
+    out = _run(str(folder), "--a", "ibe_map_boxpose_rule_reco", "--b", "pose_seek", "--split", "hard", "--by-recognizer")
+    assert out.returncode == 0, out.stderr
+    pooled = next(line for line in out.stdout.splitlines() if line.startswith("| hard | all |"))
+    own = [line for line in out.stdout.splitlines() if line.startswith(f"| hard | {folder}:")]
+    assert len(own) == 4 and all("| 5 |" in line for line in own)  # 4 recognizers of 5 seeds each
+
+    def mean(line: str) -> float:
+        return float(line.rsplit("|", 2)[-2].split("[")[0])
+
+    # the pooled estimate is the mean of the recognizers' means (the two-stage bootstrap's point)
+    assert abs(sum(mean(line) for line in own) / 4 - mean(pooled)) < 0.001
+    assert min(mean(line) for line in own) < 0 < max(mean(line) for line in own)  # a gain only some give
