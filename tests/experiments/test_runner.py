@@ -247,6 +247,27 @@ def test_rerun_skips_finished_runs_and_rewrites_identical_results(ablation, tiny
     assert not [p for p in left if p.exists()]
 
 
+def test_a_finished_ablation_grows_to_more_seeds_in_place(ablation, tiny, tmp_path):
+    import shutil
+
+    out = tmp_path / "grown"
+    shutil.copytree(ablation["plan"].out, out)
+    before = pd.read_csv(ablation["results"])
+    done = sorted(out.glob("runs/*/*/*/*/done.json"))
+    mtimes = {p: p.stat().st_mtime_ns for p in done}
+    lines: list[str] = []
+    plan = make_plan(preset=str(tiny["preset"]), out=out, data=tiny["world"], workers=1, seeds=2, figures=False)
+    after = pd.read_csv(run_ablation(plan, log=lines.append))
+    assert any("4 runs, 2 finished already, 2 to run" in x for x in lines)
+    assert {p: p.stat().st_mtime_ns for p in done} == mtimes  # the finished runs kept, not retrained
+    learned = before["method"].isin(["map", "ibe_map"])
+    assert learned.sum() > 0 and set(before.loc[learned, "seed"]) == {0}
+    assert sorted(after.loc[after["method"].isin(["map", "ibe_map"]), "seed"].unique()) == [0, 1]
+    kept = after[after["seed"].eq(0) & after["method"].isin(["map", "ibe_map"])].reset_index(drop=True)
+    pd.testing.assert_frame_equal(kept[before.columns], before[learned].reset_index(drop=True),
+                                  check_dtype=False)
+
+
 def test_a_second_ablation_into_an_out_folder_another_is_writing_is_refused(tiny, tmp_path):
     """Two ablations with one --out would interleave results.csv and the report, and one could
     remove the other's temporary files: the second is refused at once, naming the lock."""
