@@ -293,13 +293,14 @@ def _setup(spec: MethodSpec, table: Any, out: Path, *, episodes: int | None, see
                        if cfg.feature_dropout else None)
     aux_recognition = (RecognitionProbe(net.estimator.state_dim, cfg.aux_recognition).to(dev)
                        if cfg.aux_recognition else None)
-    if reads_recognizer(net.estimator) and not spec.perception.recognizer_in_state:
+    recognizer = reads_recognizer(net.estimator)  # the table's last columns: the recognizer's probabilities
+    if recognizer and not spec.perception.recognizer_in_state:
         raise ConfigError("state.recognizer = true: expected perception.recognizer_in_state = true (the table's "
                           "features then end with the recognizer's class probabilities the state reads)")
-    if reads_recognizer(net.estimator) and len(table.class_names) != RECOGNIZER_COLUMNS:
+    if recognizer and len(table.class_names) != RECOGNIZER_COLUMNS:
         raise ConfigError(f"state.recognizer = true: expected a table of {RECOGNIZER_COLUMNS} classes, the state's "
                           f"recognizer columns; table {table.path or table.key} has {len(table.class_names)}")
-    if cfg.mirror and (reads_image(net.estimator) or reads_recognizer(net.estimator)):
+    if cfg.mirror and (recognizer or reads_image(net.estimator)):
         raise ConfigError(f"train.mirror = {cfg.mirror}: expected 0 for a state that reads the table's features (they "
                           "are not mirrored): set state.image = false and leave state.recognizer out, or leave "
                           "train.mirror out")
