@@ -41,7 +41,8 @@ GROUPS = (
                             "mirror-paper64", "reco-quick-world6", "reco-quick-world2", "reco-quick-world3",
                             "reco-quick-world4", "reco-quick-world5", "reco-paper64", "reco4-quick-world2",
                             "reco4-quick-world3", "reco4-paper64", "reco4-quick-world7", "reco-paper64-world8",
-                            "reco-paper64-world9", "reco-paper64-world2")),
+                            "reco-paper64-world9", "reco-paper64-world2",
+                            "reco-paper64-world10")),
     ("The paper's components, ablated", ("components-encoder", "components-segmenter", "components-factorial")),
 )
 #: Results whose arms are settings of one method: their tables give every setting's row.
@@ -150,6 +151,8 @@ COMMANDS = {
                            "ibe_map_boxpose_rule_reco --seeds 5 --recognizers 2",
     "reco-paper64-world2": "uevavd ablate --preset paper64 --world-seed 2 --methods ibe_map_boxpose_rule "
                            "ibe_map_boxpose_rule_reco --seeds 5 --recognizers 2",
+    "reco-paper64-world10": "uevavd ablate --preset paper64 --world-seed 10 --methods ibe_map_boxpose_rule "
+                            "ibe_map_boxpose_rule_reco --seeds 5 --recognizers 2",
     "rule-paper64": "uevavd ablate --preset paper64 --methods ibe_map_boxpose_pays ibe_map_boxpose_rule",
     "rule-paper64-methods": "uevavd ablate --preset paper64 --methods map_rule memo_map_rule ibe_map_rule --out A && "
                             "uevavd ablate --preset paper64 --out B && uevavd report A B",
