@@ -58,26 +58,26 @@ def pair(a: dict, b: dict) -> dict[tuple[str, str], float] | None:
     return out
 
 
-def world_of(folder: Path) -> str | None:
-    """``"<preset> world <seed>"`` of the ablation in ``folder`` (its ablation.json), None when unreadable."""
+def world_of(folder: Path) -> tuple[str, int] | None:
+    """(preset name, world seed) of the ablation in ``folder`` (its ablation.json), None when unreadable."""
     try:
         preset = json.loads((folder / "ablation.json").read_text(encoding="utf-8"))["fingerprint"]["preset"]
-        return f"{preset['name']} world {preset['world']['seed']}"
+        return str(preset["name"]), int(preset["world"]["seed"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
 
-def by_world(split: str, d: dict[tuple[str, str], float], world: dict[str, str]) -> list[str]:
+def by_world(split: str, d: dict[tuple[str, str], float], world: dict[str, tuple[str, int]]) -> list[str]:
     """Rows of each world's A - B (the two-stage bootstrap over its recognizers and seeds) and
     of their mean over worlds (a Student-t interval over the worlds' differences)."""
     lines, means = [], []
-    for w in sorted(set(world.values()), key=lambda w: (w.split()[0], int(w.split()[-1]))):
+    for w in sorted(set(world.values())):
         keys = sorted(k for k in d if world[k[0]] == w)
         if not keys:
             continue
         est = nested_bootstrap([d[k] for k in keys], [k[0] for k in keys])
         means.append(est.mean)
-        lines.append(f"| {split} | {w} | {len({k[0] for k in keys})} | {len(keys)} | "
+        lines.append(f"| {split} | {w[0]} world {w[1]} | {len({k[0] for k in keys})} | {len(keys)} | "
                      f"{est.mean:+.3f} [{est.lo:+.3f}, {est.hi:+.3f}] |")
     over = Estimate.of(means)
     interval = f"[{over.lo:+.3f}, {over.hi:+.3f}]" if over.defined else "(one world: no interval)"
@@ -96,7 +96,7 @@ def main() -> int:
     ap.add_argument("--by-world", action="store_true",
                     help="also print each world's difference and their mean over worlds (t interval over worlds)")
     args = ap.parse_args()
-    rows, world = [], {}
+    rows, world = [], {}  # world: {folder:recognizer: (preset, world seed)} for --by-world
     for folder in args.folders:
         path = folder / "contexts.csv"
         if not path.is_file():
@@ -104,14 +104,15 @@ def main() -> int:
                   "(uevavd ablate --out DIR)", file=sys.stderr)
             return 2
         with path.open(encoding="utf-8") as f:
-            rows += [{**r, "recognizer": f"{folder}:{r['recognizer']}"} for r in csv.DictReader(f)]
+            own_rows = [{**r, "recognizer": f"{folder}:{r['recognizer']}"} for r in csv.DictReader(f)]
+        rows += own_rows
         if args.by_world:
             w = world_of(folder)
             if w is None:
                 print(f"paired_difference: {folder / 'ablation.json'} has no readable preset and world seed: "
                       "--by-world needs each folder's ablation.json as `uevavd ablate` wrote it", file=sys.stderr)
                 return 2
-            world.update({r["recognizer"]: w for r in rows if r["recognizer"].startswith(f"{folder}:")})
+            world.update({r["recognizer"]: w for r in own_rows})
     for m in (args.a, args.b):
         if not any(r["method"] == m for r in rows):
             print(f"paired_difference: no method {m!r} in {[str(f) for f in args.folders]}: expected one of "
